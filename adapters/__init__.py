@@ -1,0 +1,1 @@
+"""Simulator suites behind one contract (see `adapters.base`); found through `adapters.registry`."""

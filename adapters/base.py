@@ -1,0 +1,94 @@
+"""The suite contract: what every simulator adapter gives the runner.
+
+A suite is data: a named, versioned tuple of tasks, each with its instruction, step
+budget and a fixed list of episode specs. Only `make_env` touches a simulator, so the
+suite can be listed, validated and planned without the simulator installed.
+
+The environment contract is Gymnasium's (`reset`/`step`) plus two conventions:
+- `reset(seed=spec.seed, options={"episode": spec})` puts the env in that episode's
+  initial condition (layout, fixed initial state, visual variant). Protocol steps that
+  do not count (e.g. LIBERO's no-op settle steps) happen inside `reset`.
+- `info["success"]` is a bool on every step. Chains of instructions (CALVIN-like)
+  also report `info["subtasks_completed"]` and the instruction now in force in
+  `info["instruction"]`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """One reproducible episode of a task: the same spec gives the same start."""
+
+    index: int
+    seed: int | None = None
+    init_state_id: int | None = None
+    # Visual/physical variant (SimplerEnv-like): e.g. {"lighting": "dim"}.
+    variant: Mapping[str, Any] = field(default_factory=dict, hash=False)
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task of a suite. `instructions` has several entries for instruction chains."""
+
+    name: str
+    instruction: str
+    max_steps: int
+    episodes: tuple[EpisodeSpec, ...]
+    index: int = 0
+    # Later instructions of a chain (CALVIN-like); empty for single-instruction tasks.
+    chain: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A named, versioned list of tasks and how to build an environment for one."""
+
+    name: str
+    version: str
+    tasks: tuple[TaskSpec, ...]
+    make_env: Callable[[TaskSpec], gym.Env]
+    description: str = ""
+    # The pip extra that provides the simulator, e.g. "metaworld".
+    extra: str = ""
+    # Which simulator packages matter for provenance (recorded in the manifest).
+    simulator_packages: tuple[str, ...] = ()
+    # How observations are rendered: "none (state)" or e.g. "egl"; recorded per run.
+    render_backend: str = "none (state observations)"
+
+    def task(self, name_or_index: str) -> TaskSpec:
+        """Look a task up by name or by its position in the suite."""
+        for task in self.tasks:
+            if task.name == name_or_index:
+                return task
+        if name_or_index.isdigit() and int(name_or_index) < len(self.tasks):
+            return self.tasks[int(name_or_index)]
+        raise KeyError(name_or_index)
+
+
+@dataclass(frozen=True)
+class SuiteInfo:
+    """What `list suites` shows; cheap to build, no simulator import."""
+
+    name: str
+    description: str
+    num_tasks: int
+    episodes_per_task: int
+    extra: str
+    installed: bool
+
+
+def derive_seed(*parts: object) -> int:
+    """A stable 31-bit seed from a tuple of names and numbers.
+
+    Python's `hash` is salted per process, so it cannot make seeds that two runs share.
+    """
+    text = "/".join(str(p) for p in parts)
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "big") >> 1

@@ -1,0 +1,66 @@
+"""Finds suites by name: built-in providers plus the `dvla_harness.adapters` entry points.
+
+A provider owns a name prefix (e.g. "metaworld/") and answers two questions without
+importing its simulator: which suites it has, and how to load one by name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+
+from adapters.base import Suite, SuiteInfo
+
+ENTRY_POINT_GROUP = "dvla_harness.adapters"
+
+
+class UnknownSuiteError(LookupError):
+    """The name matches no suite; the message lists the valid ones."""
+
+
+class MissingExtraError(RuntimeError):
+    """The suite's simulator is not installed; the message names the pip extra."""
+
+
+@dataclass(frozen=True)
+class SuiteProvider:
+    prefix: str
+    list_suites: Callable[[], list[SuiteInfo]]
+    load_suite: Callable[[str], Suite]
+
+
+def _builtin_providers() -> list[SuiteProvider]:
+    from adapters import metaworld
+
+    return [metaworld.PROVIDER]
+
+
+def _plugin_providers() -> list[SuiteProvider]:
+    found = []
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        provider = ep.load()
+        if not isinstance(provider, SuiteProvider):
+            raise TypeError(
+                f"entry point {ep.name!r} in {ENTRY_POINT_GROUP} must be a SuiteProvider, "
+                f"got {type(provider).__name__}"
+            )
+        found.append(provider)
+    return found
+
+
+def providers() -> list[SuiteProvider]:
+    return _builtin_providers() + _plugin_providers()
+
+
+def list_suites() -> list[SuiteInfo]:
+    return [info for p in providers() for info in p.list_suites()]
+
+
+def load_suite(name: str) -> Suite:
+    """Load a suite by its full name, e.g. `metaworld/mt10` or `metaworld/mt1/reach-v3`."""
+    for provider in providers():
+        if name.startswith(provider.prefix):
+            return provider.load_suite(name)
+    valid = ", ".join(info.name for info in list_suites())
+    raise UnknownSuiteError(f"unknown suite {name!r}; valid suites: {valid}")

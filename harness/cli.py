@@ -1,0 +1,328 @@
+"""The `dvla-harness` command line (also `python -m harness`).
+
+Exit status: 0 success; 1 some episodes raised (recorded with a failure_reason);
+2 bad input (nothing written); 130 interrupted (what finished is kept; use --resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from harness.errors import UsageError
+
+EXAMPLES = """\
+examples:
+  dvla-harness run                                   # the main job (embedded default config)
+  dvla-harness run --suite metaworld/mt10 --policy scripted --episodes-per-task 10 --out runs/demo
+  dvla-harness run --suite metaworld/mt1/reach-v3 --policy random:seed=3 --episodes-per-task 2
+  dvla-harness run --out runs/demo --resume          # finish an interrupted run
+  dvla-harness list suites | policies | tasks metaworld/mt10
+  dvla-harness show runs/demo
+"""
+
+# Pipes and CI logs get wide tables instead of rich's 80-column default.
+console = Console(width=None if sys.stdout.isatty() else 140)
+err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
+
+
+def _run_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="evaluate policies on a suite into a run folder",
+        description=(
+            "Evaluate one or more policies on a suite. Every finished episode is appended to "
+            "OUT/pending.jsonl at once and compacted into OUT/episodes.parquet at the end; "
+            "OUT/manifest.json holds the resolved config and provenance. With no arguments, "
+            "runs the embedded default config (the README's main job). Flags override "
+            "--config, which overrides the embedded default."
+        ),
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        help="TOML file with keys: suite, tasks, episodes_per_task, replan_every, [[policy]] name/params",
+    )
+    p.add_argument("--suite", help="suite name (see `dvla-harness list suites`)")
+    p.add_argument(
+        "--tasks",
+        metavar="NAME_OR_INDEX,...",
+        help="only these tasks of the suite (names or 0-based indices)",
+    )
+    p.add_argument(
+        "--policy",
+        action="append",
+        metavar="NAME[:k=v,...]",
+        help="policy to evaluate, with parameters; repeat to compare several (see `dvla-harness list policies`)",
+    )
+    p.add_argument(
+        "--episodes-per-task",
+        type=int,
+        metavar="N",
+        help="the first N episode specs of each task (default: the config's, else the whole protocol)",
+    )
+    p.add_argument(
+        "--replan-every",
+        type=int,
+        metavar="K",
+        help="execute K actions of each chunk before asking again; 0 = the whole chunk (default 0)",
+    )
+    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/<run id>)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--resume",
+        action="store_true",
+        help="run only the episodes OUT does not have yet; refuses a folder made by another config",
+    )
+    mode.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    p.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="with --resume, also re-run episodes recorded with a failure_reason",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_run)
+
+
+def _list_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "list",
+        help="list suites, policies, or a suite's tasks",
+        description="List what can be evaluated. Suites whose simulator is missing show the pip extra to install.",
+        epilog="examples:\n  dvla-harness list suites\n  dvla-harness list policies\n  dvla-harness list tasks metaworld/mt10",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("what", choices=("suites", "policies", "tasks"))
+    p.add_argument("suite", nargs="?", help="with `tasks`: the suite whose tasks to list")
+    p.set_defaults(func=cmd_list)
+
+
+def _show_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "show",
+        help="re-print a run's summary from its Parquet rows",
+        description="Summarise a run folder (finished or interrupted) from its episode rows.",
+        epilog="example:\n  dvla-harness show runs/demo",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.set_defaults(func=cmd_show)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dvla-harness",
+        description=(
+            "Benchmark and evaluation harness for robot policies that decode discrete action "
+            "tokens: success, NFE, control Hz and tokens/s per episode, into Parquet."
+        ),
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    from harness import __version__
+
+    parser.add_argument("--version", action="version", version=f"dvla-harness {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _run_parser(sub)
+    _list_parser(sub)
+    _show_parser(sub)
+    return parser
+
+
+def _config_from_args(args: argparse.Namespace):
+    from harness.config import build_config, default_config_data, load_config_file, parse_policy_arg
+
+    data = default_config_data()
+    if args.config:
+        data |= load_config_file(args.config)
+    if args.suite:
+        data["suite"] = args.suite
+        if not args.config:
+            data.pop("tasks", None)
+    if args.tasks is not None:
+        data["tasks"] = [t.strip() for t in args.tasks.split(",") if t.strip()]
+        if not data["tasks"]:
+            raise UsageError("--tasks is empty; give task names or indices, comma-separated")
+    if args.policy:
+        data["policy"] = [parse_policy_arg(p) for p in args.policy]
+    if args.episodes_per_task is not None:
+        data["episodes_per_task"] = args.episodes_per_task
+    if args.replan_every is not None:
+        data["replan_every"] = args.replan_every
+    return build_config(data)
+
+
+def _progress_factory(quiet: bool) -> tuple[Progress, Callable[[int, int], Callable[[bool], None]]]:
+    progress = Progress(
+        TextColumn("[bold]episodes"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[success]}"),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=err_console,
+        disable=quiet,
+    )
+    state = {"done": 0, "ok": 0}
+
+    def start(total: int, skipped: int) -> Callable[[bool], None]:
+        if skipped:
+            err_console.print(f"resuming: {skipped} episode(s) already recorded, {total} to run")
+        task_id = progress.add_task("episodes", total=total, success="success -")
+
+        def tick(success: bool) -> None:
+            state["done"] += 1
+            state["ok"] += int(success)
+            rate = 100 * state["ok"] / state["done"]
+            progress.update(
+                task_id, advance=1, success=f"success {rate:.0f}% ({state['ok']}/{state['done']})"
+            )
+
+        return tick
+
+    return progress, start
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from harness.config import resolve
+    from harness.runner import run
+    from results.render import summary_table
+    from results.summary import summarize
+
+    if args.retry_failed and not args.resume:
+        raise UsageError("--retry-failed only makes sense with --resume")
+    config = _config_from_args(args)
+    resolved = resolve(config)
+    out = Path(args.out) if args.out else None
+    if out is None:
+        from datetime import UTC, datetime
+
+        out = Path("runs") / datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    progress, start = _progress_factory(args.quiet)
+    with progress:
+        report = run(
+            resolved,
+            out,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            retry_failed=args.retry_failed,
+            progress=start,
+        )
+    episodes = report.run_dir.read_episodes()
+    if len(episodes):
+        console.print(
+            summary_table(summarize(episodes), title=f"{resolved.suite.name} - run {report.run_id}")
+        )
+    console.print(
+        f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
+    )
+    if report.interrupted:
+        err_console.print(f"interrupted; continue with: dvla-harness run --out {out} --resume")
+        return 130
+    if report.failed:
+        err_console.print(
+            f"[red]{report.failed} episode(s) raised an exception[/red]; see failure_reason in the rows "
+            f"and tracebacks in {report.run_dir.path / 'events.jsonl'}"
+        )
+        return 1
+    return 0
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    if args.what == "suites":
+        from adapters.registry import list_suites
+
+        table = Table("suite", "tasks", "episodes/task", "description", "needs extra")
+        for info in list_suites():
+            extra = (
+                "-"
+                if not info.extra
+                else (
+                    f"{info.extra} (installed)"
+                    if info.installed
+                    else f"[yellow]pip install 'dvla-harness[{info.extra}]'[/yellow]"
+                )
+            )
+            table.add_row(
+                info.name, str(info.num_tasks), str(info.episodes_per_task), info.description, extra
+            )
+        console.print(table)
+    elif args.what == "policies":
+        import dataclasses
+
+        from policies.registry import all_policies, describe_param, param_types
+
+        for spec in all_policies().values():
+            where = ", ".join(p + "*" for p in spec.suites) or "any suite"
+            console.print(f"[bold]{spec.name}[/bold]  {spec.summary}  [dim](suites: {where})[/dim]")
+            types = param_types(spec.params)
+            for f in dataclasses.fields(spec.params):
+                console.print("    " + describe_param(f, types[f.name].__name__), markup=False)
+    else:
+        if not args.suite:
+            raise UsageError("`list tasks` needs a suite, e.g. dvla-harness list tasks metaworld/mt10")
+        from harness.config import RunConfig, resolve_suite
+
+        suite, tasks = resolve_suite(RunConfig(suite=args.suite, policies=()))
+        table = Table(
+            "#", "task", "instruction", "max steps", "episodes", title=f"{suite.name} (v{suite.version})"
+        )
+        for task in tasks:
+            table.add_row(
+                str(task.index), task.name, task.instruction, str(task.max_steps), str(len(task.episodes))
+            )
+        console.print(table)
+    return 0
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from results.render import summary_table
+    from results.store import ResultsFileError, RunDir
+    from results.summary import summarize
+
+    run_dir = RunDir(args.run_dir)
+    try:
+        manifest = run_dir.read_manifest()
+        episodes = run_dir.read_episodes()
+    except ResultsFileError as exc:
+        raise UsageError(str(exc)) from None
+    env = manifest.get("environment", {})
+    console.print(
+        f"run {manifest.get('run_id')} ({manifest.get('status')}), suite {manifest['suite']['name']}, "
+        f"{len(episodes)} episodes; started {manifest.get('started_at')}; "
+        f"{env.get('cpu')}, GPU {env.get('gpu') or 'none'}; git {env.get('git_commit') or 'n/a'}"
+    )
+    if len(episodes):
+        console.print(summary_table(summarize(episodes)))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except UsageError as exc:
+        print(f"dvla-harness {args.command}: error: {exc}", file=sys.stderr)  # one unwrapped line
+        return 2
+
+
+def entry() -> Any:
+    sys.exit(main())

@@ -1,0 +1,238 @@
+"""Run configuration: the embedded default, overridden by a TOML file, overridden by flags.
+
+A `RunConfig` is plain data (what to evaluate). `resolve` turns it into a `ResolvedRun`
+(suite loaded, tasks chosen, policies built, checkpoints hashed) and is where every bad
+input is caught, before any output folder is created.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import tomllib
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from adapters.base import EpisodeSpec, Suite, TaskSpec
+from adapters.registry import MissingExtraError, UnknownSuiteError, load_suite
+from harness.errors import UsageError
+from policies.base import Policy
+from policies.registry import (
+    PolicyParamError,
+    PolicySpec,
+    UnknownPolicyError,
+    get_policy,
+    params_json,
+    parse_params,
+)
+
+CONFIG_KEYS = ("suite", "tasks", "episodes_per_task", "replan_every", "policy")
+
+
+@dataclass(frozen=True)
+class PolicyChoice:
+    name: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    suite: str
+    policies: tuple[PolicyChoice, ...]
+    tasks: tuple[str, ...] = ()  # names or indices; empty = every task of the suite
+    episodes_per_task: int | None = None  # None = every episode spec of the protocol
+    replan_every: int = 0  # 0 = execute the whole chunk before asking again
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def fingerprint(self) -> str:
+        """Identity of what this config evaluates; a resumed folder must match it."""
+        text = json.dumps(self.to_dict(), sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def parse_policy_arg(text: str) -> PolicyChoice:
+    """`NAME` or `NAME:key=value,key=value` (the --policy flag)."""
+    name, _, rest = text.partition(":")
+    params: dict[str, Any] = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise UsageError(f"--policy {text!r}: expected NAME:key=value[,key=value...], got {item!r}")
+        params[key.strip()] = value
+    if not name.strip():
+        raise UsageError(f"--policy {text!r}: missing policy name")
+    return PolicyChoice(name.strip(), params)
+
+
+def _read_toml(text: str, where: str) -> dict[str, Any]:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise UsageError(f"{where}: invalid TOML ({exc})") from None
+    unknown = sorted(set(data) - set(CONFIG_KEYS))
+    if unknown:
+        raise UsageError(f"{where}: unknown key {unknown[0]!r}; valid keys: {', '.join(CONFIG_KEYS)}")
+    return data
+
+
+def default_config_data() -> dict[str, Any]:
+    text = resources.files("harness").joinpath("defaults/main.toml").read_text()
+    return _read_toml(text, "embedded default config")
+
+
+def load_config_file(path: str) -> dict[str, Any]:
+    p = Path(path)
+    if not p.is_file():
+        raise UsageError(f"config file {path!r} does not exist")
+    return _read_toml(p.read_text(), path)
+
+
+def _positive_int(value: Any, what: str, allow_zero: bool = False) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise UsageError(f"{what} must be an integer, got {value!r}")
+    if value < 0 or (value == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else ">= 1"
+        raise UsageError(f"{what} must be {bound}, got {value}")
+    return value
+
+
+def build_config(data: dict[str, Any]) -> RunConfig:
+    """Typed config from merged TOML/flag data; type and range errors are UsageErrors."""
+    policies = []
+    for i, entry in enumerate(data.get("policy", [])):
+        if isinstance(entry, PolicyChoice):
+            policies.append(entry)
+            continue
+        if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
+            raise UsageError(f"policy entry {i} must be a table with a 'name' string")
+        extra = sorted(set(entry) - {"name", "params"})
+        if extra:
+            raise UsageError(f"policy entry {i}: unknown key {extra[0]!r}; valid keys: name, params")
+        params = entry.get("params", {})
+        if not isinstance(params, dict):
+            raise UsageError(f"policy entry {i}: 'params' must be a table")
+        policies.append(PolicyChoice(entry["name"], dict(params)))
+    if not policies:
+        raise UsageError("no policy given; pass --policy NAME (see `dvla-harness list policies`)")
+    suite = data.get("suite")
+    if not isinstance(suite, str) or not suite:
+        raise UsageError("no suite given; pass --suite NAME (see `dvla-harness list suites`)")
+    tasks = data.get("tasks", ())
+    if isinstance(tasks, str) or not all(isinstance(t, (str, int)) for t in tasks):
+        raise UsageError("tasks must be a list of task names or indices")
+    episodes = data.get("episodes_per_task")
+    if episodes is not None:
+        episodes = _positive_int(episodes, "--episodes-per-task")
+    replan = _positive_int(data.get("replan_every", 0), "--replan-every", allow_zero=True)
+    return RunConfig(
+        suite=suite,
+        policies=tuple(policies),
+        tasks=tuple(str(t) for t in tasks),
+        episodes_per_task=episodes,
+        replan_every=replan,
+    )
+
+
+@dataclass
+class PolicyRun:
+    """One policy configuration of a run: spec, validated params, the built policy."""
+
+    spec: PolicySpec
+    params: Any
+    params_json: str
+    checkpoint: str
+    checkpoint_sha256: str
+    config_id: str
+    policy: Policy
+
+
+@dataclass
+class ResolvedRun:
+    config: RunConfig
+    suite: Suite
+    tasks: tuple[TaskSpec, ...]
+    policies: list[PolicyRun]
+
+    def episodes(self, task: TaskSpec) -> tuple[EpisodeSpec, ...]:
+        n = self.config.episodes_per_task
+        return task.episodes if n is None else task.episodes[:n]
+
+
+def sha256_file(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _check_installed(modules: tuple[str, ...], extra: str, what: str) -> None:
+    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    if missing:
+        raise UsageError(f"{what} needs {', '.join(missing)}: pip install 'dvla-harness[{extra}]'")
+
+
+def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
+    try:
+        suite = load_suite(config.suite)
+    except (UnknownSuiteError, MissingExtraError) as exc:
+        raise UsageError(str(exc)) from None
+    _check_installed(suite.simulator_packages, suite.extra, f"suite {suite.name!r}")
+    tasks: list[TaskSpec] = []
+    for name in config.tasks or [t.name for t in suite.tasks]:
+        try:
+            tasks.append(suite.task(name))
+        except KeyError:
+            valid = ", ".join(t.name for t in suite.tasks)
+            raise UsageError(
+                f"suite {suite.name!r} has no task {name!r}; valid tasks (or 0..{len(suite.tasks) - 1}): {valid}"
+            ) from None
+    n = config.episodes_per_task
+    for task in tasks:
+        if n is not None and n > len(task.episodes):
+            raise UsageError(
+                f"--episodes-per-task {n}: task {task.name!r} of {suite.name!r} defines "
+                f"{len(task.episodes)} episodes; valid range 1..{len(task.episodes)}"
+            )
+    unique = {t.name: t for t in tasks}  # a task named twice runs once
+    return suite, tuple(unique.values())
+
+
+def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
+    try:
+        spec = get_policy(choice.name)
+        params = parse_params(spec, choice.params)
+    except (UnknownPolicyError, PolicyParamError) as exc:
+        raise UsageError(str(exc)) from None
+    if spec.suites and not any(suite.name.startswith(p) for p in spec.suites):
+        raise UsageError(
+            f"policy {spec.name!r} cannot act in suite {suite.name!r}; it supports: "
+            f"{', '.join(p + '*' for p in spec.suites)}"
+        )
+    checkpoint = str(getattr(params, "checkpoint", "") or "")
+    if checkpoint and not Path(checkpoint).is_file():
+        raise UsageError(f"policy {spec.name!r}: checkpoint {checkpoint!r} does not exist")
+    digest = sha256_file(checkpoint) if checkpoint else ""
+    pjson = params_json(params)
+    config_id = hashlib.sha256(f"{spec.name}|{pjson}|{digest}".encode()).hexdigest()[:12]
+    try:
+        policy = spec.build(params)
+    except (ValueError, OSError) as exc:
+        raise UsageError(f"policy {spec.name!r} could not be built: {exc}") from None
+    return PolicyRun(spec, params, pjson, checkpoint, digest, config_id, policy)
+
+
+def resolve(config: RunConfig) -> ResolvedRun:
+    suite, tasks = resolve_suite(config)
+    runs = [resolve_policy(choice, suite) for choice in config.policies]
+    seen: dict[str, str] = {}
+    for run in runs:
+        if run.config_id in seen:
+            raise UsageError(f"policy {run.spec.name!r} is listed twice with the same parameters")
+        seen[run.config_id] = run.spec.name
+    return ResolvedRun(config, suite, tasks, runs)

@@ -1,0 +1,113 @@
+"""The episode loop: reset, ask for a chunk, execute it, stop on success or budget.
+
+Every segment is timed with one monotonic clock whose readings are chained, so
+policy + env + overhead equals the episode's wall-clock by construction and the
+overhead is exactly the loop's own bookkeeping. NFE is read from the harness's hooks.
+A Python exception from the env or the policy ends the episode with a failure reason;
+it never ends the run.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+import gymnasium as gym
+import numpy as np
+
+from adapters.base import EpisodeSpec
+from harness.nfe import NFECounter
+from policies.base import EpisodeContext, Policy
+
+
+@dataclass
+class EpisodeOutcome:
+    success: bool
+    steps: int
+    chunks: int
+    nfe_total: int
+    action_tokens_total: int
+    policy_time_s: float
+    env_time_s: float
+    wall_clock_s: float
+    started_at: datetime
+    failure_reason: str | None = None
+    traceback: str | None = None
+
+
+def _check_chunk(actions: np.ndarray, action_dim: int) -> None:
+    if actions.ndim != 3 or actions.shape[0] != 1 or actions.shape[1] < 1:
+        raise ValueError(
+            f"policy returned actions of shape {actions.shape}; expected (1, chunk>=1, {action_dim})"
+        )
+    if actions.shape[2] != action_dim:
+        raise ValueError(f"policy returned {actions.shape[2]}-D actions; the action space is {action_dim}-D")
+
+
+def run_episode(
+    env: gym.Env,
+    policy: Policy,
+    nfe: NFECounter,
+    context: EpisodeContext,
+    spec: EpisodeSpec,
+    replan_every: int = 0,
+) -> EpisodeOutcome:
+    clock = time.perf_counter
+    started_at = datetime.now(UTC)
+    action_dim = int(np.prod(context.action_space.shape))
+    success = False
+    steps = chunks = tokens = 0
+    policy_time = env_time = 0.0
+    failure = trace = None
+    nfe.take()
+    start = clock()
+    try:
+        obs, info = env.reset(seed=spec.seed, options={"episode": spec})
+        t = clock()
+        env_time += t - start
+        policy.reset([context])
+        t2 = clock()
+        policy_time += t2 - t
+        done = False
+        while not done and steps < context.max_steps:
+            t = clock()
+            batch = policy.act([obs])
+            t2 = clock()
+            policy_time += t2 - t
+            chunks += 1
+            tokens += batch.action_tokens
+            actions = np.asarray(batch.actions)
+            _check_chunk(actions, action_dim)
+            chunk = actions[0] if replan_every == 0 else actions[0, :replan_every]
+            for action in chunk:
+                t = clock()
+                obs, _, terminated, truncated, info = env.step(action)
+                t2 = clock()
+                env_time += t2 - t
+                steps += 1
+                if info.get("success"):
+                    success = done = True
+                elif terminated or truncated or steps >= context.max_steps:
+                    done = True
+                if done:
+                    break
+    except Exception as exc:
+        failure = f"{type(exc).__name__}: {exc}"
+        trace = traceback.format_exc()
+        success = False
+    wall = clock() - start
+    return EpisodeOutcome(
+        success=success,
+        steps=steps,
+        chunks=chunks,
+        nfe_total=nfe.take(),
+        action_tokens_total=tokens,
+        policy_time_s=policy_time,
+        env_time_s=env_time,
+        wall_clock_s=wall,
+        started_at=started_at,
+        failure_reason=failure,
+        traceback=trace,
+    )

@@ -1,0 +1,306 @@
+"""Runs a resolved config into a run folder: plan, skip what is recorded, execute, store.
+
+Episodes run in the order task -> episode -> policy, so the policies of one comparison
+are interleaved in time and share whatever the machine was doing: their timing ratios
+are measured side by side. Each row is on disk before the next episode starts.
+"""
+
+from __future__ import annotations
+
+import shutil
+import traceback
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import pandas as pd
+
+from adapters.base import EpisodeSpec, TaskSpec
+from harness.config import PolicyRun, ResolvedRun
+from harness.episode import EpisodeOutcome, run_episode
+from harness.errors import UsageError
+from harness.manifest import build_manifest, now
+from harness.nfe import NFECounter
+from policies.base import EpisodeContext
+from results.schema import EPISODE_KEY
+from results.store import ResultsFileError, RunDir
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    policy: PolicyRun
+    task: TaskSpec
+    spec: EpisodeSpec
+
+
+@dataclass
+class RunReport:
+    run_dir: RunDir
+    run_id: str
+    executed: int
+    skipped: int
+    failed: int
+    interrupted: bool = False
+
+
+def _key(values: dict[str, Any]) -> tuple:
+    """Normalised episode key (pandas gives numpy ints and NaN for nulls)."""
+    out = []
+    for name in EPISODE_KEY:
+        v = values[name]
+        if v is None or (isinstance(v, float) and v != v):
+            out.append(None)
+        elif hasattr(v, "item"):
+            out.append(v.item())
+        else:
+            out.append(v)
+    return tuple(out)
+
+
+def job_key(resolved: ResolvedRun, job: EpisodeJob) -> tuple:
+    return _key(
+        {
+            "suite": resolved.suite.name,
+            "task": job.task.name,
+            "episode_index": job.spec.index,
+            "seed": job.spec.seed,
+            "init_state_id": job.spec.init_state_id,
+            "policy": job.policy.spec.name,
+            "policy_params": job.policy.params_json,
+            "checkpoint_sha256": job.policy.checkpoint_sha256,
+        }
+    )
+
+
+def plan(resolved: ResolvedRun) -> list[EpisodeJob]:
+    return [
+        EpisodeJob(policy, task, spec)
+        for task in resolved.tasks
+        for spec in resolved.episodes(task)
+        for policy in resolved.policies
+    ]
+
+
+def _writable_ancestor(path: Path) -> Path:
+    probe = path.absolute()
+    while not probe.exists():
+        probe = probe.parent
+    return probe
+
+
+def check_output(out: Path, resume: bool, overwrite: bool) -> None:
+    """Every reason to refuse the output folder, raised before anything is written."""
+    if resume and overwrite:
+        raise UsageError("--resume and --overwrite contradict each other; pick one")
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"output path {str(out)!r} exists and is not a folder")
+    import os
+
+    ancestor = _writable_ancestor(out)
+    if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
+        raise UsageError(f"output folder {str(out)!r} is not writable (no write access to {str(ancestor)!r})")
+    run_dir = RunDir(out)
+    if resume:
+        if not run_dir.is_run():
+            raise UsageError(f"--resume: {str(out)!r} is not a dvla-harness run folder (no manifest.json)")
+    elif not run_dir.is_empty():
+        if not overwrite:
+            raise UsageError(
+                f"output folder {str(out)!r} exists and is not empty; pass --resume to "
+                "continue it or --overwrite to replace it"
+            )
+        if not run_dir.is_run():
+            raise UsageError(
+                f"--overwrite: {str(out)!r} is not a dvla-harness run folder; refusing to delete it"
+            )
+
+
+def _config_diff(old: dict[str, Any], new: dict[str, Any]) -> str:
+    keys = sorted(set(old) | set(new))
+    return "; ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k))
+
+
+def open_run(
+    resolved: ResolvedRun, out: Path, resume: bool, overwrite: bool
+) -> tuple[RunDir, str, pd.DataFrame]:
+    """Create or reopen the run folder; returns it, the run id and the rows recorded so far."""
+    check_output(out, resume, overwrite)
+    run_dir = RunDir(out)
+    if resume:
+        try:
+            manifest = run_dir.read_manifest()
+            recorded = run_dir.read_episodes()
+        except ResultsFileError as exc:
+            raise UsageError(f"--resume: {exc}") from None
+        if manifest.get("config_fingerprint") != resolved.config.fingerprint():
+            diff = _config_diff(manifest.get("config", {}), resolved.config.to_dict())
+            raise UsageError(
+                f"--resume: {str(out)!r} belongs to a different config ({diff}); "
+                "use another --out, or --overwrite to replace it"
+            )
+        manifest["resumed_at"].append(now())
+        manifest["status"] = "running"
+        run_dir.write_manifest(manifest)
+        run_dir.log_event("run_resumed", recorded=len(recorded))
+        return run_dir, manifest["run_id"], recorded
+    if overwrite and out.exists():
+        shutil.rmtree(out)
+    run_id = datetime.now(UTC).strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6]
+    run_dir.create()
+    run_dir.write_manifest(build_manifest(resolved, run_id))
+    run_dir.log_event("run_started", run_id=run_id)
+    return run_dir, run_id, pd.DataFrame()
+
+
+def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOutcome) -> dict[str, Any]:
+    p, task, spec = job.policy, job.task, job.spec
+    return {
+        "run_id": run_id,
+        "suite": resolved.suite.name,
+        "suite_version": resolved.suite.version,
+        "task": task.name,
+        "task_index": task.index,
+        "instruction": task.instruction,
+        "episode_index": spec.index,
+        "seed": spec.seed,
+        "init_state_id": spec.init_state_id,
+        "policy": p.spec.name,
+        "policy_params": p.params_json,
+        "policy_config_id": p.config_id,
+        "checkpoint": p.checkpoint,
+        "checkpoint_sha256": p.checkpoint_sha256,
+        "replan_every": resolved.config.replan_every,
+        "max_steps": task.max_steps,
+        "success": out.success,
+        "steps": out.steps,
+        "chunks": out.chunks,
+        "nfe_total": out.nfe_total,
+        "nfe_per_chunk": out.nfe_total / out.chunks if out.chunks else None,
+        "action_tokens_total": out.action_tokens_total,
+        "tokens_per_s": (
+            out.action_tokens_total / out.policy_time_s
+            if out.action_tokens_total and out.policy_time_s > 0
+            else None
+        ),
+        "policy_time_s": out.policy_time_s,
+        "env_time_s": out.env_time_s,
+        "overhead_s": out.wall_clock_s - out.policy_time_s - out.env_time_s,
+        "wall_clock_s": out.wall_clock_s,
+        "control_hz": out.steps / out.policy_time_s if out.policy_time_s > 0 else None,
+        "loop_hz": out.steps / out.wall_clock_s if out.wall_clock_s > 0 else None,
+        "failure_reason": out.failure_reason,
+        "started_at": out.started_at,
+    }
+
+
+def _failed(exc: BaseException) -> EpisodeOutcome:
+    return EpisodeOutcome(
+        success=False,
+        steps=0,
+        chunks=0,
+        nfe_total=0,
+        action_tokens_total=0,
+        policy_time_s=0.0,
+        env_time_s=0.0,
+        wall_clock_s=0.0,
+        started_at=datetime.now(UTC),
+        failure_reason=f"{type(exc).__name__}: {exc}",
+        traceback=traceback.format_exc(),
+    )
+
+
+def execute_local(
+    resolved: ResolvedRun, jobs: list[EpisodeJob], on_done: Callable[[EpisodeJob, EpisodeOutcome], None]
+) -> None:
+    """The laptop backend: one process, episodes one after another, envs reused per task."""
+    envs: dict[str, gym.Env] = {}
+    counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
+    try:
+        for job in jobs:
+            try:
+                if job.task.name not in envs:
+                    envs[job.task.name] = resolved.suite.make_env(job.task)
+            except Exception as exc:
+                on_done(job, _failed(exc))
+                continue
+            env = envs[job.task.name]
+            context = EpisodeContext(
+                suite=resolved.suite.name,
+                task=job.task.name,
+                instruction=job.task.instruction,
+                action_space=env.action_space,
+                observation_space=env.observation_space,
+                max_steps=job.task.max_steps,
+                episode_index=job.spec.index,
+                seed=job.spec.seed,
+                init_state_id=job.spec.init_state_id,
+            )
+            outcome = run_episode(
+                env,
+                job.policy.policy,
+                counters[id(job.policy)],
+                context,
+                job.spec,
+                resolved.config.replan_every,
+            )
+            if outcome.failure_reason is not None:
+                envs.pop(job.task.name).close()  # its state is suspect: rebuild next time
+            on_done(job, outcome)
+    finally:
+        for env in envs.values():
+            env.close()
+        for counter in counters.values():
+            counter.close()
+
+
+def run(
+    resolved: ResolvedRun,
+    out: Path,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    retry_failed: bool = False,
+    progress: Callable[[int, int], Any] | None = None,
+) -> RunReport:
+    """Evaluate `resolved` into `out`. `progress(total, skipped)` returns a per-episode callback."""
+    run_dir, run_id, recorded = open_run(resolved, out, resume, overwrite)
+    if retry_failed and len(recorded):
+        recorded = recorded[recorded["failure_reason"].isna()]
+    done = {_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")} if len(recorded) else set()
+    jobs = [job for job in plan(resolved) if job_key(resolved, job) not in done]
+    skipped = len(plan(resolved)) - len(jobs)
+    report = RunReport(run_dir, run_id, executed=0, skipped=skipped, failed=0)
+    tick = progress(len(jobs), skipped) if progress else None
+
+    def on_done(job: EpisodeJob, outcome: EpisodeOutcome) -> None:
+        run_dir.append_episode(make_row(run_id, resolved, job, outcome))
+        report.executed += 1
+        if outcome.failure_reason is not None:
+            report.failed += 1
+            run_dir.log_event(
+                "episode_failed",
+                task=job.task.name,
+                episode_index=job.spec.index,
+                policy=job.policy.spec.name,
+                reason=outcome.failure_reason,
+                traceback=outcome.traceback,
+            )
+        if tick:
+            tick(outcome.success)
+
+    status = "finished"
+    try:
+        execute_local(resolved, jobs, on_done)
+    except KeyboardInterrupt:
+        status, report.interrupted = "interrupted", True
+    finally:
+        run_dir.compact()
+        manifest = run_dir.read_manifest()
+        manifest.update(status=status, finished_at=now())
+        run_dir.write_manifest(manifest)
+        run_dir.log_event("run_" + status, executed=report.executed, failed=report.failed)
+    return report

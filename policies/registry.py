@@ -1,0 +1,171 @@
+"""Finds policies by name and turns `key=value` strings into typed, validated parameters.
+
+Each policy declares its parameters as a frozen dataclass whose fields carry a help
+text and a valid range (`param(...)`). That one declaration drives parsing, validation,
+`dvla-harness list policies`, and the JSON recorded in every result row. Third-party
+packages add policies through the `dvla_harness.policies` entry-point group; each entry
+point names a `PolicySpec`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
+from typing import Any
+
+from policies.base import Policy
+
+ENTRY_POINT_GROUP = "dvla_harness.policies"
+
+
+class UnknownPolicyError(LookupError):
+    """No policy has that name; the message lists the valid ones."""
+
+
+class PolicyParamError(ValueError):
+    """A parameter is unknown, of the wrong type or out of range; the message says which."""
+
+
+def param(
+    default: Any,
+    help: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    choices: tuple[Any, ...] | None = None,
+) -> Any:
+    """A policy parameter: a dataclass field with its help text and valid range."""
+    return field(default=default, metadata={"help": help, "low": low, "high": high, "choices": choices})
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    name: str
+    summary: str
+    params: type  # a frozen dataclass built from `param(...)` fields
+    build: Callable[[Any], Policy]
+    # Suite name prefixes this policy can act in; empty means any suite.
+    suites: tuple[str, ...] = ()
+    extra: str = ""
+
+
+@dataclass(frozen=True)
+class NoParams:
+    pass
+
+
+def _builtin_specs() -> list[PolicySpec]:
+    from policies import scripted
+
+    return [scripted.SCRIPTED, scripted.RANDOM]
+
+
+def _plugin_specs() -> list[PolicySpec]:
+    specs = []
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        spec = ep.load()
+        if not isinstance(spec, PolicySpec):
+            raise TypeError(
+                f"entry point {ep.name!r} in {ENTRY_POINT_GROUP} must be a PolicySpec, "
+                f"got {type(spec).__name__}"
+            )
+        specs.append(spec)
+    return specs
+
+
+def all_policies() -> dict[str, PolicySpec]:
+    return {spec.name: spec for spec in _builtin_specs() + _plugin_specs()}
+
+
+def get_policy(name: str) -> PolicySpec:
+    specs = all_policies()
+    if name not in specs:
+        raise UnknownPolicyError(f"unknown policy {name!r}; valid policies: {', '.join(sorted(specs))}")
+    return specs[name]
+
+
+def describe_param(f: dataclasses.Field, type_name: str) -> str:
+    meta = f.metadata
+    rng = ""
+    if meta.get("choices"):
+        rng = " one of " + "|".join(str(c) for c in meta["choices"])
+    elif meta.get("low") is not None or meta.get("high") is not None:
+        lo = "-inf" if meta.get("low") is None else meta["low"]
+        hi = "inf" if meta.get("high") is None else meta["high"]
+        rng = f" in [{lo}, {hi}]"
+    return f"{f.name}: {type_name} = {f.default!r}{rng}  {meta.get('help', '')}"
+
+
+def param_types(params_cls: type) -> dict[str, type]:
+    hints = typing.get_type_hints(params_cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(params_cls)}
+
+
+def _coerce(policy: str, name: str, kind: type, raw: Any) -> Any:
+    if isinstance(raw, str):
+        text = raw.strip()
+        try:
+            if kind is bool:
+                low = text.lower()
+                if low not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError
+                return low in ("true", "1", "yes")
+            if kind is int:
+                return int(text)
+            if kind is float:
+                return float(text)
+        except ValueError:
+            raise PolicyParamError(
+                f"policy {policy!r}: parameter {name!r} must be {kind.__name__}, got {raw!r}"
+            ) from None
+        return text
+    if kind is float and isinstance(raw, int) and not isinstance(raw, bool):
+        return float(raw)
+    if not isinstance(raw, kind) or (kind is int and isinstance(raw, bool)):
+        raise PolicyParamError(f"policy {policy!r}: parameter {name!r} must be {kind.__name__}, got {raw!r}")
+    return raw
+
+
+def parse_params(spec: PolicySpec, raw: Mapping[str, Any]) -> Any:
+    """Build the policy's parameter dataclass from strings or native values, validated."""
+    types = param_types(spec.params)
+    unknown = sorted(set(raw) - set(types))
+    if unknown:
+        valid = ", ".join(types) or "(none)"
+        raise PolicyParamError(
+            f"policy {spec.name!r} has no parameter {unknown[0]!r}; valid parameters: {valid}"
+        )
+    values = {k: _coerce(spec.name, k, types[k], v) for k, v in raw.items()}
+    for f in dataclasses.fields(spec.params):
+        value = values.get(f.name, f.default)
+        meta = f.metadata
+        choices = meta.get("choices")
+        if choices and value not in choices:
+            raise PolicyParamError(
+                f"policy {spec.name!r}: {f.name}={value!r} is not valid; "
+                f"choose one of {', '.join(map(str, choices))}"
+            )
+        low, high = meta.get("low"), meta.get("high")
+        if (low is not None and value < low) or (high is not None and value > high):
+            lo = "-inf" if low is None else low
+            hi = "inf" if high is None else high
+            raise PolicyParamError(
+                f"policy {spec.name!r}: {f.name}={value!r} is out of range; valid range [{lo}, {hi}]"
+            )
+    params = spec.params(**values)
+    validate = getattr(params, "validate", None)
+    if validate is not None:
+        try:
+            validate()
+        except ValueError as exc:
+            raise PolicyParamError(f"policy {spec.name!r}: {exc}") from None
+    return params
+
+
+def params_json(params: Any) -> str:
+    """Canonical JSON of the full parameter set (defaults included), for rows and keys."""
+    return json.dumps(dataclasses.asdict(params), sort_keys=True, separators=(",", ":"))

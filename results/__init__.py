@@ -1,0 +1,1 @@
+"""Tidy episode tables: schema, storage, aggregation (and later leaderboards, gates, plots)."""

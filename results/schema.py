@@ -1,0 +1,132 @@
+"""The tidy episode table: one row per episode, every column named, typed and documented.
+
+This list is the single source of truth: the Parquet schema, the episode key used for
+resume and pairing, and docs/results-schema.md (checked by a test) all come from it.
+Bump SCHEMA_VERSION whenever a column changes meaning, type or name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pyarrow as pa
+
+SCHEMA_VERSION = "1"
+SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
+
+
+@dataclass(frozen=True)
+class Column:
+    name: str
+    type: pa.DataType
+    unit: str
+    meaning: str
+    nullable: bool = False
+
+
+_TS = pa.timestamp("us", tz="UTC")
+
+COLUMNS: tuple[Column, ...] = (
+    Column("run_id", pa.string(), "", "Identifier of the run (kept across --resume)."),
+    Column("suite", pa.string(), "", "Suite name, e.g. `metaworld/mt10`."),
+    Column("suite_version", pa.string(), "", "Version of the suite's task/episode definition."),
+    Column("task", pa.string(), "", "Task name within the suite."),
+    Column("task_index", pa.int64(), "", "Position of the task in the suite."),
+    Column("instruction", pa.string(), "", "Language instruction given to the policy."),
+    Column("episode_index", pa.int64(), "", "Index of the episode spec within its task (0-based)."),
+    Column(
+        "seed",
+        pa.int64(),
+        "",
+        "Seed of the episode's start (Meta-World: the seed that drew the task's layouts).",
+        nullable=True,
+    ),
+    Column(
+        "init_state_id",
+        pa.int64(),
+        "",
+        "Fixed initial state / layout the episode starts from.",
+        nullable=True,
+    ),
+    Column("policy", pa.string(), "", "Registered policy name."),
+    Column("policy_params", pa.string(), "JSON", "All policy parameters, defaults included."),
+    Column("policy_config_id", pa.string(), "", "Short hash of policy, params and checkpoint."),
+    Column("checkpoint", pa.string(), "path", "Checkpoint file the policy loaded; empty if none."),
+    Column("checkpoint_sha256", pa.string(), "", "SHA-256 of the checkpoint; empty if none."),
+    Column(
+        "replan_every",
+        pa.int64(),
+        "actions",
+        "Actions executed per chunk before re-planning (0 = whole chunk).",
+    ),
+    Column("max_steps", pa.int64(), "steps", "Step budget of the task."),
+    Column("success", pa.bool_(), "", "The environment reported success before the budget ran out."),
+    Column("steps", pa.int64(), "steps", "Environment steps executed (settle steps excluded)."),
+    Column("chunks", pa.int64(), "", "Policy calls (action chunks requested)."),
+    Column("nfe_total", pa.int64(), "passes", "Model forward passes, counted by the harness's hooks."),
+    Column("nfe_per_chunk", pa.float64(), "passes", "nfe_total / chunks.", nullable=True),
+    Column(
+        "action_tokens_total",
+        pa.int64(),
+        "tokens",
+        "Discrete action tokens decoded (0 for non-token policies).",
+    ),
+    Column(
+        "tokens_per_s",
+        pa.float64(),
+        "tokens/s",
+        "action_tokens_total / policy_time_s; null when no tokens were decoded.",
+        nullable=True,
+    ),
+    Column("policy_time_s", pa.float64(), "s", "Time inside the policy (reset and act calls)."),
+    Column("env_time_s", pa.float64(), "s", "Time inside the environment (reset and step calls)."),
+    Column(
+        "overhead_s", pa.float64(), "s", "wall_clock_s - policy_time_s - env_time_s: the harness's own time."
+    ),
+    Column("wall_clock_s", pa.float64(), "s", "Monotonic time from episode start to end."),
+    Column(
+        "control_hz",
+        pa.float64(),
+        "Hz",
+        "Actions executed / policy_time_s: the control rate the policy alone could sustain.",
+        nullable=True,
+    ),
+    Column("loop_hz", pa.float64(), "Hz", "steps / wall_clock_s: the rate of the whole loop.", nullable=True),
+    Column(
+        "failure_reason",
+        pa.string(),
+        "",
+        "Null for a clean episode; otherwise the exception (type: message) that ended it.",
+        nullable=True,
+    ),
+    Column("started_at", _TS, "UTC", "Wall-clock time the episode started."),
+)
+
+COLUMN_NAMES = tuple(c.name for c in COLUMNS)
+
+# What identifies an episode across runs: resume skips rows with a known key, and
+# comparisons pair rows by it.
+EPISODE_KEY = (
+    "suite",
+    "task",
+    "episode_index",
+    "seed",
+    "init_state_id",
+    "policy",
+    "policy_params",
+    "checkpoint_sha256",
+)
+
+
+def arrow_schema() -> pa.Schema:
+    fields = [pa.field(c.name, c.type, nullable=c.nullable) for c in COLUMNS]
+    return pa.schema(fields, metadata={SCHEMA_VERSION_KEY: SCHEMA_VERSION.encode()})
+
+
+def markdown_table() -> str:
+    """The column reference in docs/results-schema.md."""
+    lines = ["| column | type | unit | meaning |", "|---|---|---|---|"]
+    for c in COLUMNS:
+        kind = str(c.type) + (" (nullable)" if c.nullable else "")
+        lines.append(f"| `{c.name}` | {kind} | {c.unit} | {c.meaning} |")
+    return "\n".join(lines)

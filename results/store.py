@@ -1,0 +1,196 @@
+"""A run folder on disk, written so that a crash loses at most the episode in flight.
+
+    RUN_DIR/
+      manifest.json     resolved config + provenance (rewritten atomically)
+      events.jsonl      structured log, one JSON object a line, appended as it runs
+      pending.jsonl     one row per finished episode, appended and flushed before the
+                        next episode starts; survives a SIGKILL of the process
+      episodes.parquet  all rows, compacted from pending.jsonl when a run ends
+
+Readers take episodes.parquet and pending.jsonl together, so an interrupted run can
+be read and resumed; if the same episode appears twice, the later write wins. A row
+is one small append (~20 us), not a Parquet file per episode (~2 ms): on fast suites
+that difference alone was a 5-8% harness overhead.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterable, Mapping
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from results.schema import (
+    COLUMN_NAMES,
+    EPISODE_KEY,
+    SCHEMA_VERSION,
+    SCHEMA_VERSION_KEY,
+    arrow_schema,
+)
+
+MANIFEST = "manifest.json"
+EPISODES = "episodes.parquet"
+EVENTS = "events.jsonl"
+PENDING = "pending.jsonl"
+
+
+class ResultsFileError(ValueError):
+    """A results file or folder is missing, foreign, or of another schema version."""
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write via a temporary file and rename, so readers never see half a file."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _write_table(path: Path, table: pa.Table) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    pq.write_table(table, tmp)
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, datetime):
+        return value.isoformat()
+    if hasattr(value, "item"):  # numpy scalars
+        return value.item()
+    raise TypeError(f"cannot store {type(value).__name__} in a row")
+
+
+def rows_to_table(rows: Iterable[Mapping[str, Any]]) -> pa.Table:
+    return pa.Table.from_pylist([dict(r) for r in rows], schema=arrow_schema())
+
+
+def read_table(path: Path) -> pa.Table:
+    """Read one episode Parquet file, refusing files of another schema or version."""
+    try:
+        table = pq.read_table(path)
+    except (OSError, pa.ArrowInvalid) as exc:
+        raise ResultsFileError(f"{path}: not a readable Parquet file ({exc})") from None
+    meta = table.schema.metadata or {}
+    version = meta.get(SCHEMA_VERSION_KEY)
+    if version is None:
+        raise ResultsFileError(f"{path}: not a dvla-harness episode table (no schema version)")
+    if version.decode() != SCHEMA_VERSION:
+        raise ResultsFileError(
+            f"{path}: schema version {version.decode()}, but this dvla-harness reads version {SCHEMA_VERSION}"
+        )
+    return table
+
+
+class RunDir:
+    def __init__(self, path: str | os.PathLike[str]):
+        self.path = Path(path)
+        self._pending: Any = None  # open append handle, kept across episodes
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.path / MANIFEST
+
+    def is_run(self) -> bool:
+        return self.manifest_path.is_file()
+
+    def is_empty(self) -> bool:
+        return not self.path.exists() or not any(self.path.iterdir())
+
+    def create(self) -> None:
+        self.path.mkdir(parents=True, exist_ok=True)
+
+    def write_manifest(self, manifest: Mapping[str, Any]) -> None:
+        atomic_write(self.manifest_path, (json.dumps(manifest, indent=2) + "\n").encode())
+
+    def read_manifest(self) -> dict[str, Any]:
+        if not self.is_run():
+            raise ResultsFileError(f"{self.path}: not a run folder (no {MANIFEST})")
+        try:
+            return json.loads(self.manifest_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ResultsFileError(f"{self.manifest_path}: invalid JSON ({exc})") from None
+
+    def log_event(self, event: str, **fields: Any) -> None:
+        record = {"time": time.time(), "event": event, **fields}
+        with open(self.path / EVENTS, "a") as fh:
+            fh.write(json.dumps(record, default=str) + "\n")
+            fh.flush()
+
+    def append_episode(self, row: Mapping[str, Any]) -> None:
+        """Record one finished episode: one flushed line, complete or absent after a kill."""
+        line = json.dumps(dict(row), default=_json_default, allow_nan=False) + "\n"
+        if self._pending is None:
+            self._pending = open(self.path / PENDING, "a")  # closed in compact()
+        self._pending.write(line)
+        self._pending.flush()  # in the kernel now: a killed process cannot lose it
+
+    def pending_rows(self) -> list[dict[str, Any]]:
+        path = self.path / PENDING
+        if not path.is_file():
+            return []
+        lines = path.read_text().splitlines()
+        rows = []
+        for i, line in enumerate(lines):
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                if i == len(lines) - 1:  # a write cut short by a kill: that episode was in flight
+                    break
+                raise ResultsFileError(f"{path}: line {i + 1} is not valid JSON") from None
+            if row.get("started_at"):
+                row["started_at"] = datetime.fromisoformat(row["started_at"])
+            rows.append(row)
+        return rows
+
+    def read_episodes(self) -> pd.DataFrame:
+        """Every recorded episode, one row each (the latest write of a repeated episode)."""
+        tables = [read_table(self.path / EPISODES)] if (self.path / EPISODES).is_file() else []
+        pending = self.pending_rows()
+        if pending:
+            try:
+                tables.append(rows_to_table(pending))
+            except (pa.ArrowInvalid, pa.ArrowTypeError, KeyError) as exc:
+                raise ResultsFileError(
+                    f"{self.path / PENDING}: rows do not match the schema ({exc})"
+                ) from None
+        if not tables:
+            return arrow_schema().empty_table().to_pandas()
+        df = pa.concat_tables(tables).to_pandas()
+        df = df.drop_duplicates(subset=list(EPISODE_KEY), keep="last")
+        return df.reset_index(drop=True)[list(COLUMN_NAMES)]
+
+    def compact(self) -> None:
+        """Fold pending rows into episodes.parquet (atomically), then drop pending.jsonl."""
+        if self._pending is not None:
+            self._pending.close()
+            self._pending = None
+        pending = self.path / PENDING
+        if not pending.is_file():
+            return
+        df = self.read_episodes()
+        df = df.sort_values(["policy_config_id", "task_index", "episode_index"], kind="stable")
+        table = pa.Table.from_pandas(df, schema=arrow_schema(), preserve_index=False)
+        _write_table(self.path / EPISODES, table.replace_schema_metadata(arrow_schema().metadata))
+        pending.unlink()
+        _fsync_dir(self.path)

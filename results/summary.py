@@ -1,0 +1,77 @@
+"""Aggregates episode rows into per-task and overall summaries with 95% intervals.
+
+Success rates use the Wilson score interval: unlike the normal approximation it stays
+inside [0, 1] and is honest at 0/n and n/n, which is where small evaluations live.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+
+Z95 = 1.959963984540054
+
+SUMMARY_COLUMNS = (
+    "policy_config_id",
+    "policy",
+    "task",
+    "episodes",
+    "successes",
+    "success_rate",
+    "success_low",
+    "success_high",
+    "failures",
+    "nfe_per_chunk",
+    "tokens_per_s",
+    "control_hz",
+    "wall_clock_s",
+)
+
+
+def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval for a binomial proportion; (nan, nan) when n == 0."""
+    if n == 0:
+        return (math.nan, math.nan)
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _summarise(group: pd.DataFrame) -> dict[str, float]:
+    n = len(group)
+    k = int(group["success"].sum())
+    low, high = wilson_interval(k, n)
+    return {
+        "episodes": n,
+        "successes": k,
+        "success_rate": k / n if n else math.nan,
+        "success_low": low,
+        "success_high": high,
+        "failures": int(group["failure_reason"].notna().sum()),
+        "nfe_per_chunk": group["nfe_per_chunk"].mean(),
+        "tokens_per_s": group["tokens_per_s"].mean(),
+        "control_hz": group["control_hz"].mean(),
+        "wall_clock_s": group["wall_clock_s"].mean(),
+    }
+
+
+def summarize(episodes: pd.DataFrame) -> pd.DataFrame:
+    """One row per (policy configuration, task) plus an `ALL` row per configuration.
+
+    Means of per-episode rates (tokens/s, Hz) weight every episode equally, matching
+    how the papers average over trials.
+    """
+    rows = []
+    order = episodes.drop_duplicates("policy_config_id")[["policy_config_id", "policy"]]
+    for config_id, policy in order.itertuples(index=False):
+        mine = episodes[episodes["policy_config_id"] == config_id]
+        for task in mine.sort_values("task_index")["task"].unique():
+            rows.append(
+                {"policy_config_id": config_id, "policy": policy, "task": task}
+                | _summarise(mine[mine["task"] == task])
+            )
+        rows.append({"policy_config_id": config_id, "policy": policy, "task": "ALL"} | _summarise(mine))
+    return pd.DataFrame(rows, columns=list(SUMMARY_COLUMNS))

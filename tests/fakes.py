@@ -1,0 +1,104 @@
+"""A physics-free environment and policies for unit tests of the runner (no simulator)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import gymnasium as gym
+import numpy as np
+
+from adapters.base import EpisodeSpec, Suite, TaskSpec
+from harness.config import PolicyRun, ResolvedRun, RunConfig
+from policies.base import ChunkBatch, EpisodeContext
+from policies.registry import NoParams, PolicySpec
+
+
+class CountdownEnv(gym.Env):
+    """Succeeds on step `succeed_at` (never if None); each step sleeps `step_delay` s."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,))
+    action_space = gym.spaces.Box(-1.0, 1.0, (2,))
+
+    def __init__(self, succeed_at: int | None, step_delay: float = 0.0, fail_at: int | None = None):
+        self.succeed_at, self.step_delay, self.fail_at = succeed_at, step_delay, fail_at
+        self.t = 0
+        self.actions: list[np.ndarray] = []
+
+    def reset(self, *, seed=None, options=None):
+        self.t = 0
+        return np.zeros(1), {"success": False}
+
+    def step(self, action):
+        if self.step_delay:
+            time.sleep(self.step_delay)
+        self.t += 1
+        self.actions.append(np.asarray(action))
+        if self.fail_at is not None and self.t == self.fail_at:
+            raise RuntimeError("simulator exploded")
+        success = self.succeed_at is not None and self.t >= self.succeed_at
+        return np.array([self.t], dtype=float), 0.0, False, False, {"success": success}
+
+
+class ChunkPolicy:
+    """Returns chunks of `chunk` actions numbered 0, 1, 2 ...; sleeps `delay` s per call."""
+
+    def __init__(self, chunk: int = 4, delay: float = 0.0, dim: int = 2):
+        self.chunk, self.delay, self.dim = chunk, delay, dim
+        self.calls = 0
+
+    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
+        self.calls = 0
+
+    def act(self, observations: Sequence[object]) -> ChunkBatch:
+        if self.delay:
+            time.sleep(self.delay)
+        start = self.calls * self.chunk
+        self.calls += 1
+        steps = np.arange(start, start + self.chunk, dtype=float)
+        actions = np.repeat(steps[:, None], self.dim, axis=1)[None]
+        return ChunkBatch(actions=actions, action_tokens=self.chunk * self.dim)
+
+
+def context(max_steps: int = 50) -> EpisodeContext:
+    return EpisodeContext(
+        suite="fake/countdown",
+        task="count",
+        instruction="count to n",
+        action_space=CountdownEnv.action_space,
+        observation_space=CountdownEnv.observation_space,
+        max_steps=max_steps,
+        episode_index=0,
+    )
+
+
+def fake_resolved(
+    policy: object,
+    episodes: int = 3,
+    max_steps: int = 20,
+    succeed_at: int | None = 5,
+    fail_episode: int | None = None,
+) -> ResolvedRun:
+    """A ResolvedRun over the fake env; episode `fail_episode` raises inside step 2."""
+    specs = tuple(EpisodeSpec(index=i, seed=100 + i) for i in range(episodes))
+    task = TaskSpec("count", "count to n", max_steps, specs)
+    made: list[CountdownEnv] = []
+
+    class PerEpisodeEnv(CountdownEnv):
+        def reset(self, *, seed=None, options=None):
+            spec = options["episode"]
+            self.fail_at = 2 if spec.index == fail_episode else None
+            return super().reset(seed=seed, options=options)
+
+    def make_env(_task: TaskSpec) -> gym.Env:
+        env = PerEpisodeEnv(succeed_at)
+        made.append(env)
+        return env
+
+    suite = Suite("fake/countdown", "1", (task,), make_env)
+    spec = PolicySpec("fake", "test policy", NoParams, lambda _p: policy)
+    run = PolicyRun(spec, NoParams(), "{}", "", "", "fakeconfig01", policy)  # type: ignore[arg-type]
+    config = RunConfig(suite=suite.name, policies=())
+    resolved = ResolvedRun(config, suite, (task,), [run])
+    resolved.made_envs = made  # type: ignore[attr-defined]
+    return resolved

@@ -1,0 +1,90 @@
+"""The episode loop on a physics-free env: chunks, budgets, success, timing, failures."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from harness.episode import run_episode
+from harness.nfe import NFECounter
+from tests.fakes import ChunkPolicy, CountdownEnv, context
+
+
+def _run(env, policy, max_steps=50, replan_every=0):
+    from adapters.base import EpisodeSpec
+
+    return run_episode(env, policy, NFECounter(policy), context(max_steps), EpisodeSpec(0), replan_every)
+
+
+def test_whole_chunk_is_executed_before_replanning():
+    env, policy = CountdownEnv(succeed_at=10), ChunkPolicy(chunk=4)
+    out = _run(env, policy)
+    assert out.success and out.steps == 10
+    assert out.chunks == 3  # 4 + 4 + 2 of the third chunk
+    executed = [int(a[0]) for a in env.actions]
+    assert executed == list(range(10))  # actions in order, none skipped
+    assert out.action_tokens_total == 3 * 4 * 2
+
+
+def test_replan_every_executes_only_a_prefix_of_each_chunk():
+    env, policy = CountdownEnv(succeed_at=6), ChunkPolicy(chunk=4)
+    out = _run(env, policy, replan_every=2)
+    assert out.chunks == 3
+    executed = [int(a[0]) for a in env.actions]
+    assert executed == [0, 1, 4, 5, 8, 9]  # first two of each chunk
+
+
+def test_step_budget_ends_an_unsuccessful_episode():
+    out = _run(CountdownEnv(succeed_at=None), ChunkPolicy(chunk=3), max_steps=10)
+    assert not out.success
+    assert out.steps == 10 and out.chunks == 4
+    assert out.failure_reason is None
+
+
+def test_success_stops_mid_chunk():
+    env = CountdownEnv(succeed_at=1)
+    out = _run(env, ChunkPolicy(chunk=8))
+    assert out.success and out.steps == 1 and len(env.actions) == 1
+
+
+def test_timing_columns_add_up_and_measure_each_side():
+    env, policy = CountdownEnv(succeed_at=12, step_delay=0.004), ChunkPolicy(chunk=4, delay=0.01)
+    out = _run(env, policy)
+    total = out.policy_time_s + out.env_time_s + (out.wall_clock_s - out.policy_time_s - out.env_time_s)
+    assert math.isclose(total, out.wall_clock_s, rel_tol=0.05)
+    # Each side carries its own sleeps and not the other's.
+    assert out.env_time_s >= 12 * 0.004
+    assert out.policy_time_s >= 3 * 0.01
+    assert out.env_time_s < 12 * 0.004 + 3 * 0.01
+    assert out.policy_time_s < 3 * 0.01 + 12 * 0.004
+    overhead = out.wall_clock_s - out.policy_time_s - out.env_time_s
+    assert 0 <= overhead < 0.05 * out.wall_clock_s
+
+
+def test_env_exception_is_recorded_not_raised():
+    out = _run(CountdownEnv(succeed_at=None, fail_at=3), ChunkPolicy(chunk=2))
+    assert not out.success
+    assert out.failure_reason == "RuntimeError: simulator exploded"
+    assert "simulator exploded" in out.traceback
+    assert out.steps == 2  # the step that raised is not counted
+
+
+class WrongShapePolicy(ChunkPolicy):
+    def act(self, observations):
+        batch = super().act(observations)
+        batch.actions = np.zeros((1, 4, 3))
+        return batch
+
+
+def test_wrong_action_dimension_is_a_clear_failure():
+    out = _run(CountdownEnv(succeed_at=None), WrongShapePolicy())
+    assert out.failure_reason is not None
+    assert "3-D actions; the action space is 2-D" in out.failure_reason
+
+
+@pytest.mark.parametrize("chunk", [1, 5])
+def test_control_hz_inputs(chunk):
+    out = _run(CountdownEnv(succeed_at=7), ChunkPolicy(chunk=chunk))
+    assert out.steps == 7 and out.chunks == math.ceil(7 / chunk)

@@ -1,0 +1,80 @@
+"""The runner on the fake env: rows, durability, failure isolation, resume bookkeeping."""
+
+from __future__ import annotations
+
+import json
+
+import pyarrow.parquet as pq
+
+from harness.runner import run
+from results.schema import COLUMN_NAMES
+from results.store import RunDir
+from tests.fakes import ChunkPolicy, fake_resolved
+
+
+def test_rows_are_written_one_per_episode(tmp_path):
+    resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=3, succeed_at=5)
+    report = run(resolved, tmp_path / "run")
+    assert report.executed == 3 and report.failed == 0
+    df = RunDir(tmp_path / "run").read_episodes()
+    assert list(df.columns) == list(COLUMN_NAMES)
+    assert df["episode_index"].tolist() == [0, 1, 2]
+    assert df["success"].all() and (df["steps"] == 5).all() and (df["chunks"] == 3).all()
+    assert (df["action_tokens_total"] == 12).all()
+    assert (df["tokens_per_s"] > 0).all()
+    assert not (tmp_path / "run" / "pending.jsonl").exists()  # compacted
+    assert pq.read_table(tmp_path / "run" / "episodes.parquet").num_rows == 3
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert manifest["status"] == "finished" and manifest["finished_at"]
+
+
+def test_an_episode_exception_is_a_row_and_the_run_goes_on(tmp_path):
+    resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=3, succeed_at=5, fail_episode=1)
+    report = run(resolved, tmp_path / "run")
+    assert report.executed == 3 and report.failed == 1
+    df = RunDir(tmp_path / "run").read_episodes()
+    failed = df[df["episode_index"] == 1].iloc[0]
+    assert not failed["success"] and failed["failure_reason"] == "RuntimeError: simulator exploded"
+    assert df[df["episode_index"] != 1]["success"].all()
+    assert len(resolved.made_envs) == 2  # the env that raised was rebuilt, not reused
+    events = [json.loads(line) for line in (tmp_path / "run" / "events.jsonl").read_text().splitlines()]
+    failures = [e for e in events if e["event"] == "episode_failed"]
+    assert len(failures) == 1 and "simulator exploded" in failures[0]["traceback"]
+
+
+def test_each_episode_is_durable_before_the_next_starts(tmp_path):
+    """When episode i starts, a separate reader already sees every earlier episode."""
+    seen_parts: list[int] = []
+    out = tmp_path / "run"
+
+    class Watching(ChunkPolicy):
+        def reset(self, episodes):
+            seen_parts.append(len(RunDir(out).read_episodes()))
+            super().reset(episodes)
+
+    run(fake_resolved(Watching(chunk=2), episodes=4), out)
+    assert seen_parts == [0, 1, 2, 3]
+
+
+def test_resume_runs_only_missing_episodes_and_retry_failed_reruns_failures(tmp_path):
+    out = tmp_path / "run"
+    run(fake_resolved(ChunkPolicy(chunk=2), episodes=3, fail_episode=1), out)
+    again = run(fake_resolved(ChunkPolicy(chunk=2), episodes=3), out, resume=True)
+    assert again.executed == 0 and again.skipped == 3
+    retried = run(fake_resolved(ChunkPolicy(chunk=2), episodes=3), out, resume=True, retry_failed=True)
+    assert retried.executed == 1
+    df = RunDir(out).read_episodes()
+    assert len(df) == 3 and df["success"].all() and df["failure_reason"].isna().all()
+
+
+def test_a_row_cut_short_by_a_kill_is_dropped_and_others_kept(tmp_path):
+    out = tmp_path / "run"
+    run(fake_resolved(ChunkPolicy(chunk=2), episodes=2), out)
+    run_dir = RunDir(out)
+    rows = run_dir.read_episodes()
+    (out / "episodes.parquet").unlink()
+    for row in rows.to_dict("records"):
+        run_dir.append_episode({k: (None if v != v else v) for k, v in row.items()})
+    with open(out / "pending.jsonl", "a") as fh:
+        fh.write('{"run_id": "half a ro')  # SIGKILL mid-write
+    assert len(run_dir.read_episodes()) == 2
