@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 
 from adapters.base import Suite, SuiteInfo
+from harness.plugins import load_plugins
 
 ENTRY_POINT_GROUP = "dvla_harness.adapters"
 
@@ -37,16 +37,7 @@ def _builtin_providers() -> list[SuiteProvider]:
 
 
 def _plugin_providers() -> list[SuiteProvider]:
-    found = []
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        provider = ep.load()
-        if not isinstance(provider, SuiteProvider):
-            raise TypeError(
-                f"entry point {ep.name!r} in {ENTRY_POINT_GROUP} must be a SuiteProvider, "
-                f"got {type(provider).__name__}"
-            )
-        found.append(provider)
-    return found
+    return load_plugins(ENTRY_POINT_GROUP, SuiteProvider)
 
 
 def providers() -> list[SuiteProvider]:

@@ -49,7 +49,9 @@ def _run_parser(sub: argparse._SubParsersAction) -> None:
             "OUT/pending.jsonl at once and compacted into OUT/episodes.parquet at the end; "
             "OUT/manifest.json holds the resolved config and provenance. With no arguments, "
             "runs the embedded default config (the README's main job). Flags override "
-            "--config, which overrides the embedded default."
+            "--config, which overrides the embedded default; naming another suite runs its "
+            "whole protocol (every task, every episode spec) unless --tasks or "
+            "--episodes-per-task cut it to a prefix."
         ),
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -149,12 +151,14 @@ def _config_from_args(args: argparse.Namespace):
     from harness.config import build_config, default_config_data, load_config_file, parse_policy_arg
 
     data = default_config_data()
-    if args.config:
-        data |= load_config_file(args.config)
+    overrides = load_config_file(args.config) if args.config else {}
     if args.suite:
-        data["suite"] = args.suite
-        if not args.config:
-            data.pop("tasks", None)
+        overrides["suite"] = args.suite
+    if overrides.get("suite", data["suite"]) != data["suite"]:
+        # The default's task subset and episode count are the main job's, not the protocol's.
+        data.pop("tasks", None)
+        data.pop("episodes_per_task", None)
+    data |= overrides
     if args.tasks is not None:
         data["tasks"] = [t.strip() for t in args.tasks.split(",") if t.strip()]
         if not data["tasks"]:

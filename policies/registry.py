@@ -14,9 +14,9 @@ import json
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
 from typing import Any
 
+from harness.plugins import load_plugins
 from policies.base import Policy
 
 ENTRY_POINT_GROUP = "dvla_harness.policies"
@@ -65,16 +65,7 @@ def _builtin_specs() -> list[PolicySpec]:
 
 
 def _plugin_specs() -> list[PolicySpec]:
-    specs = []
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        spec = ep.load()
-        if not isinstance(spec, PolicySpec):
-            raise TypeError(
-                f"entry point {ep.name!r} in {ENTRY_POINT_GROUP} must be a PolicySpec, "
-                f"got {type(spec).__name__}"
-            )
-        specs.append(spec)
-    return specs
+    return load_plugins(ENTRY_POINT_GROUP, PolicySpec)
 
 
 def all_policies() -> dict[str, PolicySpec]:

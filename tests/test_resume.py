@@ -65,45 +65,11 @@ def test_sigkill_then_resume_records_each_episode_once(tmp_path):
 
 def test_resume_refuses_a_folder_of_another_config(cli, tmp_path):
     out = tmp_path / "run"
-    assert (
-        cli(
-            "run",
-            "--suite",
-            "metaworld/mt1/reach-v3",
-            "--policy",
-            "random",
-            "--episodes-per-task",
-            "1",
-            "--out",
-            str(out),
-            "--quiet",
-        )[0]
-        == 0
-    )
+    base = ["run", "--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--out", str(out)]
+    assert cli(*base, "--policy", "random", "--quiet")[0] == 0
     before = sorted(p.name for p in out.rglob("*"))
-    code, _, err = cli(
-        "run",
-        "--suite",
-        "metaworld/mt1/reach-v3",
-        "--policy",
-        "random:seed=1",
-        "--episodes-per-task",
-        "1",
-        "--out",
-        str(out),
-        "--resume",
-    )
+    code, _, err = cli(*base, "--policy", "random:seed=1", "--resume")
     assert code == 2 and "belongs to a different config" in err and "seed" in err
-    code, _, err = cli(
-        "run",
-        "--suite",
-        "metaworld/mt1/reach-v3",
-        "--policy",
-        "random",
-        "--episodes-per-task",
-        "1",
-        "--out",
-        str(out),
-    )
+    code, _, err = cli(*base, "--policy", "random")
     assert code == 2 and "--resume" in err and "--overwrite" in err
     assert sorted(p.name for p in out.rglob("*")) == before
