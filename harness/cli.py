@@ -7,6 +7,7 @@ Exit status: 0 success; 1 some episodes raised (recorded with a failure_reason);
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -204,6 +205,10 @@ def _progress_factory(quiet: bool) -> tuple[Progress, Callable[[int, int], Calla
     return progress, start
 
 
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from harness.config import resolve
     from harness.runner import run
@@ -220,6 +225,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         out = Path("runs") / datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     progress, start = _progress_factory(args.quiet)
+    # CI cancels with SIGTERM: stop like Ctrl-C, keeping every finished episode.
+    signal.signal(signal.SIGTERM, _raise_interrupt)
     with progress:
         report = run(
             resolved,

@@ -65,7 +65,9 @@ def summarize(episodes: pd.DataFrame) -> pd.DataFrame:
     how the papers average over trials.
     """
     rows = []
-    order = episodes.drop_duplicates("policy_config_id")[["policy_config_id", "policy"]]
+    # Configurations in the order they first ran (the order they were listed in the run).
+    first = episodes.sort_values("started_at", kind="stable") if "started_at" in episodes else episodes
+    order = first.drop_duplicates("policy_config_id")[["policy_config_id", "policy"]]
     for config_id, policy in order.itertuples(index=False):
         mine = episodes[episodes["policy_config_id"] == config_id]
         for task in mine.sort_values("task_index")["task"].unique():

@@ -98,3 +98,36 @@ def test_two_runs_give_identical_rows_apart_from_timing(cli, tmp_path):
     b = RunDir(tmp_path / "b").read_episodes().drop(columns=TIMING)
     assert len(a) == 4
     assert a.equals(b)
+
+
+def test_manifest_records_config_and_provenance(cli, tmp_path):
+    import json
+
+    out = tmp_path / "run"
+    assert (
+        cli(
+            "run",
+            "--suite",
+            "metaworld/mt1/reach-v3",
+            "--policy",
+            "scripted",
+            "--episodes-per-task",
+            "1",
+            "--out",
+            str(out),
+            "--quiet",
+        )[0]
+        == 0
+    )
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config"]["suite"] == "metaworld/mt1/reach-v3"
+    assert manifest["config"]["policies"] == [{"name": "scripted", "params": {}}]
+    assert manifest["policies"][0]["params"] == '{"action_noise":0.0,"seed":0}'
+    env = manifest["environment"]
+    for package in ("numpy", "torch", "gymnasium", "mujoco", "pandas", "pyarrow"):
+        assert env["packages"][package], package
+    assert env["simulators"]["metaworld"] == "3.1.1"
+    assert manifest["suite"]["simulator_packages"]["mujoco"] == env["packages"]["mujoco"]
+    assert manifest["suite"]["render_backend"].startswith("none")
+    assert env["cpu"] and env["python"] and env["platform"]
+    assert manifest["started_at"] <= manifest["finished_at"] and manifest["status"] == "finished"

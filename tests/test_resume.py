@@ -73,3 +73,27 @@ def test_resume_refuses_a_folder_of_another_config(cli, tmp_path):
     code, _, err = cli(*base, "--policy", "random")
     assert code == 2 and "--resume" in err and "--overwrite" in err
     assert sorted(p.name for p in out.rglob("*")) == before
+
+
+def test_sigterm_stops_cleanly_and_compacts(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "harness", *ARGS, "--out", str(out)],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        pending = out / "pending.jsonl"
+        if pending.is_file() and pending.read_text().count("\n") >= 2:
+            break
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "--resume" in err
+    assert not (out / "pending.jsonl").exists()
+    rows = pq.read_table(out / "episodes.parquet").num_rows
+    assert 2 <= rows < 10

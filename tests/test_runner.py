@@ -78,3 +78,13 @@ def test_a_row_cut_short_by_a_kill_is_dropped_and_others_kept(tmp_path):
     with open(out / "pending.jsonl", "a") as fh:
         fh.write('{"run_id": "half a ro')  # SIGKILL mid-write
     assert len(run_dir.read_episodes()) == 2
+
+
+def test_summary_lists_policies_in_the_order_they_ran(cli, tmp_path):
+    from results.summary import summarize
+
+    out = tmp_path / "run"
+    args = ["run", "--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--quiet"]
+    assert cli(*args, "--policy", "scripted", "--policy", "random", "--out", str(out))[0] == 0
+    summary = summarize(RunDir(out).read_episodes())
+    assert summary["policy"].drop_duplicates().tolist() == ["scripted", "random"]
