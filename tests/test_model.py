@@ -1,0 +1,121 @@
+"""The action-token model: attention patterns and KV-cache exactness, per pattern."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from policies.model import ActionTokenModel, ModelConfig
+from policies.tokenizer import ActionTokenizer
+
+TOL = 1e-4
+
+
+def _model(pattern: str, **kw) -> ActionTokenModel:
+    torch.manual_seed(0)
+    cfg = ModelConfig(
+        action_dim=4,
+        chunk_len=4,
+        state_dim=6,
+        bins=32,
+        vocab_words=20,
+        max_words=5,
+        width=32,
+        layers=2,
+        heads=4,
+        ffn=64,
+        pattern=pattern,
+        **kw,
+    )
+    return ActionTokenModel(cfg).eval()
+
+
+def _inputs(model: ActionTokenModel, batch: int = 2):
+    g = torch.Generator().manual_seed(1)
+    cfg = model.cfg
+    words = torch.randint(1, cfg.vocab_words, (batch, cfg.max_words), generator=g)
+    state = torch.randn(batch, cfg.state_dim, generator=g)
+    tokens = torch.randint(0, cfg.bins + 1, (batch, cfg.action_tokens), generator=g)  # some [MASK]s
+    return words, state, tokens
+
+
+def _full(model, words, state, tokens):
+    positions = torch.arange(model.cfg.action_tokens)
+    with torch.no_grad():
+        return model(tokens, positions, words, state).logits
+
+
+@pytest.mark.parametrize(("pattern", "step"), [("block_causal", 4), ("block_causal", 8), ("causal", 1)])
+def test_cached_decoding_matches_full_forward(pattern, step):
+    model = _model(pattern, block_size=step if pattern == "block_causal" else 0)
+    words, state, tokens = _inputs(model)
+    full = _full(model, words, state, tokens)
+    with torch.no_grad():
+        cache = model(words=words, state=state).kv  # the prefix, once
+        for start in range(0, model.cfg.action_tokens, step):
+            pos = torch.arange(start, start + step)
+            out = model(tokens[:, pos], pos, cache=cache)
+            assert (out.logits - full[:, pos]).abs().max() < TOL
+            cache = cache.extend(out.kv)
+    assert len(cache) == model.cfg.prefix_len + model.cfg.action_tokens
+
+
+def test_bidirectional_with_isolated_prefix_caches_the_prefix_exactly():
+    model = _model("bidirectional", prefix_sees_actions=False)
+    words, state, tokens = _inputs(model)
+    full = _full(model, words, state, tokens)
+    positions = torch.arange(model.cfg.action_tokens)
+    with torch.no_grad():
+        cache = model(words=words, state=state).kv
+        cached = model(tokens, positions, cache=cache).logits
+    assert (cached - full).abs().max() < TOL
+
+
+def test_dream_style_bidirectional_prefix_cache_goes_stale():
+    """Every token sees every token: a prefix cached before the actions changed is stale
+    (this is the approximation the fast_dllm decoder accepts)."""
+    model = _model("bidirectional")
+    words, state, tokens = _inputs(model)
+    positions = torch.arange(model.cfg.action_tokens)
+    with torch.no_grad():
+        first = model(tokens, positions, words, state)
+        prefix_kv = first.kv.select(first.kv.positions < model.cfg.prefix_len)
+        changed = tokens.roll(1, dims=1)
+        stale = model(changed, positions, cache=prefix_kv).logits
+    assert (stale - _full(model, words, state, changed)).abs().max() > 1e-5  # exact caches stay < 1e-6
+
+
+def test_block_causal_blocks_do_not_see_later_blocks():
+    model = _model("block_causal", block_size=4)
+    words, state, tokens = _inputs(model)
+    changed = tokens.clone()
+    changed[:, 8:] = (changed[:, 8:] + 1) % model.cfg.bins
+    a, b = _full(model, words, state, tokens), _full(model, words, state, changed)
+    assert (a[:, :8] - b[:, :8]).abs().max() < TOL  # blocks 0-1 unaffected by blocks 2-3
+    assert (a[:, 8:] - b[:, 8:]).abs().max() > 1e-3
+
+
+def test_invalid_config_names_the_problem():
+    with pytest.raises(ValueError, match="block size 5 does not divide the chunk's 16 action tokens"):
+        _model("block_causal", block_size=5)
+    with pytest.raises(ValueError, match="pattern 'sideways' is not one of"):
+        _model("sideways")
+
+
+def test_tokenizer_round_trip_and_serialisation():
+    rng = np.random.default_rng(0)
+    actions = np.clip(rng.normal(0, 0.5, (2000, 4)), -1, 1)
+    actions[:, 3] = np.where(rng.random(2000) > 0.5, 1.0, -1.0)  # a gripper
+    tok = ActionTokenizer.fit(actions, bins=256, binary_dims=(3,))
+    assert tok.round_trip_error(actions) < 0.01
+    chunk = actions[:8][None]  # (1, H=8, D=4)
+    tokens = tok.encode(chunk)
+    assert tokens.shape == (1, 32) and tokens.min() >= 0 and tokens.max() < 256
+    assert set(tokens[0, 3::4].tolist()) <= {0, 255}  # time-major: every 4th token is the gripper
+    again = ActionTokenizer.from_dict(tok.to_dict())
+    assert np.array_equal(again.decode(tokens), tok.decode(tokens))
+    with pytest.raises(ValueError, match="tokens outside"):
+        tok.decode(np.array([[256, 0, 0, 0]]))
+    with pytest.raises(ValueError, match="invalid tokenizer description"):
+        ActionTokenizer.from_dict({"low": [0.0], "high": [0.0], "bins": 256, "binary_dims": []})
