@@ -19,9 +19,7 @@ import torch
 from torch import Tensor
 
 from policies.model import ActionTokenModel, KVCache
-
-SCHEDULES = ("cosine", "linear", "concave")
-CONFIDENCES = ("max_prob", "margin")
+from policies.schedules import still_masked
 
 
 @dataclass
@@ -29,13 +27,6 @@ class Decoded:
     tokens: Tensor  # (B, A) in [0, bins)
     # One entry per forward pass: the action positions committed by it (batch slot 0).
     trace: list[list[int]] = field(default_factory=list)
-
-
-def still_masked(schedule: str, step: int, steps: int, total: int) -> int:
-    """How many of `total` tokens stay masked after `step` of `steps` (0 after the last)."""
-    r = step / steps
-    frac = {"cosine": math.cos(math.pi / 2 * r), "linear": 1 - r, "concave": 1 - r * r}[schedule]
-    return min(total, max(0, math.ceil(total * frac - 1e-9)))
 
 
 def _scores(logits: Tensor, confidence: str, temperature: float, gen: torch.Generator | None):

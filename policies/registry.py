@@ -59,9 +59,9 @@ class NoParams:
 
 
 def _builtin_specs() -> list[PolicySpec]:
-    from policies import scripted
+    from policies import dvla, scripted
 
-    return [scripted.SCRIPTED, scripted.RANDOM]
+    return [scripted.SCRIPTED, scripted.RANDOM, *dvla.SPECS]
 
 
 def _plugin_specs() -> list[PolicySpec]:

@@ -19,7 +19,10 @@ MT1 = ["--suite", "metaworld/mt1/reach-v3"]
         (["run", "--suite", "metaworld/mt1/nope-v3"], "unknown Meta-World task 'nope-v3'"),
         (["run", "--tasks", "nope"], "has no task 'nope'; valid tasks (or 0..9): reach-v3"),
         (["run", "--tasks", "99"], "has no task '99'"),
-        (["run", "--policy", "nope"], "unknown policy 'nope'; valid policies: random, scripted"),
+        (
+            ["run", "--policy", "nope"],
+            "unknown policy 'nope'; valid policies: autoregressive, bidirectional, block_diffusion, fast_dllm, fast_dvla, random, scripted",
+        ),
         (
             ["run", *MT1, "--policy", "random:bogus=1"],
             "has no parameter 'bogus'; valid parameters: seed, chunk_length",

@@ -11,9 +11,9 @@ from policies.decoders import (
     decode_bidirectional,
     decode_block_diffusion,
     decode_fast_dvla,
-    still_masked,
 )
 from policies.model import ActionTokenModel, ModelConfig
+from policies.schedules import still_masked
 
 
 def _model(pattern: str, **kw) -> ActionTokenModel:

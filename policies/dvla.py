@@ -1,0 +1,207 @@
+"""The decoders as registered policies over one checkpoint format.
+
+Each policy loads a checkpoint (policies/checkpoint.py), turns observations into model
+inputs, decodes the action tokens of one chunk with its decoder and returns the actions.
+The checkpoint's attention pattern must be the one its decoder needs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policies.base import ChunkBatch, EpisodeContext, Observation
+from policies.registry import PolicySpec, param
+from policies.schedules import CONFIDENCES, SCHEDULES
+
+SHIPPED = Path(__file__).resolve().parent / "checkpoints"
+
+
+def shipped(recipe: str) -> str:
+    return str(SHIPPED / f"metaworld-mt10-{recipe}.safetensors")
+
+
+@dataclass(frozen=True)
+class BidirectionalParams:
+    checkpoint: str = param(shipped("bidirectional"), "checkpoint of a bidirectional model")
+    steps: int = param(12, "refinement steps T (= NFE per chunk)", low=1, high=1024)
+    schedule: str = param("cosine", "how many tokens stay masked after each step", choices=SCHEDULES)
+    confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
+    remask: float = param(0.0, "secondary remasking: max confidence threshold (0 = off)", low=0.0, high=1.0)
+    cache_prefix: bool = param(
+        False, "reuse the prefix keys/values (exact only if the prefix does not see the actions)"
+    )
+
+
+@dataclass(frozen=True)
+class FastDLLMParams:
+    checkpoint: str = param(shipped("bidirectional"), "checkpoint of a bidirectional model")
+    steps: int = param(12, "refinement steps T (= NFE per chunk)", low=1, high=1024)
+    schedule: str = param("cosine", "how many tokens stay masked after each step", choices=SCHEDULES)
+    confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
+
+
+@dataclass(frozen=True)
+class BlockDiffusionParams:
+    checkpoint: str = param(shipped("block_diffusion"), "checkpoint of a block-causal model")
+    steps_per_block: int = param(4, "denoising steps per block", low=1, high=1024)
+    schedule: str = param(
+        "linear", "how many tokens of a block stay masked after each step", choices=SCHEDULES
+    )
+    confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
+
+
+@dataclass(frozen=True)
+class FastDVLAParams:
+    checkpoint: str = param(shipped("fast_dvla"), "checkpoint of a block-causal model")
+    tau_conf: float = param(0.5, "confidence a token needs to be committed", low=0.0, high=1.0)
+    tau_add: float = param(2 / 7, "decoded fraction of a block before the next is added", low=0.0, high=1.0)
+    tau_act: float = param(
+        4 / 7, "decoded fraction of a block before the next is fully activated", low=0.0, high=1.0
+    )
+    n: int = param(2, "a fully activated block commits at least 1/n of its masked tokens", low=1, high=64)
+    confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
+
+    def validate(self) -> None:
+        if self.tau_add > self.tau_act:
+            raise ValueError(f"tau_add ({self.tau_add}) must be <= tau_act ({self.tau_act})")
+
+
+@dataclass(frozen=True)
+class AutoregressiveParams:
+    checkpoint: str = param(shipped("autoregressive"), "checkpoint of a causal model")
+    temperature: float = param(0.0, "sampling temperature (0 = greedy)", low=0.0, high=10.0)
+    seed: int = param(0, "seed of the sampler", low=0)
+
+
+class DVLAPolicy:
+    """A checkpointed action-token model decoded by one of the decoders."""
+
+    def __init__(self, params: Any, pattern: str, decode: Callable[..., Any]):
+        from policies.checkpoint import CheckpointError, load
+
+        if not Path(params.checkpoint).is_file():
+            raise ValueError(
+                f"checkpoint {params.checkpoint!r} does not exist; pass checkpoint=PATH "
+                "(train one with `dvla-harness train`)"
+            )
+        try:
+            self.ckpt = load(params.checkpoint)
+        except CheckpointError as exc:
+            raise ValueError(str(exc)) from None
+        got = self.ckpt.model.cfg.pattern
+        if got != pattern:
+            raise ValueError(f"{params.checkpoint}: a {got} model; this decoder needs a {pattern} model")
+        self.model = self.ckpt.model
+        self.params = params
+        self._decode = decode
+        self._instructions: list[str] = []
+
+    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
+        cfg = self.model.cfg
+        for ep in episodes:
+            if ep.action_space.shape != (cfg.action_dim,):
+                raise ValueError(
+                    f"checkpoint acts in {cfg.action_dim}-D, the suite's actions are {ep.action_space.shape}"
+                )
+            if ep.observation_space.shape != (cfg.state_dim,):
+                raise ValueError(
+                    f"checkpoint reads {cfg.state_dim}-D states, the suite gives {ep.observation_space.shape}"
+                )
+        self._instructions = [ep.instruction for ep in episodes]
+
+    def act(self, observations: Sequence[Observation]) -> ChunkBatch:
+        import torch
+
+        from policies.checkpoint import to_tensors
+
+        states = np.stack([o["state"] if isinstance(o, Mapping) else o for o in observations])
+        words, state = to_tensors(self.ckpt, self._instructions, states)
+        with torch.inference_mode():
+            decoded = self._decode(self.model, words, state, self.params)
+        actions = self.ckpt.tokenizer.decode(decoded.tokens.numpy())
+        return ChunkBatch(
+            actions=actions, action_tokens=int(decoded.tokens.numel()), trace=[{"committed": decoded.trace}]
+        )
+
+
+def _spec(name: str, summary: str, params: type, pattern: str, decode: Callable[..., Any]) -> PolicySpec:
+    return PolicySpec(
+        name=name, summary=summary, params=params, build=lambda p: DVLAPolicy(p, pattern, decode)
+    )
+
+
+def _bidirectional(m, w, s, p):
+    from policies.decoders import decode_bidirectional
+
+    return decode_bidirectional(m, w, s, p.steps, p.schedule, p.confidence, p.remask, p.cache_prefix)
+
+
+def _fast_dllm(m, w, s, p):
+    from policies.decoders import decode_bidirectional
+
+    return decode_bidirectional(m, w, s, p.steps, p.schedule, p.confidence, reuse_prefix_cache=True)
+
+
+def _block_diffusion(m, w, s, p):
+    from policies.decoders import decode_block_diffusion
+
+    return decode_block_diffusion(m, w, s, p.steps_per_block, p.schedule, p.confidence)
+
+
+def _fast_dvla(m, w, s, p):
+    from policies.decoders import decode_fast_dvla
+
+    return decode_fast_dvla(m, w, s, p.tau_conf, p.tau_add, p.tau_act, p.n, p.confidence)
+
+
+def _autoregressive(m, w, s, p):
+    import torch
+
+    from policies.decoders import decode_autoregressive
+
+    generator = torch.Generator().manual_seed(p.seed) if p.temperature > 0 else None
+    return decode_autoregressive(m, w, s, p.temperature, generator)
+
+
+SPECS = [
+    _spec(
+        "bidirectional",
+        "dVLA baseline: all tokens masked, T parallel refinement steps, no KV cache",
+        BidirectionalParams,
+        "bidirectional",
+        _bidirectional,
+    ),
+    _spec(
+        "fast_dllm",
+        "bidirectional model reusing a stale prefix KV cache (Fast-dLLM baseline)",
+        FastDLLMParams,
+        "bidirectional",
+        _fast_dllm,
+    ),
+    _spec(
+        "block_diffusion",
+        "block-causal model, blocks one after another, finished blocks cached",
+        BlockDiffusionParams,
+        "block_causal",
+        _block_diffusion,
+    ),
+    _spec(
+        "fast_dvla",
+        "block-causal model, pipelined parallel decoding of several blocks (Fast-dVLA)",
+        FastDVLAParams,
+        "block_causal",
+        _fast_dvla,
+    ),
+    _spec(
+        "autoregressive",
+        "causal model, one token per forward pass, KV cache",
+        AutoregressiveParams,
+        "causal",
+        _autoregressive,
+    ),
+]
