@@ -192,8 +192,8 @@ def _suite_tasks(name: str) -> tuple[str, ...]:
     )
 
 
-def load_suite(name: str) -> Suite:
-    return build_suite(name, _suite_tasks(name))
+def load_suite(name: str, split: str = "eval") -> Suite:
+    return build_suite(name, _suite_tasks(name), split)
 
 
 def list_suites() -> list[SuiteInfo]:

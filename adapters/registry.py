@@ -27,7 +27,9 @@ class MissingExtraError(RuntimeError):
 class SuiteProvider:
     prefix: str
     list_suites: Callable[[], list[SuiteInfo]]
-    load_suite: Callable[[str], Suite]
+    # load_suite(name, split): "eval" is the protocol's episodes; "train" gives episodes
+    # disjoint from them where the suite can (for demonstrations), else the same ones.
+    load_suite: Callable[[str, str], Suite]
 
 
 def _builtin_providers() -> list[SuiteProvider]:
@@ -48,10 +50,10 @@ def list_suites() -> list[SuiteInfo]:
     return [info for p in providers() for info in p.list_suites()]
 
 
-def load_suite(name: str) -> Suite:
+def load_suite(name: str, split: str = "eval") -> Suite:
     """Load a suite by its full name, e.g. `metaworld/mt10` or `metaworld/mt1/reach-v3`."""
     for provider in providers():
         if name.startswith(provider.prefix):
-            return provider.load_suite(name)
+            return provider.load_suite(name, split)
     valid = ", ".join(info.name for info in list_suites())
     raise UnknownSuiteError(f"unknown suite {name!r}; valid suites: {valid}")

@@ -25,8 +25,7 @@ from adapters.registry import load_suite
 from harness.config import RunConfig, resolve
 from harness.episode import run_episode
 from harness.nfe import NFECounter
-from harness.runner import EpisodeJob, make_row
-from policies.base import EpisodeContext
+from harness.runner import EpisodeJob, episode_context, make_row
 from results.store import RunDir
 
 TARGET_PERCENT = 3.0
@@ -51,17 +50,7 @@ def bare_episode(env, task, spec) -> tuple[float, int]:
 def harness_episode(resolved, run_dir, env, task, spec, counter) -> tuple[float, int, float]:
     prun = resolved.policies[0]
     start = time.perf_counter()
-    context = EpisodeContext(
-        suite=resolved.suite.name,
-        task=task.name,
-        instruction=task.instruction,
-        action_space=env.action_space,
-        observation_space=env.observation_space,
-        max_steps=task.max_steps,
-        episode_index=spec.index,
-        seed=spec.seed,
-        init_state_id=spec.init_state_id,
-    )
+    context = episode_context(resolved.suite.name, task, spec, env)
     outcome = run_episode(env, prun.policy, counter, context, spec, 0)
     run_dir.append_episode(make_row("bench", resolved, EpisodeJob(prun, task, spec), outcome))
     return (

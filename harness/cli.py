@@ -34,6 +34,7 @@ examples:
   dvla-harness run --out runs/demo --resume          # finish an interrupted run
   dvla-harness list suites | policies | tasks metaworld/mt10
   dvla-harness show runs/demo
+  dvla-harness collect --suite metaworld/mt10 --policy scripted --episodes-per-task 50 --out demos/mt10
 """
 
 # Pipes and CI logs get wide tables instead of rich's 80-column default.
@@ -128,6 +129,39 @@ def _show_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_show)
 
 
+def _collect_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "collect",
+        help="record demonstrations (successful episodes) of a policy",
+        description=(
+            "Run one policy through the ordinary episode loop and keep its successful "
+            "episodes as demonstrations for `dvla-harness train` (format: "
+            "docs/demonstrations.md). By default episodes come from the suite's train "
+            "split, which never shares a layout with evaluation."
+        ),
+        epilog="example:\n  dvla-harness collect --suite metaworld/mt10 --policy scripted --episodes-per-task 50 --out demos/mt10",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--suite", required=True, help="suite name (see `dvla-harness list suites`)")
+    p.add_argument(
+        "--policy", required=True, metavar="NAME[:k=v,...]", help="the demonstrator, e.g. scripted"
+    )
+    p.add_argument("--tasks", metavar="NAME_OR_INDEX,...", help="only these tasks")
+    p.add_argument(
+        "--episodes-per-task", type=int, metavar="N", help="episodes attempted per task (default: all specs)"
+    )
+    p.add_argument(
+        "--split", default="train", choices=("train", "eval"), help="which episode specs (default train)"
+    )
+    p.add_argument(
+        "--replan-every", type=int, metavar="K", help="actions executed per chunk; 0 = whole chunk"
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="demonstrations folder")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing demonstrations folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_collect)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dvla-harness",
@@ -145,6 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     _run_parser(sub)
     _list_parser(sub)
     _show_parser(sub)
+    _collect_parser(sub)
     return parser
 
 
@@ -253,6 +288,36 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"and tracebacks in {report.run_dir.path / 'events.jsonl'}"
         )
         return 1
+    return 0
+
+
+def cmd_collect(args: argparse.Namespace) -> int:
+    from harness.collect import check_demos_out, collect
+    from harness.config import build_config, parse_policy_arg, resolve
+
+    data: dict[str, Any] = {
+        "suite": args.suite,
+        "policy": [parse_policy_arg(args.policy)],
+        "split": args.split,
+    }
+    if args.tasks is not None:
+        data["tasks"] = [t.strip() for t in args.tasks.split(",") if t.strip()]
+    if args.episodes_per_task is not None:
+        data["episodes_per_task"] = args.episodes_per_task
+    if args.replan_every is not None:
+        data["replan_every"] = args.replan_every
+    resolved = resolve(build_config(data))
+    out = Path(args.out)
+    check_demos_out(out, args.overwrite)
+    progress, start = _progress_factory(args.quiet)
+    total = sum(len(resolved.episodes(t)) for t in resolved.tasks)
+    with progress:
+        report = collect(resolved, out, args.overwrite, start(total, 0))
+    table = Table("task", "kept / attempted", title=f"demonstrations in {out}")
+    for task, attempted in report.attempted.items():
+        table.add_row(task, f"{report.kept[task]} / {attempted}")
+    console.print(table)
+    console.print(f"{sum(report.kept.values())} episodes, {report.steps} steps")
     return 0
 
 

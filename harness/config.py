@@ -29,7 +29,8 @@ from policies.registry import (
     parse_params,
 )
 
-CONFIG_KEYS = ("suite", "tasks", "episodes_per_task", "replan_every", "policy")
+CONFIG_KEYS = ("suite", "tasks", "episodes_per_task", "replan_every", "policy", "split")
+SPLITS = ("eval", "train")
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,7 @@ class RunConfig:
     tasks: tuple[str, ...] = ()  # names or indices; empty = every task of the suite
     episodes_per_task: int | None = None  # None = every episode spec of the protocol
     replan_every: int = 0  # 0 = execute the whole chunk before asking again
+    split: str = "eval"  # "train": episodes disjoint from evaluation, for demonstrations
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -129,12 +131,16 @@ def build_config(data: dict[str, Any]) -> RunConfig:
     if episodes is not None:
         episodes = _positive_int(episodes, "--episodes-per-task")
     replan = _positive_int(data.get("replan_every", 0), "--replan-every", allow_zero=True)
+    split = data.get("split", "eval")
+    if split not in SPLITS:
+        raise UsageError(f"split {split!r} is not valid; choose one of {', '.join(SPLITS)}")
     return RunConfig(
         suite=suite,
         policies=tuple(policies),
         tasks=tuple(str(t) for t in tasks),
         episodes_per_task=episodes,
         replan_every=replan,
+        split=split,
     )
 
 
@@ -179,7 +185,7 @@ def _check_installed(modules: tuple[str, ...], extra: str, what: str) -> None:
 
 def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
     try:
-        suite = load_suite(config.suite)
+        suite = load_suite(config.suite, config.split)
     except (UnknownSuiteError, MissingExtraError) as exc:
         raise UsageError(str(exc)) from None
     _check_installed(suite.simulator_packages, suite.extra, f"suite {suite.name!r}")

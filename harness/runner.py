@@ -197,6 +197,20 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
     }
 
 
+def episode_context(suite: str, task: TaskSpec, spec: EpisodeSpec, env: gym.Env) -> EpisodeContext:
+    return EpisodeContext(
+        suite=suite,
+        task=task.name,
+        instruction=task.instruction,
+        action_space=env.action_space,
+        observation_space=env.observation_space,
+        max_steps=task.max_steps,
+        episode_index=spec.index,
+        seed=spec.seed,
+        init_state_id=spec.init_state_id,
+    )
+
+
 def _failed(exc: BaseException) -> EpisodeOutcome:
     return EpisodeOutcome(
         success=False,
@@ -228,17 +242,7 @@ def execute_local(
                 on_done(job, _failed(exc))
                 continue
             env = envs[job.task.name]
-            context = EpisodeContext(
-                suite=resolved.suite.name,
-                task=job.task.name,
-                instruction=job.task.instruction,
-                action_space=env.action_space,
-                observation_space=env.observation_space,
-                max_steps=job.task.max_steps,
-                episode_index=job.spec.index,
-                seed=job.spec.seed,
-                init_state_id=job.spec.init_state_id,
-            )
+            context = episode_context(resolved.suite.name, job.task, job.spec, env)
             outcome = run_episode(
                 env,
                 job.policy.policy,

@@ -45,7 +45,7 @@ SUITE = Suite("line/walk", "1", (TASK,), lambda task: Line())
 PROVIDER = SuiteProvider(
     prefix="line/",
     list_suites=lambda: [SuiteInfo("line/walk", "walk along a line", 1, 3, "", True)],
-    load_suite=lambda name: SUITE,
+    load_suite=lambda name, split: SUITE,
 )
 NOT_A_SPEC = object()
 """

@@ -1,0 +1,162 @@
+"""Demonstrations: run a policy through the ordinary episode loop, keep the successes.
+
+Recording is a Gymnasium wrapper around the suite's env, so collection uses exactly
+the loop, seeds and success test that evaluation uses. The output folder is written
+once, at the end, atomically (docs/demonstrations.md describes the format):
+
+    DEMOS/steps.parquet   one row per executed step of a successful episode
+    DEMOS/manifest.json   suite, split, policy, counts per task, shapes, data hash
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from harness.config import ResolvedRun
+from harness.episode import run_episode
+from harness.errors import UsageError
+from harness.manifest import environment, now
+from harness.nfe import NFECounter
+from harness.runner import episode_context
+
+STEPS = "steps.parquet"
+MANIFEST = "manifest.json"
+DEMO_COLUMNS = pa.schema(
+    [
+        ("episode_id", pa.int64()),
+        ("task", pa.string()),
+        ("instruction", pa.string()),
+        ("episode_index", pa.int64()),
+        ("seed", pa.int64()),
+        ("init_state_id", pa.int64()),
+        ("step", pa.int64()),
+        ("observation", pa.list_(pa.float32())),
+        ("action", pa.list_(pa.float32())),
+    ]
+)
+
+
+class RecordingEnv(gym.Wrapper):
+    """Keeps (observation, action) pairs of the current episode."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.observations: list[np.ndarray] = []
+        self.actions: list[np.ndarray] = []
+        self._last: Any = None
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.observations, self.actions, self._last = [], [], obs
+        return obs, info
+
+    def step(self, action):
+        self.observations.append(np.asarray(self._last, dtype=np.float32))
+        self.actions.append(np.asarray(action, dtype=np.float32))
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._last = obs
+        return obs, reward, terminated, truncated, info
+
+
+@dataclass
+class CollectReport:
+    attempted: dict[str, int] = field(default_factory=dict)
+    kept: dict[str, int] = field(default_factory=dict)
+    steps: int = 0
+
+
+def check_demos_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise UsageError(
+                f"output folder {str(out)!r} exists and is not empty; pass --overwrite to replace it"
+            )
+        if not (out / MANIFEST).is_file():
+            raise UsageError(
+                f"--overwrite: {str(out)!r} is not a demonstrations folder; refusing to delete it"
+            )
+
+
+def collect(
+    resolved: ResolvedRun, out: Path, overwrite: bool = False, tick: Callable[[bool], None] | None = None
+) -> CollectReport:
+    check_demos_out(out, overwrite)
+    policy_run = resolved.policies[0]
+    counter = NFECounter(policy_run.policy)
+    rows: dict[str, list[Any]] = {name: [] for name in DEMO_COLUMNS.names}
+    report = CollectReport()
+    episode_id = 0
+    for task in resolved.tasks:
+        env = RecordingEnv(resolved.suite.make_env(task))
+        report.attempted[task.name] = report.kept[task.name] = 0
+        for spec in resolved.episodes(task):
+            context = episode_context(resolved.suite.name, task, spec, env)
+            outcome = run_episode(
+                env, policy_run.policy, counter, context, spec, resolved.config.replan_every
+            )
+            report.attempted[task.name] += 1
+            if outcome.success:
+                report.kept[task.name] += 1
+                for step, (obs, action) in enumerate(zip(env.observations, env.actions, strict=True)):
+                    for name, value in (
+                        ("episode_id", episode_id),
+                        ("task", task.name),
+                        ("instruction", task.instruction),
+                        ("episode_index", spec.index),
+                        ("seed", spec.seed),
+                        ("init_state_id", spec.init_state_id),
+                        ("step", step),
+                        ("observation", obs.tolist()),
+                        ("action", action.tolist()),
+                    ):
+                        rows[name].append(value)
+                report.steps += len(env.actions)
+                episode_id += 1
+            if tick:
+                tick(outcome.success)
+        env.close()
+    counter.close()
+    if episode_id == 0:
+        raise UsageError("no episode succeeded, so there is nothing to save; nothing was written")
+    _write(resolved, out, pa.table(rows, schema=DEMO_COLUMNS), report)
+    return report
+
+
+def _write(resolved: ResolvedRun, out: Path, table: pa.Table, report: CollectReport) -> None:
+    staging = out.with_name(out.name + ".tmp")
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    pq.write_table(table, staging / STEPS)
+    digest = hashlib.sha256((staging / STEPS).read_bytes()).hexdigest()
+    p = resolved.policies[0]
+    manifest = {
+        "format": "dvla-harness-demos/1",
+        "suite": resolved.suite.name,
+        "suite_version": resolved.suite.version,
+        "split": resolved.config.split,
+        "policy": p.spec.name,
+        "policy_params": json.loads(p.params_json),
+        "episodes_attempted": report.attempted,
+        "episodes_kept": report.kept,
+        "steps": report.steps,
+        "observation_dim": len(table["observation"][0]),
+        "action_dim": len(table["action"][0]),
+        "steps_sha256": digest,
+        "created_at": now(),
+        "environment": environment(),
+    }
+    (staging / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+    if out.exists():
+        shutil.rmtree(out)
+    staging.rename(out)
