@@ -162,6 +162,61 @@ def _collect_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_collect)
 
 
+def _train_parser(sub: argparse._SubParsersAction) -> None:
+    from policies.recipes import NOISE_SCHEDULES, RECIPES, TrainConfig
+
+    d = TrainConfig(recipe="bidirectional")
+    p = sub.add_parser(
+        "train",
+        help="train an action-token model from demonstrations",
+        description=(
+            "Train the action-token transformer on a demonstrations folder (from `dvla-harness "
+            "collect`) with one recipe, deterministically for a given --seed. Writes OUT "
+            "(safetensors; its header holds the model shape, attention pattern, tokenizer, "
+            "instruction vocabulary, normalisation, recipe and data hash), OUT.json (the same "
+            "header, readable) and the loss curve as OUT.loss.csv and OUT.loss.png."
+        ),
+        epilog=(
+            "examples:\n"
+            "  dvla-harness train --demos demos/mt10 --recipe bidirectional --out ckpt/teacher.safetensors\n"
+            "  dvla-harness train --demos demos/mt10 --recipe distill --teacher ckpt/teacher.safetensors "
+            "--out ckpt/fast_dvla.safetensors"
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--demos", required=True, metavar="DIR", help="demonstrations folder")
+    p.add_argument("--recipe", required=True, choices=RECIPES)
+    p.add_argument("--out", required=True, metavar="FILE.safetensors", help="checkpoint to write")
+    p.add_argument("--teacher", metavar="FILE", help="distill: the bidirectional teacher checkpoint")
+    p.add_argument(
+        "--noise-schedule",
+        choices=NOISE_SCHEDULES,
+        default=d.noise_schedule,
+        help="per-block mask ratios (block_diffusion, distill)",
+    )
+    for name, kind in (
+        ("steps", int),
+        ("batch_size", int),
+        ("lr", float),
+        ("seed", int),
+        ("chunk_len", int),
+        ("width", int),
+        ("layers", int),
+        ("heads", int),
+        ("ffn", int),
+        ("block_size", int),
+    ):
+        p.add_argument(
+            "--" + name.replace("_", "-"),
+            type=kind,
+            default=getattr(d, name),
+            help=f"default {getattr(d, name)}",
+        )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing checkpoint")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dvla-harness",
@@ -180,6 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     _list_parser(sub)
     _show_parser(sub)
     _collect_parser(sub)
+    _train_parser(sub)
     return parser
 
 
@@ -318,6 +374,65 @@ def cmd_collect(args: argparse.Namespace) -> int:
         table.add_row(task, f"{report.kept[task]} / {attempted}")
     console.print(table)
     console.print(f"{sum(report.kept.values())} episodes, {report.steps} steps")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from policies.checkpoint import CheckpointError
+    from policies.recipes import TrainConfig
+    from policies.training import train
+
+    out = Path(args.out)
+    if out.suffix != ".safetensors":
+        raise UsageError(f"--out {args.out!r}: a checkpoint file name must end in .safetensors")
+    if out.exists() and not args.overwrite:
+        raise UsageError(f"checkpoint {args.out!r} exists; pass --overwrite to replace it")
+    if not Path(args.demos).is_dir():
+        raise UsageError(f"--demos {args.demos!r} is not a folder (make one with `dvla-harness collect`)")
+    cfg = TrainConfig(
+        recipe=args.recipe,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        chunk_len=args.chunk_len,
+        width=args.width,
+        layers=args.layers,
+        heads=args.heads,
+        ffn=args.ffn,
+        block_size=args.block_size,
+        noise_schedule=args.noise_schedule,
+        teacher=args.teacher or "",
+    )
+    try:
+        cfg.validate()
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    progress = Progress(
+        TextColumn("[bold]training"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("loss {task.fields[loss]}"),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=err_console,
+        disable=args.quiet,
+    )
+    task = progress.add_task("train", total=cfg.steps, loss="-")
+
+    def on_step(step: int, loss: float) -> None:
+        progress.update(task, advance=1, loss=f"{loss:.4f}")
+
+    try:
+        with progress:
+            report = train(cfg, args.demos, out, on_step)
+    except (ValueError, CheckpointError) as exc:
+        raise UsageError(str(exc)) from None
+    console.print(
+        f"wrote {out} ({cfg.recipe}, {cfg.steps} steps, {report.seconds:.0f} s, "
+        f"final loss {sum(report.losses[-50:]) / len(report.losses[-50:]):.4f}); curve: {out.with_suffix('.loss.png')}"
+    )
     return 0
 
 

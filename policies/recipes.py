@@ -1,0 +1,54 @@
+"""Training recipes as data: which recipe, which noise schedule, which shapes.
+
+Torch-free, so the CLI can describe and validate a training run before loading torch.
+The recipes and noise schedules themselves are explained in policies/training.py.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+RECIPES = ("bidirectional", "autoregressive", "block_diffusion", "distill")
+NOISE_SCHEDULES = ("frontier", "linear", "sorted_uniform")
+PATTERN = {
+    "bidirectional": "bidirectional",
+    "autoregressive": "causal",
+    "block_diffusion": "block_causal",
+    "distill": "block_causal",
+}
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    recipe: str
+    steps: int = 2000
+    batch_size: int = 256
+    lr: float = 1e-3
+    weight_decay: float = 0.01
+    warmup: int = 200
+    seed: int = 0
+    chunk_len: int = 8
+    bins: int = 256
+    width: int = 128
+    layers: int = 4
+    heads: int = 4
+    ffn: int = 512
+    block_size: int = 0  # 0 = one action step
+    noise_schedule: str = "frontier"
+    obs_noise: float = 0.01  # std of Gaussian noise on normalised states
+    teacher: str = ""  # distill: the bidirectional checkpoint
+
+    def validate(self) -> None:
+        if self.recipe not in RECIPES:
+            raise ValueError(f"recipe {self.recipe!r} is not one of {', '.join(RECIPES)}")
+        if self.noise_schedule not in NOISE_SCHEDULES:
+            raise ValueError(
+                f"noise_schedule {self.noise_schedule!r} is not one of {', '.join(NOISE_SCHEDULES)}"
+            )
+        if self.recipe == "distill" and not self.teacher:
+            raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
+        for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")

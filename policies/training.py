@@ -1,0 +1,245 @@
+"""Training the action-token model from demonstrations, by recipe.
+
+    bidirectional    masked-diffusion loss: a random mask ratio per sample, cross-entropy
+                     on the masked positions; every token sees every token (Dream-VLA).
+    autoregressive   next-token loss under the causal pattern ([MASK] stands for 'begin').
+    block_diffusion  block-causal pattern from scratch with diffusion forcing: per-block
+                     mask ratios, non-decreasing along the chunk, from `noise_schedule`.
+    distill          Fast-dVLA's asymmetric distillation: a block-causal student that
+                     starts from the bidirectional teacher's weights matches the frozen
+                     teacher's distribution (KL over masked positions); the teacher sees
+                     every noisy block, the student blocks 1..i. Full fine-tuning (the
+                     paper uses LoRA rank 32).
+
+Noise schedules (per-block mask ratios t_1 <= ... <= t_N) and why: decoding starts
+every block fully masked while earlier blocks are clean or partly decoded, and under
+block-causal attention a block's loss depends only on itself and earlier blocks.
+    frontier        a random frontier block f with ratio r ~ U(0, 1); earlier blocks below
+                    r, later blocks above it: covers "this block fully masked, the ones
+                    before clean or half done", which is what decoding meets (default).
+    linear          t_i = t_0 + slope * i / (N - 1), t_0 and slope random.
+    sorted_uniform  N uniform ratios, sorted: the naive recipe; the first block is rarely
+                    near fully masked (kept for ablations).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import torch
+import torch.nn.functional as F
+
+from policies.checkpoint import Checkpoint, load, save, words_of
+from policies.model import ActionTokenModel, ModelConfig
+from policies.recipes import PATTERN, TrainConfig
+from policies.tokenizer import ActionTokenizer
+
+
+@dataclass
+class Demos:
+    observations: np.ndarray  # (N, obs_dim) float32
+    actions: np.ndarray  # (N, action_dim)
+    chunk_index: np.ndarray  # (N, H) rows of `actions` forming each step's target chunk
+    instructions: list[str]  # per row
+    sha256: str
+
+
+def load_demos(folder: str | Path, chunk_len: int) -> Demos:
+    folder = Path(folder)
+    manifest_path = folder / "manifest.json"
+    if not manifest_path.is_file() or not (folder / "steps.parquet").is_file():
+        raise ValueError(f"{folder}: not a demonstrations folder (needs manifest.json and steps.parquet)")
+    manifest = json.loads(manifest_path.read_text())
+    df = pq.read_table(folder / "steps.parquet").to_pandas()
+    obs = np.stack(df["observation"].to_numpy()).astype(np.float32)
+    actions = np.stack(df["action"].to_numpy()).astype(np.float64)
+    # Target chunk of step t: actions t..t+H-1 of the same episode, the last one repeated.
+    episode = df["episode_id"].to_numpy()
+    last = np.zeros(len(df), dtype=np.int64)
+    for ep_end in np.flatnonzero(np.r_[episode[1:] != episode[:-1], True]):
+        start = ep_end
+        while start > 0 and episode[start - 1] == episode[ep_end]:
+            start -= 1
+        last[start : ep_end + 1] = ep_end
+    idx = np.minimum(np.arange(len(df))[:, None] + np.arange(chunk_len)[None, :], last[:, None])
+    return Demos(obs, actions, idx, df["instruction"].tolist(), manifest.get("steps_sha256", ""))
+
+
+def block_ratios(schedule: str, batch: int, blocks: int, g: torch.Generator) -> torch.Tensor:
+    """(batch, blocks) non-decreasing mask ratios."""
+    if schedule == "sorted_uniform":
+        return torch.rand(batch, blocks, generator=g).sort(dim=1).values
+    if schedule == "linear":
+        t0 = torch.rand(batch, 1, generator=g)
+        slope = torch.rand(batch, 1, generator=g) * (1 - t0)
+        steps = torch.arange(blocks) / max(blocks - 1, 1)
+        return t0 + slope * steps
+    r = torch.rand(batch, 1, generator=g)
+    f = torch.randint(0, blocks, (batch, 1), generator=g)
+    u = torch.rand(batch, blocks, generator=g).sort(dim=1).values
+    i = torch.arange(blocks)[None, :]
+    return torch.where(i < f, r * u, torch.where(i == f, r, r + (1 - r) * u))
+
+
+def _lr(step: int, cfg: TrainConfig) -> float:
+    if step < cfg.warmup:
+        return cfg.lr * (step + 1) / cfg.warmup
+    progress = (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup)
+    return cfg.lr * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenModel | None]:
+    """The checkpoint to train (model, tokenizer, vocab, normalisation) and the teacher."""
+    if cfg.recipe == "distill":
+        teacher = load(cfg.teacher)
+        if teacher.model.cfg.pattern != "bidirectional":
+            raise ValueError(f"{cfg.teacher}: the teacher must be a bidirectional model")
+        student_cfg = ModelConfig(
+            **{
+                **teacher.model.cfg.to_dict(),
+                "pattern": "block_causal",
+                "block_size": cfg.block_size or teacher.model.cfg.block_size,
+            }
+        )
+        student = ActionTokenModel(student_cfg)
+        student.load_state_dict(teacher.model.state_dict())
+        for p in teacher.model.parameters():
+            p.requires_grad_(False)
+        ckpt = Checkpoint(student, teacher.tokenizer, teacher.vocab, teacher.state_mean, teacher.state_std)
+        return ckpt, teacher.model.eval()
+    tokenizer = ActionTokenizer.fit(demos.actions, bins=cfg.bins)
+    words = sorted({w for text in set(demos.instructions) for w in words_of(text)})
+    vocab = {w: i + 2 for i, w in enumerate(words)}
+    max_words = max(1, max(len(words_of(t)) for t in set(demos.instructions)))
+    mean = demos.observations.mean(0)
+    std = np.maximum(demos.observations.std(0), 1e-2)
+    model_cfg = ModelConfig(
+        action_dim=demos.actions.shape[1],
+        chunk_len=cfg.chunk_len,
+        state_dim=demos.observations.shape[1],
+        bins=cfg.bins,
+        vocab_words=len(vocab) + 2,
+        max_words=max_words,
+        width=cfg.width,
+        layers=cfg.layers,
+        heads=cfg.heads,
+        ffn=cfg.ffn,
+        pattern=PATTERN[cfg.recipe],
+        block_size=cfg.block_size,
+    )
+    return Checkpoint(ActionTokenModel(model_cfg), tokenizer, vocab, mean, std), None
+
+
+@dataclass
+class TrainReport:
+    checkpoint: Path
+    losses: list[float] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def train(
+    cfg: TrainConfig,
+    demos_dir: str | Path,
+    out: str | Path,
+    on_step: Callable[[int, float], None] | None = None,
+) -> TrainReport:
+    cfg.validate()
+    torch.manual_seed(cfg.seed)
+    g = torch.Generator().manual_seed(cfg.seed)
+    demos = load_demos(demos_dir, cfg.chunk_len)
+    ckpt, teacher = _prepare(cfg, demos)
+    model, mcfg = ckpt.model.train(), ckpt.model.cfg
+    tokens_all = torch.from_numpy(ckpt.tokenizer.encode(demos.actions[demos.chunk_index]))
+    words_all = torch.tensor([ckpt.encode_instruction(t) for t in demos.instructions], dtype=torch.long)
+    states_all = torch.from_numpy((demos.observations - ckpt.state_mean) / ckpt.state_std).float()
+    positions = torch.arange(mcfg.action_tokens)
+    opt = torch.optim.AdamW(
+        [p for p in model.parameters() if p.requires_grad], lr=cfg.lr, weight_decay=cfg.weight_decay
+    )
+    report = TrainReport(Path(out))
+    start = time.perf_counter()
+    for step in range(cfg.steps):
+        batch = torch.randint(0, len(tokens_all), (min(cfg.batch_size, len(tokens_all)),), generator=g)
+        clean, words = tokens_all[batch], words_all[batch]
+        state = states_all[batch] + cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
+        loss = _loss(cfg.recipe, cfg.noise_schedule, model, teacher, clean, words, state, positions, g)
+        for group in opt.param_groups:
+            group["lr"] = _lr(step, cfg)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        value = loss.item()
+        report.losses.append(value)
+        if on_step:
+            on_step(step, value)
+    report.seconds = time.perf_counter() - start
+    ckpt.model = model.eval()
+    ckpt.meta = {
+        "recipe": cfg.recipe,
+        "train_config": asdict(cfg),
+        "data_sha256": demos.sha256,
+        "final_loss": float(np.mean(report.losses[-50:])),
+        "train_seconds": report.seconds,
+    }
+    save(ckpt, out)
+    _write_curve(report, Path(out))
+    return report
+
+
+def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g) -> torch.Tensor:
+    cfg = model.cfg
+    b, n = clean.shape
+    if recipe == "autoregressive":
+        inputs = torch.cat([torch.full((b, 1), cfg.mask_id), clean[:, :-1]], dim=1)
+        logits = model(inputs, positions, words, state).logits
+        return F.cross_entropy(logits.reshape(-1, cfg.bins), clean.reshape(-1))
+    if recipe == "bidirectional":
+        ratio = torch.rand(b, 1, generator=g).expand(b, n)
+    else:
+        ratio = block_ratios(schedule, b, n // cfg.block, g).repeat_interleave(cfg.block, dim=1)
+    mask = torch.rand(b, n, generator=g) < ratio
+    none = ~mask.any(dim=1)
+    mask[none, torch.randint(0, n, (int(none.sum()),), generator=g)] = True  # at least one per sample
+    noisy = torch.where(mask, torch.full_like(clean, cfg.mask_id), clean)
+    logits = model(noisy, positions, words, state).logits
+    if recipe == "distill":
+        with torch.no_grad():
+            target = torch.log_softmax(teacher(noisy, positions, words, state).logits, dim=-1)
+        kl = F.kl_div(torch.log_softmax(logits, dim=-1), target, log_target=True, reduction="none").sum(-1)
+        return kl[mask].mean()
+    return F.cross_entropy(logits[mask], clean[mask])
+
+
+def _write_curve(report: TrainReport, ckpt_path: Path) -> None:
+    csv_path = ckpt_path.with_suffix(".loss.csv")
+    with open(csv_path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["step", "loss"])
+        writer.writerows(enumerate(report.losses))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    losses = np.asarray(report.losses)
+    window = max(1, len(losses) // 50)
+    smooth = np.convolve(losses, np.ones(window) / window, mode="valid")
+    ax.plot(losses, alpha=0.3, label="loss")
+    ax.plot(np.arange(len(smooth)) + window - 1, smooth, label=f"mean of {window}")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_title(ckpt_path.stem)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(ckpt_path.with_suffix(".loss.png"), dpi=120)
+    plt.close(fig)
