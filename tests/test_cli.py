@@ -108,7 +108,7 @@ def test_listings(cli):
     assert code == 0 and "open the drawer" in out and "peg-insert-side-v3" in out
 
 
-@pytest.mark.parametrize("sub", ["", "run", "list", "show"])
+@pytest.mark.parametrize("sub", ["", "run", "list", "show", "collect", "train"])
 def test_help_everywhere_and_python_dash_m(sub):
     argv = [sys.executable, "-m", "harness", *([sub] if sub else []), "--help"]
     done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=60)
