@@ -102,3 +102,27 @@ def fake_resolved(
     resolved = ResolvedRun(config, suite, (task,), [run])
     resolved.made_envs = made  # type: ignore[attr-defined]
     return resolved
+
+
+def tiny_model(pattern: str, state_dim: int = 6, **kw):
+    """A small random action-token model: 4-D actions, chunks of 4 (16 tokens), 32 bins."""
+    import torch
+
+    from policies.model import ActionTokenModel, ModelConfig
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(
+        action_dim=4,
+        chunk_len=4,
+        state_dim=state_dim,
+        bins=32,
+        vocab_words=20,
+        max_words=5,
+        width=32,
+        layers=2,
+        heads=4,
+        ffn=64,
+        pattern=pattern,
+        **kw,
+    )
+    return ActionTokenModel(cfg).eval()

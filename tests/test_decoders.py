@@ -12,27 +12,10 @@ from policies.decoders import (
     decode_block_diffusion,
     decode_fast_dvla,
 )
-from policies.model import ActionTokenModel, ModelConfig
 from policies.schedules import still_masked
+from tests.fakes import tiny_model
 
-
-def _model(pattern: str, **kw) -> ActionTokenModel:
-    torch.manual_seed(0)
-    cfg = ModelConfig(
-        action_dim=4,
-        chunk_len=4,
-        state_dim=6,
-        bins=32,
-        vocab_words=20,
-        max_words=5,
-        width=32,
-        layers=2,
-        heads=4,
-        ffn=64,
-        pattern=pattern,
-        **kw,
-    )
-    return ActionTokenModel(cfg).eval()
+_model = tiny_model
 
 
 def _inputs(batch=1):

@@ -6,29 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from policies.model import ActionTokenModel, ModelConfig
+from policies.model import ActionTokenModel
 from policies.tokenizer import ActionTokenizer
+from tests.fakes import tiny_model
 
 TOL = 1e-4
 
 
-def _model(pattern: str, **kw) -> ActionTokenModel:
-    torch.manual_seed(0)
-    cfg = ModelConfig(
-        action_dim=4,
-        chunk_len=4,
-        state_dim=6,
-        bins=32,
-        vocab_words=20,
-        max_words=5,
-        width=32,
-        layers=2,
-        heads=4,
-        ffn=64,
-        pattern=pattern,
-        **kw,
-    )
-    return ActionTokenModel(cfg).eval()
+_model = tiny_model
 
 
 def _inputs(model: ActionTokenModel, batch: int = 2):

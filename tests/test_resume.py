@@ -26,6 +26,16 @@ ARGS = [
 ]
 
 
+def _wait_for_rows(out, n: int) -> None:
+    """Until the running process has recorded n episodes (or two minutes pass)."""
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        pending = out / "pending.jsonl"
+        if pending.is_file() and pending.read_text().count("\n") >= n:
+            return
+        time.sleep(0.02)
+
+
 def test_sigkill_then_resume_records_each_episode_once(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.Popen(
@@ -34,12 +44,7 @@ def test_sigkill_then_resume_records_each_episode_once(tmp_path):
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        pending = out / "pending.jsonl"
-        if pending.is_file() and pending.read_text().count("\n") >= 3:
-            break
-        time.sleep(0.02)
+    _wait_for_rows(out, 3)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     before = RunDir(out).read_episodes()  # every complete row parses; a cut line is dropped
@@ -84,12 +89,7 @@ def test_sigterm_stops_cleanly_and_compacts(tmp_path):
         stderr=subprocess.PIPE,
         text=True,
     )
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        pending = out / "pending.jsonl"
-        if pending.is_file() and pending.read_text().count("\n") >= 2:
-            break
-        time.sleep(0.02)
+    _wait_for_rows(out, 2)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130
