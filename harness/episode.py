@@ -1,7 +1,7 @@
 """The episode loop: reset, ask for a chunk, execute it, stop on success or budget.
 
-Every segment is timed with one monotonic clock whose readings are chained, so
-policy + env + overhead equals the episode's wall-clock by construction and the
+Every env and policy call is timed with one monotonic clock; the overhead column is
+the episode's wall-clock minus both, so the three add up by construction and the
 overhead is exactly the loop's own bookkeeping. NFE is read from the harness's hooks.
 A Python exception from the env or the policy ends the episode with a failure reason;
 it never ends the run.

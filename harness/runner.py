@@ -7,6 +7,7 @@ are measured side by side. Each row is on disk before the next episode starts.
 
 from __future__ import annotations
 
+import os
 import shutil
 import traceback
 import uuid
@@ -98,8 +99,6 @@ def check_output(out: Path, resume: bool, overwrite: bool) -> None:
         raise UsageError("--resume and --overwrite contradict each other; pick one")
     if out.exists() and not out.is_dir():
         raise UsageError(f"output path {str(out)!r} exists and is not a folder")
-    import os
-
     ancestor = _writable_ancestor(out)
     if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
         raise UsageError(f"output folder {str(out)!r} is not writable (no write access to {str(ancestor)!r})")
