@@ -29,8 +29,15 @@ def summary_table(summary: pd.DataFrame, title: str = "") -> Table:
         ("control Hz", "right"),
         ("wall s/episode", "right"),
         ("errors", "right"),
+        ("speedup", "right"),
     ):
         table.add_column(name, justify=justify)  # type: ignore[arg-type]
+    # Speedup in tokens/s over the `bidirectional` rows of the same task, when present.
+    base = (
+        summary[summary["policy"] == "bidirectional"]
+        .drop_duplicates("task")
+        .set_index("task")["tokens_per_s"]
+    )
     previous = None
     for _, row in summary.iterrows():
         is_all = row["task"] == "ALL"
@@ -45,6 +52,7 @@ def summary_table(summary: pd.DataFrame, title: str = "") -> Table:
             _num(row["control_hz"], ".0f"),
             _num(row["wall_clock_s"], ".2f"),
             str(row["failures"]),
+            _num(row["tokens_per_s"] / base[row["task"]], ".2f") + "x" if row["task"] in base else "-",
         ]
         table.add_row(*cells, style="bold" if is_all else None, end_section=is_all)
     return table
