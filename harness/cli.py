@@ -38,7 +38,7 @@ examples:
 """
 
 # Pipes and CI logs get wide tables instead of rich's 80-column default.
-console = Console(width=None if sys.stdout.isatty() else 140)
+console = Console(width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
 
 
