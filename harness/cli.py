@@ -348,7 +348,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_collect(args: argparse.Namespace) -> int:
-    from harness.collect import check_demos_out, collect
+    from harness.collect import collect
     from harness.config import build_config, parse_policy_arg, resolve
 
     data: dict[str, Any] = {
@@ -364,7 +364,6 @@ def cmd_collect(args: argparse.Namespace) -> int:
         data["replan_every"] = args.replan_every
     resolved = resolve(build_config(data))
     out = Path(args.out)
-    check_demos_out(out, args.overwrite)
     progress, start = _progress_factory(args.quiet)
     total = sum(len(resolved.episodes(t)) for t in resolved.tasks)
     with progress:

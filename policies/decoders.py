@@ -30,7 +30,7 @@ class Decoded:
 
 
 def _scores(logits: Tensor, confidence: str, temperature: float, gen: torch.Generator | None):
-    """(choice, confidence) per position from logits (..., bins)."""
+    """(choice, confidence, probabilities) per position from logits (..., bins)."""
     probs = torch.softmax(logits.float(), dim=-1)
     if temperature > 0:
         sample = torch.softmax(logits.float() / temperature, dim=-1)
@@ -43,7 +43,7 @@ def _scores(logits: Tensor, confidence: str, temperature: float, gen: torch.Gene
         conf = top2[..., 0] - top2[..., 1]
     else:
         conf = probs.gather(-1, choice.unsqueeze(-1)).squeeze(-1)
-    return choice, conf
+    return choice, conf, probs
 
 
 def _commit_top(masked: Tensor, conf: Tensor, count: Tensor) -> Tensor:
@@ -84,7 +84,7 @@ def decode_bidirectional(
                 cache = result.kv.select(result.kv.positions < cfg.prefix_len)
         else:
             result = model(tokens, positions, cache=cache)
-        choice, conf = _scores(result.logits, confidence, 0.0, None)
+        choice, conf, probs = _scores(result.logits, confidence, 0.0, None)
         masked = tokens == cfg.mask_id
         target = still_masked(schedule, step, steps, total)
         count = (masked.sum(-1) - target).clamp(min=1 if step < steps else total)
@@ -92,11 +92,7 @@ def decode_bidirectional(
         tokens = torch.where(commit, choice, tokens)
         out.trace.append(commit[0].nonzero().flatten().tolist())
         if remask > 0 and step < steps:
-            committed_conf = (
-                torch.softmax(result.logits.float(), -1)
-                .gather(-1, tokens.clamp(max=cfg.bins - 1).unsqueeze(-1))
-                .squeeze(-1)
-            )
+            committed_conf = probs.gather(-1, tokens.clamp(max=cfg.bins - 1).unsqueeze(-1)).squeeze(-1)
             weak = (~masked) & (committed_conf < remask * step / steps)
             tokens = torch.where(weak, torch.full_like(tokens, cfg.mask_id), tokens)
     out.tokens = tokens
@@ -122,7 +118,7 @@ def decode_autoregressive(
         pos = torch.tensor([i])
         result = model(previous, pos, words, state) if cache is None else model(previous, pos, cache=cache)
         cache = result.kv if cache is None else cache.extend(result.kv)
-        choice, _ = _scores(result.logits[:, -1], "max_prob", temperature, generator)
+        choice, _, _ = _scores(result.logits[:, -1], "max_prob", temperature, generator)
         tokens[:, i] = choice
         previous = choice.unsqueeze(1)
         out.trace.append([i])
@@ -160,7 +156,7 @@ def decode_block_diffusion(
                 cache = done if cache is None else cache.extend(done)
                 finished = None
             logits = result.logits[:, -k:]
-            choice, conf = _scores(logits, confidence, 0.0, None)
+            choice, conf, _ = _scores(logits, confidence, 0.0, None)
             masked = tokens[:, block] == cfg.mask_id
             target = still_masked(schedule, step, steps_per_block, k)
             count = (masked.sum(-1) - target).clamp(min=1 if step < steps_per_block else k)
@@ -232,7 +228,7 @@ def _fast_dvla_row(model, words, state, tau_conf, tau_add, tau_act, n, confidenc
             finished = result.kv.select(new_done)
             cache = finished if cache is None else cache.extend(finished)
             cached = first_open
-        choice, conf = _scores(result.logits[0], confidence, 0.0, None)
+        choice, conf, _ = _scores(result.logits[0], confidence, 0.0, None)
         committed: list[int] = []
         for i in active:
             sel = (run >= i * k) & (run < (i + 1) * k)
