@@ -236,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
     _show_parser(sub)
     _collect_parser(sub)
     _train_parser(sub)
+    from harness.commands import register_all
+
+    register_all(sub)
     return parser
 
 
