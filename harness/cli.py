@@ -58,6 +58,12 @@ def _run_parser(sub: argparse._SubParsersAction) -> None:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    add_run_arguments(p)
+    p.set_defaults(func=cmd_run)
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of `run`, shared with `sweep` (a sweep is a run over a grid of policies)."""
     p.add_argument(
         "--config",
         metavar="FILE",
@@ -100,8 +106,13 @@ def _run_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --resume, also re-run episodes recorded with a failure_reason",
     )
+    p.add_argument(
+        "--traces",
+        action="store_true",
+        help="also write which action positions each forward pass committed to OUT/traces.jsonl "
+        "(for `dvla-harness plot decoding-order`)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_run)
 
 
 def _list_parser(sub: argparse._SubParsersAction) -> None:
@@ -188,6 +199,15 @@ def _train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--recipe", required=True, choices=RECIPES)
     p.add_argument("--out", required=True, metavar="FILE.safetensors", help="checkpoint to write")
     p.add_argument("--teacher", metavar="FILE", help="distill: the bidirectional teacher checkpoint")
+    p.add_argument(
+        "--init",
+        metavar="FILE",
+        help="continue training this checkpoint (its pattern must fit the recipe; tokenizer and "
+        "normalisation are kept)",
+    )
+    p.add_argument(
+        "--warmup-steps", type=int, metavar="N", help=f"learning-rate warm-up (default {d.warmup})"
+    )
     p.add_argument(
         "--noise-schedule",
         choices=NOISE_SCHEDULES,
@@ -305,14 +325,25 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from harness.config import resolve
+
+    if args.retry_failed and not args.resume:
+        raise UsageError("--retry-failed only makes sense with --resume")
+    resolved = resolve(_config_from_args(args))
+    return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
+
+
+def execute_run(
+    resolved: Any, args: argparse.Namespace, again: str, labels: dict[str, str] | None = None
+) -> int:
+    """Run `resolved` with the progress bar, print the summary, return the exit status.
+
+    again: the command that continues an interrupted run ({out} is filled in); labels:
+    display names per policy_config_id for the summary (a sweep's grid points).
+    """
     from harness.runner import run
     from results.render import summary_table
     from results.summary import summarize
 
-    if args.retry_failed and not args.resume:
-        raise UsageError("--retry-failed only makes sense with --resume")
-    config = _config_from_args(args)
-    resolved = resolve(config)
     out = Path(args.out) if args.out else None
     if out is None:
         from datetime import UTC, datetime
@@ -329,8 +360,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             overwrite=args.overwrite,
             retry_failed=args.retry_failed,
             progress=start,
+            traces=args.traces,
         )
     episodes = report.run_dir.read_episodes()
+    if labels and len(episodes):
+        episodes["policy"] = episodes["policy_config_id"].map(labels).fillna(episodes["policy"])
     if len(episodes):
         console.print(
             summary_table(summarize(episodes), title=f"{resolved.suite.name} - run {report.run_id}")
@@ -339,7 +373,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
     )
     if report.interrupted:
-        err_console.print(f"interrupted; continue with: dvla-harness run --out {out} --resume")
+        err_console.print(f"interrupted; continue with: {again.format(out=out)}")
         return 130
     if report.failed:
         err_console.print(
@@ -405,6 +439,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         block_size=args.block_size,
         noise_schedule=args.noise_schedule,
         teacher=args.teacher or "",
+        init=args.init or "",
+        warmup_steps=args.warmup_steps,
     )
     try:
         cfg.validate()

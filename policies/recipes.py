@@ -37,6 +37,9 @@ class TrainConfig:
     noise_schedule: str = "frontier"
     obs_noise: float = 0.01  # std of Gaussian noise on normalised states
     teacher: str = ""  # distill: the bidirectional checkpoint
+    init: str = ""  # start from this checkpoint's weights, tokenizer and normalisation
+    probe_every: int = 0  # every N steps, the probe loss (see training.probe_loss); 0 = off
+    warmup_steps: int | None = None  # None = `warmup`; a short one suits continued training
 
     def validate(self) -> None:
         if self.recipe not in RECIPES:
@@ -45,10 +48,14 @@ class TrainConfig:
             raise ValueError(
                 f"noise_schedule {self.noise_schedule!r} is not one of {', '.join(NOISE_SCHEDULES)}"
             )
+        if self.init and self.recipe == "distill":
+            raise ValueError("--init does not apply to 'distill' (the student starts from --teacher)")
         if self.recipe == "distill" and not self.teacher:
             raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
         for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.warmup_steps is not None and self.warmup_steps < 1:
+            raise ValueError(f"warmup_steps must be >= 1, got {self.warmup_steps}")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")

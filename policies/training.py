@@ -25,6 +25,7 @@ block-causal attention a block's loss depends only on itself and earlier blocks.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 import time
@@ -90,9 +91,10 @@ def block_ratios(schedule: str, batch: int, blocks: int, g: torch.Generator) -> 
 
 
 def _lr(step: int, cfg: TrainConfig) -> float:
-    if step < cfg.warmup:
-        return cfg.lr * (step + 1) / cfg.warmup
-    progress = (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup)
+    warmup = cfg.warmup if cfg.warmup_steps is None else cfg.warmup_steps
+    if step < warmup:
+        return cfg.lr * (step + 1) / warmup
+    progress = (step - warmup) / max(1, cfg.steps - warmup)
     return cfg.lr * 0.5 * (1 + math.cos(math.pi * progress))
 
 
@@ -115,6 +117,26 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
             p.requires_grad_(False)
         ckpt = Checkpoint(student, teacher.tokenizer, teacher.vocab, teacher.state_mean, teacher.state_std)
         return ckpt, teacher.model.eval()
+    if cfg.init:
+        # Continued training: same tokenizer, vocabulary and normalisation, or the
+        # weights would read inputs they were not trained on.
+        ckpt = load(cfg.init)
+        if ckpt.model.cfg.pattern != PATTERN[cfg.recipe]:
+            raise ValueError(
+                f"{cfg.init}: a {ckpt.model.cfg.pattern} model; recipe {cfg.recipe!r} trains a "
+                f"{PATTERN[cfg.recipe]} model"
+            )
+        if (
+            ckpt.model.cfg.state_dim != demos.observations.shape[1]
+            or ckpt.model.cfg.action_dim != demos.actions.shape[1]
+        ):
+            raise ValueError(f"{cfg.init}: its state/action sizes do not match the demonstrations")
+        unknown = {w for t in set(demos.instructions) for w in words_of(t)} - set(ckpt.vocab)
+        if unknown:
+            raise ValueError(
+                f"{cfg.init}: the demonstrations use words it has never seen: {sorted(unknown)[:5]}"
+            )
+        return ckpt, None
     tokenizer = ActionTokenizer.fit(demos.actions, bins=cfg.bins)
     words = sorted({w for text in set(demos.instructions) for w in words_of(text)})
     vocab = {w: i + 2 for i, w in enumerate(words)}
@@ -142,7 +164,32 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
 class TrainReport:
     checkpoint: Path
     losses: list[float] = field(default_factory=list)
+    probes: list[tuple[int, float]] = field(default_factory=list)  # (step, probe loss)
     seconds: float = 0.0
+
+
+PROBE_SAMPLES = 512
+PROBE_SEED = 20260
+
+
+def probe_loss(model: ActionTokenModel, clean, words, state, positions) -> float:
+    """One yardstick for recipes whose training losses differ (KL for distill, CE else).
+
+    Cross-entropy of the true tokens at masked positions, with masks drawn once from a
+    fixed seed (block-causal models: per-block `frontier` ratios, the conditions
+    decoding meets; bidirectional: one ratio per sample; causal: next-token). Comparing
+    it across recipes is how steps-to-convergence is measured (benchmarks/convergence.py).
+    """
+    recipe = {"block_causal": "block_diffusion", "causal": "autoregressive"}.get(
+        model.cfg.pattern, "bidirectional"
+    )
+    g = torch.Generator().manual_seed(PROBE_SEED)
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        value = _loss(recipe, "frontier", model, None, clean, words, state, positions, g).item()
+    model.train(was_training)
+    return value
 
 
 def train(
@@ -165,8 +212,14 @@ def train(
         [p for p in model.parameters() if p.requires_grad], lr=cfg.lr, weight_decay=cfg.weight_decay
     )
     report = TrainReport(Path(out))
+    probe_rows = torch.randint(
+        0, len(tokens_all), (PROBE_SAMPLES,), generator=torch.Generator().manual_seed(PROBE_SEED)
+    )
+    probe_inputs = (tokens_all[probe_rows], words_all[probe_rows], states_all[probe_rows], positions)
     start = time.perf_counter()
     for step in range(cfg.steps):
+        if cfg.probe_every and step % cfg.probe_every == 0:
+            report.probes.append((step, probe_loss(model, *probe_inputs)))
         batch = torch.randint(0, len(tokens_all), (min(cfg.batch_size, len(tokens_all)),), generator=g)
         clean, words = tokens_all[batch], words_all[batch]
         state = states_all[batch] + cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
@@ -182,17 +235,27 @@ def train(
         if on_step:
             on_step(step, value)
     report.seconds = time.perf_counter() - start
+    if cfg.probe_every:
+        report.probes.append((cfg.steps, probe_loss(model, *probe_inputs)))
     ckpt.model = model.eval()
     ckpt.meta = {
         "recipe": cfg.recipe,
         "train_config": asdict(cfg),
         "data_sha256": demos.sha256,
+        # Which weights it grew from, by content: a path alone says nothing once the file changes.
+        "teacher_sha256": _sha256(cfg.teacher) if cfg.teacher else "",
+        "init_sha256": _sha256(cfg.init) if cfg.init else "",
         "final_loss": float(np.mean(report.losses[-50:])),
         "train_seconds": report.seconds,
+        "probe": report.probes,
     }
     save(ckpt, out)
     _write_curve(report, Path(out))
     return report
+
+
+def _sha256(path: str) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g) -> torch.Tensor:
@@ -223,8 +286,10 @@ def _write_curve(report: TrainReport, ckpt_path: Path) -> None:
     csv_path = ckpt_path.with_suffix(".loss.csv")
     with open(csv_path, "w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(["step", "loss"])
-        writer.writerows(enumerate(report.losses))
+        writer.writerow(["step", "loss", "probe_loss"])
+        probes = dict(report.probes)
+        for step, loss in enumerate(report.losses):
+            writer.writerow([step, loss, probes.get(step, "")])
     import matplotlib
 
     matplotlib.use("Agg")

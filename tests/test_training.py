@@ -153,3 +153,41 @@ def test_train_cli_rejects_bad_input(cli, demos, tmp_path):
     )
     assert code == 2 and "steps must be >= 1" in err
     assert list(tmp_path.glob("*.safetensors")) == []
+
+
+def test_probe_loss_tracks_training_and_init_continues_a_checkpoint(demos, tmp_path):
+    first = tmp_path / "first.safetensors"
+    report = train(TrainConfig(recipe="block_diffusion", probe_every=10, **TINY), demos, first)
+    steps = [s for s, _ in report.probes]
+    assert steps == [0, 10, 20, 30, 40]
+    assert report.probes[-1][1] < 0.8 * report.probes[0][1]
+    assert "probe_loss" in (tmp_path / "first.loss.csv").read_text().splitlines()[0]
+
+    # Continued training starts where the first run ended, not from scratch.
+    more = train(
+        TrainConfig(recipe="block_diffusion", init=str(first), probe_every=10, **{**TINY, "steps": 10}),
+        demos,
+        tmp_path / "more.safetensors",
+    )
+    assert more.probes[0][1] == pytest.approx(report.probes[-1][1], rel=1e-5)
+    meta = load(tmp_path / "more.safetensors").meta
+    assert meta["init_sha256"] and meta["teacher_sha256"] == ""
+
+    with pytest.raises(ValueError, match="block_causal model; recipe 'bidirectional'"):
+        train(TrainConfig(recipe="bidirectional", init=str(first), **TINY), demos, tmp_path / "x.safetensors")
+
+
+def test_student_records_its_teacher_by_content(demos, tmp_path):
+    import hashlib
+
+    teacher = tmp_path / "t.safetensors"
+    train(TrainConfig(recipe="bidirectional", **{**TINY, "steps": 2}), demos, teacher)
+    train(
+        TrainConfig(recipe="distill", teacher=str(teacher), **{**TINY, "steps": 2}),
+        demos,
+        tmp_path / "s.safetensors",
+    )
+    assert (
+        load(tmp_path / "s.safetensors").meta["teacher_sha256"]
+        == hashlib.sha256(teacher.read_bytes()).hexdigest()
+    )

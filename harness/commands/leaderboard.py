@@ -1,0 +1,134 @@
+"""`dvla-harness leaderboard`: several runs combined into one table per suite."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+
+from harness.errors import UsageError
+
+FORMATS = ("md", "csv", "html")
+SUFFIXES = {".md": "md", ".markdown": "md", ".csv": "csv", ".html": "html", ".htm": "html"}
+
+EPILOG = """\
+examples:
+  dvla-harness leaderboard runs/a runs/b                 # rich table per suite, warnings on stderr
+  dvla-harness leaderboard runs/a runs/b --baseline fast_dllm
+  dvla-harness leaderboard runs/* --format md --out leaderboard.md
+  dvla-harness leaderboard runs/a/episodes.parquet --format csv > board.csv
+
+Rows are policy configurations (one per machine they were timed on); success has a
+Wilson 95% interval and episode counts; speedup is tokens/s over the baseline's on the
+same machine, else the cell says why it is missing. Differences that move scores
+(simulator/mujoco versions, render backend, seeds, episode counts) are printed as
+warnings. See docs/reports.md.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "leaderboard",
+        help="combine runs into one table per suite (success, NFE, tokens/s, Hz, speedup)",
+        description="Combine run folders (or episodes .parquet files) into one leaderboard per suite.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run folders or episodes .parquet files")
+    p.add_argument(
+        "--baseline",
+        metavar="POLICY",
+        help="policy name or policy_config_id that speedups are relative to (default: bidirectional)",
+    )
+    p.add_argument("--format", choices=FORMATS, help="md, csv or html (default: a terminal table)")
+    p.add_argument("--out", metavar="FILE", help="write here (atomically) instead of stdout")
+    p.set_defaults(func=cmd_leaderboard)
+
+
+def load(paths: Sequence[str]) -> list:
+    """The runs, or a UsageError naming the first unusable path."""
+    from results.runs import load_runs
+    from results.store import ResultsFileError
+
+    seen: set[Path] = set()
+    for path in paths:
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise UsageError(f"{path} is given twice")
+        seen.add(resolved)
+    try:
+        return load_runs(paths)
+    except ResultsFileError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def check_baseline(runs: Sequence, baseline: str | None) -> None:
+    if baseline is None:
+        return
+    import pandas as pd
+
+    rows = pd.concat([r.episodes[["policy", "policy_config_id"]] for r in runs])
+    if baseline not in set(rows["policy"]) | set(rows["policy_config_id"]):
+        valid = ", ".join(sorted(set(rows["policy"])))
+        raise UsageError(f"--baseline {baseline!r} is not in these runs; their policies: {valid}")
+
+
+def output_format(fmt: str | None, out: str | None) -> str | None:
+    """--format, else the --out suffix, else None (terminal table)."""
+    if fmt or not out:
+        return fmt
+    suffix = Path(out).suffix.lower()
+    if suffix not in SUFFIXES:
+        raise UsageError(f"--out {out!r}: cannot tell the format from its suffix; pass --format md|csv|html")
+    return SUFFIXES[suffix]
+
+
+def check_out_file(out: str) -> Path:
+    path = Path(out)
+    if path.is_dir():
+        raise UsageError(f"--out {out!r} is a folder; give a file name")
+    if not path.parent.is_dir():
+        raise UsageError(f"--out {out!r}: folder {str(path.parent)!r} does not exist")
+    return path
+
+
+def print_warnings(warnings: Sequence[str]) -> None:
+    from harness.cli import err_console
+
+    for w in warnings:
+        err_console.print(f"[yellow]warning:[/yellow] {w}", markup=True, highlight=False, soft_wrap=True)
+
+
+def cmd_leaderboard(args: argparse.Namespace) -> int:
+    from harness.cli import console
+    from results.leaderboard import leaderboards, rich_table, to_csv, to_markdown
+
+    fmt = output_format(args.format, args.out)
+    out = check_out_file(args.out) if args.out else None
+    runs = load(args.runs)
+    check_baseline(runs, args.baseline)
+    boards = leaderboards(runs, args.baseline)
+    warnings = [f"{b.suite}: {w}" for b in boards for w in b.warnings]
+    if fmt is None:
+        for board in boards:
+            console.print(rich_table(board))
+        print_warnings(warnings)
+        return 0
+    if fmt == "md":
+        text = to_markdown(boards)
+    elif fmt == "csv":
+        text = to_csv(boards)
+    else:
+        from results.html_report import render_page
+
+        text = render_page(runs, boards, title="dvla-harness leaderboard", figures=False)
+    if out is None:
+        console.file.write(text)
+        console.file.flush()
+    else:
+        from results.store import atomic_write
+
+        atomic_write(out, text.encode())
+        console.print(f"wrote {out}")
+    print_warnings(warnings)
+    return 0

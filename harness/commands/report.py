@@ -1,0 +1,85 @@
+"""`dvla-harness report`: the paper's table layout, and a self-contained HTML report."""
+
+from __future__ import annotations
+
+import argparse
+
+from harness.commands.leaderboard import check_baseline, load, print_warnings
+from harness.errors import UsageError
+
+EPILOG = """\
+examples:
+  dvla-harness report paper-table runs/spatial runs/goal runs/object runs/long
+  dvla-harness report paper-table runs/a --baseline bidirectional > table.md
+  dvla-harness report html runs/a runs/b --out report/
+  dvla-harness report html runs/a --out report/ --overwrite   # replace an earlier report
+
+paper-table prints Markdown: rows = policy configurations, columns = success per suite
+(Wilson 95%), average, tokens/s and speedup, with the published Fast-dVLA rows beneath,
+labelled with their source. html writes OUT/index.html (one self-contained page:
+sortable leaderboards, the paper table, a Pareto plot, provenance of every run) plus
+leaderboard.md, leaderboard.csv and paper-table.md. See docs/reports.md.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="paper-style table or a self-contained HTML report from runs",
+        description="Reports built from run folders (or episodes .parquet files).",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
+    paper = kinds.add_parser(
+        "paper-table",
+        help="Markdown table in the layout of Fast-dVLA's LIBERO table",
+        description="Rows = policy configurations, columns = success per suite, average, tokens/s, speedup; published rows beneath.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    web = kinds.add_parser(
+        "html",
+        help="a static, self-contained HTML report folder",
+        description="Write OUT/index.html (opens offline) with leaderboards, the paper table, figures and provenance.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    for q in (paper, web):
+        q.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run folders or episodes .parquet files")
+        q.add_argument(
+            "--baseline", metavar="POLICY", help="policy or config id for speedups (default: bidirectional)"
+        )
+    web.add_argument("--out", required=True, metavar="DIR", help="report folder to write")
+    web.add_argument("--overwrite", action="store_true", help="replace an earlier report in OUT")
+    paper.set_defaults(func=cmd_paper_table)
+    web.set_defaults(func=cmd_html)
+
+
+def cmd_paper_table(args: argparse.Namespace) -> int:
+    from harness.cli import console
+    from results.paper_table import blocks_markdown, paper_blocks, paper_table
+
+    runs = load(args.runs)
+    check_baseline(runs, args.baseline)
+    table = paper_table(runs, args.baseline)
+    console.file.write(blocks_markdown(paper_blocks(table)))
+    console.file.flush()
+    print_warnings(table.warnings)
+    return 0
+
+
+def cmd_html(args: argparse.Namespace) -> int:
+    from harness.cli import console
+    from results.html_report import ReportError, check_out, write_report
+
+    try:
+        check_out(args.out, args.overwrite)  # before reading runs: a bad --out is the cheaper error
+        runs = load(args.runs)
+        check_baseline(runs, args.baseline)
+        out, warnings = write_report(runs, args.out, args.baseline, args.overwrite)
+    except ReportError as exc:
+        raise UsageError(str(exc)) from None
+    console.print(f"wrote {out / 'index.html'}")
+    print_warnings(warnings)
+    return 0

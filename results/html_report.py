@@ -1,0 +1,251 @@
+"""A static, self-contained HTML report: leaderboards, the paper table, figures, provenance.
+
+One file with inline CSS, inline JavaScript and figures as base64 PNG, so it opens
+offline, from an e-mail or a CI artifact, with no server and no CDN. Tables sort when a
+header is clicked; each cell carries the number it sorts by (`data-value`), so numbers
+sort numerically and tests can read the exact values back. The report folder is built
+in a temporary sibling and renamed into place: an error never leaves half a report.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+import shlex
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from results.leaderboard import Block, Cell, Leaderboard, leaderboards, to_csv, to_markdown
+from results.paper_table import blocks_markdown, paper_blocks, paper_table
+from results.runs import Run, combined_episodes
+
+GENERATOR = "dvla-harness report"
+INDEX = "index.html"
+
+
+class ReportError(ValueError):
+    """The report cannot be written where asked; nothing was written."""
+
+
+_CSS = """
+body{font:14px/1.45 system-ui,sans-serif;margin:2em auto;max-width:1400px;padding:0 1em;color:#222}
+h1{font-size:1.5em}h2{font-size:1.2em;margin-top:2em;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums}
+th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
+th:first-child,td:first-child{text-align:left}
+thead th{background:#f3f3f3;cursor:pointer;user-select:none}
+th[aria-sort=ascending]::after{content:" \\25B2"}th[aria-sort=descending]::after{content:" \\25BC"}
+tbody.published td{color:#555;background:#fafafa;font-style:italic}
+.warn{background:#fff4d6;border:1px solid #e0b84c;padding:.5em 1em}
+.note{color:#555;font-size:.92em}dl{display:grid;grid-template-columns:max-content 1fr;gap:2px 12px}
+dt{font-weight:600}dd{margin:0;word-break:break-all}img{max-width:100%}
+"""
+
+# Click a header: sort each tbody of that table by the column, numbers numerically,
+# empty cells last; a second click reverses.
+_JS = """
+function cellKey(td){if(!td||!td.hasAttribute('data-value'))return null;
+ var v=td.getAttribute('data-value');var n=Number(v);return(v!==''&&!isNaN(n))?n:v;}
+function sortTable(table,col,th){
+ var dir=th.getAttribute('aria-sort')==='ascending'?'descending':'ascending';
+ table.querySelectorAll('thead th').forEach(function(h){h.removeAttribute('aria-sort');});
+ th.setAttribute('aria-sort',dir);
+ Array.prototype.forEach.call(table.tBodies,function(body){
+  var rows=Array.prototype.slice.call(body.rows);
+  rows.sort(function(a,b){var x=cellKey(a.cells[col]),y=cellKey(b.cells[col]);
+   if(x===null&&y===null)return 0;if(x===null)return 1;if(y===null)return -1;
+   var c=(typeof x==='number'&&typeof y==='number')?x-y:String(x).localeCompare(String(y));
+   return dir==='ascending'?c:-c;});
+  rows.forEach(function(r){body.appendChild(r);});});}
+document.querySelectorAll('table.sortable').forEach(function(table){
+ table.querySelectorAll('thead th').forEach(function(th,i){
+  th.addEventListener('click',function(){sortTable(table,i,th);});});});
+"""
+
+
+def _e(value: Any) -> str:
+    return html.escape(str(value), quote=True)
+
+
+def _td(cell: Cell) -> str:
+    value = "" if cell.value is None else f' data-value="{_e(cell.value)}"'
+    return f"<td{value}>{_e(cell.text)}</td>"
+
+
+def table_html(
+    headers: Sequence[str], rows: Sequence[Sequence[Cell]], published_from: int | None = None
+) -> str:
+    """A sortable table; rows from `published_from` on go in their own tbody, so sorting
+    never interleaves published reference rows with measured ones."""
+    split = len(rows) if published_from is None else published_from
+    head = "".join(f'<th scope="col">{_e(h)}</th>' for h in headers)
+    bodies = []
+    for cls, part in (("measured", rows[:split]), ("published", rows[split:])):
+        if part:
+            trs = "".join("<tr>" + "".join(_td(c) for c in r) + "</tr>" for r in part)
+            bodies.append(f'<tbody class="{cls}">{trs}</tbody>')
+    return f'<table class="sortable"><thead><tr>{head}</tr></thead>{"".join(bodies)}</table>'
+
+
+def _board_html(board: Leaderboard) -> str:
+    headers, rows = board.cells()
+    out = [f"<h2>{_e(board.suite)}</h2>", table_html(headers, rows)]
+    if board.warnings:
+        items = "".join(f"<li>{_e(w)}</li>" for w in board.warnings)
+        out.append(f'<div class="warn"><b>Warnings</b><ul>{items}</ul></div>')
+    return "".join(out)
+
+
+def _block_html(block: Block) -> str:
+    notes = "".join(f"<li>{_e(n)}</li>" for n in block.notes)
+    return (
+        f"<h3>{_e(block.title)}</h3>"
+        + table_html(block.headers, block.rows, block.published_from)
+        + (f'<ul class="note">{notes}</ul>' if notes else "")
+    )
+
+
+def _figures_html(episodes: pd.DataFrame) -> str:
+    """A Pareto plot per suite from results.plots (tokens/s against success)."""
+    try:
+        from results.plots import PlotInputError, pareto_plot
+    except ImportError:
+        return '<p class="note">No figures: results.plots is not available.</p>'
+    parts = []
+    for suite, rows in episodes.groupby("suite", sort=False):
+        # Configurations that decode no tokens (scripted, random) have no place on a tokens/s axis.
+        decoding = rows.groupby("policy_config_id")["tokens_per_s"].transform(lambda v: v.notna().any())
+        rows = rows[decoding]
+        if rows.empty:
+            parts.append(f'<p class="note">{_e(suite)}: no Pareto plot (no policy decodes tokens)</p>')
+            continue
+        try:
+            fig = pareto_plot(rows)
+        except (PlotInputError, ValueError, OSError) as exc:
+            parts.append(f'<p class="note">{_e(suite)}: no Pareto plot ({_e(exc)})</p>')
+            continue
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+        data = base64.b64encode(buf.getvalue()).decode()
+        alt = f"{suite}: success against tokens/s, one marker per policy configuration"
+        parts.append(
+            f"<figure><img alt='{_e(alt)}' src='data:image/png;base64,{data}'>"
+            f"<figcaption>{_e(alt)}</figcaption></figure>"
+        )
+    return "".join(parts)
+
+
+def _provenance_html(run: Run) -> str:
+    m = run.manifest
+    if not m:
+        return f"<h3>{_e(run.label)}</h3><p class='note'>No manifest.json: provenance unknown.</p>"
+    env = m.get("environment") or {}
+    suite = m.get("suite") or {}
+    packages = {**(env.get("packages") or {}), **(env.get("simulators") or {})}
+    items = {
+        "run id": m.get("run_id"),
+        "status": m.get("status"),
+        "started / finished": f"{m.get('started_at')} / {m.get('finished_at')}",
+        "suite": f"{suite.get('name')} v{suite.get('version')}: {', '.join(suite.get('tasks') or [])}",
+        "render backend": suite.get("render_backend"),
+        "MUJOCO_GL": env.get("mujoco_gl"),
+        "mujoco": (suite.get("simulator_packages") or {}).get("mujoco") or packages.get("mujoco"),
+        "versions": ", ".join(f"{k} {v}" for k, v in packages.items() if v),
+        "python": env.get("python"),
+        "host": env.get("host"),
+        "CPU": f"{env.get('cpu')} ({env.get('cpu_count')} cores)",
+        "GPU": env.get("gpu") or "none",
+        "platform": env.get("platform"),
+        "git commit": env.get("git_commit") or "n/a",
+        "command": shlex.join(map(str, m.get("command") or [])),
+        "policies": "; ".join(
+            f"{p.get('name')} {p.get('config_id')} {p.get('params')}" for p in m.get("policies") or []
+        ),
+    }
+    rows = "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in items.items())
+    return f"<h3>{_e(run.label)}</h3><dl>{rows}</dl>"
+
+
+def render_page(
+    runs: Sequence[Run],
+    boards: Sequence[Leaderboard],
+    title: str = "dvla-harness report",
+    figures: bool = True,
+    paper: Sequence[Block] = (),
+) -> str:
+    sections = [f"<h1>{_e(title)}</h1>"]
+    sections.append(
+        f'<p class="note">{len(runs)} run(s), {sum(len(r.episodes) for r in runs)} episodes. '
+        "Every number is computed from the runs' Parquet rows; click a column header to sort.</p>"
+    )
+    sections += [_board_html(b) for b in boards]
+    if paper:
+        sections.append("<h2>In the layout of Fast-dVLA's LIBERO table</h2>")
+        sections += [_block_html(b) for b in paper]
+    if figures:
+        sections.append("<h2>Figures</h2>" + _figures_html(combined_episodes(runs)))
+    sections.append("<h2>Provenance</h2>" + "".join(_provenance_html(r) for r in runs))
+    return (
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+        f"<meta name='generator' content='{GENERATOR}'><title>{_e(title)}</title>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<style>{_CSS}</style></head><body>{''.join(sections)}<script>{_JS}</script></body></html>\n"
+    )
+
+
+def check_out(out: str | os.PathLike[str], overwrite: bool) -> None:
+    """Refuse a destination before any work: a file, a missing parent, or a folder
+    that holds something other than an earlier report."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ReportError(f"{out} exists and is not a folder")
+    if not out.parent.is_dir():
+        raise ReportError(f"{out}: folder {out.parent} does not exist")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise ReportError(f"{out} exists and is not empty; pass --overwrite to replace it")
+        index = out / INDEX
+        if not index.is_file() or GENERATOR not in index.read_text(errors="replace")[:2000]:
+            raise ReportError(f"{out} is not a dvla-harness report folder; refusing to delete it")
+
+
+def write_report(
+    runs: Sequence[Run], out: str | os.PathLike[str], baseline: str | None = None, overwrite: bool = False
+) -> tuple[Path, tuple[str, ...]]:
+    """OUT/index.html (the page), leaderboard.md/.csv and paper-table.md, all or nothing.
+
+    Returns the folder and the leaderboards' warnings (the caller shows them)."""
+    out = Path(out)
+    check_out(out, overwrite)
+    boards = leaderboards(runs, baseline)
+    blocks = paper_blocks(paper_table(runs, baseline))
+    files = {
+        INDEX: render_page(runs, boards, paper=blocks),
+        "leaderboard.md": to_markdown(boards),
+        "leaderboard.csv": to_csv(boards),
+        "paper-table.md": blocks_markdown(blocks),
+    }
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    old = out.parent / f".{out.name}.old-{os.getpid()}"
+    try:
+        tmp.mkdir()
+        for name, text in files.items():
+            (tmp / name).write_text(text)
+        if out.is_dir() and any(out.iterdir()):
+            out.rename(old)
+        elif out.is_dir():
+            out.rmdir()
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old.exists() and not out.exists():
+            old.rename(out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    return out, tuple(f"{b.suite}: {w}" for b in boards for w in b.warnings)

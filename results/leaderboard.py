@@ -1,0 +1,482 @@
+"""Leaderboards: any number of runs combined into one table per suite.
+
+A row is a policy configuration (`policy_config_id`) measured on one machine: the same
+configuration timed on two machines gets two rows, because tokens/s, Hz and wall-clock
+belong to the machine. Success columns are one per task when a suite has at most
+`MAX_TASK_COLUMNS` tasks in the rows (Meta-World MT10, a LIBERO suite), otherwise only
+the overall column (MT50, LIBERO-90); `group_by` maps tasks to other groups.
+
+Every number comes from the episode rows. Manifests are read only for what cannot be
+in a row: which machine ran it (speedups are computed only between rows of the same
+machine) and the versions and render backend that move scores (differences become
+warnings, which outputs must show, not bury).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import PurePath
+from typing import Any
+
+import pandas as pd
+from rich.table import Table
+
+from results.runs import Run, combined_episodes
+from results.schema import EPISODE_KEY
+from results.summary import wilson_interval
+
+DEFAULT_BASELINE = "bidirectional"
+MAX_TASK_COLUMNS = 10
+OVERALL = "overall"
+
+
+@dataclass(frozen=True)
+class Success:
+    successes: int
+    episodes: int
+
+    @property
+    def rate(self) -> float:
+        return self.successes / self.episodes if self.episodes else math.nan
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.episodes)
+
+    def text(self) -> str:
+        if not self.episodes:
+            return "-"
+        low, high = self.interval
+        return (
+            f"{100 * self.rate:.1f}% [{100 * low:.0f}, {100 * high:.0f}] ({self.successes}/{self.episodes})"
+        )
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One leaderboard row: a policy configuration on one machine."""
+
+    policy: str
+    label: str
+    policy_config_id: str
+    machine: str
+    runs: tuple[str, ...]
+    success: dict[str, Success]  # task group -> success
+    overall: Success
+    errors: int
+    nfe_per_chunk: float
+    tokens_per_s: float
+    control_hz: float
+    wall_clock_s: float
+    speedup: float | None = None
+    speedup_note: str = ""  # why speedup is missing ("n/a: other machine"); '' when computed
+
+
+@dataclass(frozen=True)
+class Cell:
+    text: str
+    value: float | str | None  # what the cell sorts by (numbers sort numerically)
+
+
+@dataclass(frozen=True)
+class Leaderboard:
+    suite: str
+    groups: tuple[str, ...]
+    entries: tuple[Entry, ...]
+    baseline: str
+    warnings: tuple[str, ...]
+
+    @property
+    def machines(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(e.machine for e in self.entries))
+
+    def frame(self) -> pd.DataFrame:
+        """The numbers, one row per entry, for notebooks and CSV (rates as fractions)."""
+        rows = []
+        for e in self.entries:
+            row: dict[str, Any] = {
+                "suite": self.suite,
+                "policy": e.policy,
+                "label": e.label,
+                "policy_config_id": e.policy_config_id,
+                "machine": e.machine,
+                "runs": " ".join(e.runs),
+            }
+            for group, s in [*((g, e.success[g]) for g in self.groups), (OVERALL, e.overall)]:
+                low, high = s.interval
+                row |= {
+                    f"success[{group}]": s.rate,
+                    f"success_low[{group}]": low,
+                    f"success_high[{group}]": high,
+                    f"successes[{group}]": s.successes,
+                    f"episodes[{group}]": s.episodes,
+                }
+            row |= {
+                "errors": e.errors,
+                "nfe_per_chunk": e.nfe_per_chunk,
+                "tokens_per_s": e.tokens_per_s,
+                "control_hz": e.control_hz,
+                "wall_clock_s": e.wall_clock_s,
+                "speedup": e.speedup,
+                "speedup_note": e.speedup_note,
+                "baseline": self.baseline,
+            }
+            rows.append(row)
+        return pd.DataFrame(rows)
+
+    def cells(self) -> tuple[list[str], list[list[Cell]]]:
+        """Headers and formatted cells: the one layout every output format shares."""
+        show_machine = len(self.machines) > 1
+        headers = ["policy", *(["machine"] if show_machine else []), *self.groups]
+        headers += ["success (Wilson 95%)", "NFE/chunk", "tokens/s", "control Hz", "wall s/episode"]
+        headers += ["errors", f"speedup vs {self.baseline}"]
+        rows = []
+        for e in self.entries:
+            row = [Cell(e.label, e.label)]
+            if show_machine:
+                row.append(Cell(e.machine or "unknown", e.machine))
+            row += [Cell(e.success[g].text(), finite_or_none(e.success[g].rate)) for g in self.groups]
+            row += [
+                Cell(e.overall.text(), finite_or_none(e.overall.rate)),
+                number_cell(e.nfe_per_chunk, ".1f"),
+                number_cell(e.tokens_per_s, ".0f"),
+                number_cell(e.control_hz, ".0f"),
+                number_cell(e.wall_clock_s, ".2f"),
+                Cell(str(e.errors), e.errors),
+                Cell(f"{e.speedup:.2f}x", e.speedup) if e.speedup is not None else Cell(e.speedup_note, None),
+            ]
+            rows.append(row)
+        return headers, rows
+
+
+def finite_or_none(value: float) -> float | None:
+    return None if value is None or math.isnan(value) else float(value)
+
+
+def number_cell(value: float, fmt: str) -> Cell:
+    v = finite_or_none(value)
+    return Cell("-" if v is None else format(v, fmt), v)
+
+
+# --- labels -----------------------------------------------------------------------
+
+
+def _defaults() -> dict[str, dict[str, Any]]:
+    """Registered parameter defaults, so labels show only what a row changed."""
+    try:
+        import dataclasses
+
+        from policies.registry import all_policies
+
+        return {
+            name: {f.name: f.default for f in dataclasses.fields(spec.params)}
+            for name, spec in all_policies().items()
+        }
+    except Exception:  # a broken plugin must not stop a table; labels then show differences only
+        return {}
+
+
+def _show(key: str, value: Any) -> str:
+    if key == "checkpoint" and isinstance(value, str):
+        return PurePath(value).name  # paths differ between machines; the file name does not
+    if isinstance(value, float):
+        return format(value, ".4g")
+    return str(value)
+
+
+def config_labels(episodes: pd.DataFrame) -> dict[str, str]:
+    """policy_config_id -> 'policy (k=v, ...)' with the params that differ from the
+    defaults or between configurations of the same policy; unique per configuration."""
+    configs = episodes.drop_duplicates("policy_config_id")[["policy_config_id", "policy", "policy_params"]]
+    defaults = _defaults()
+    parsed: dict[str, dict[str, Any]] = {}
+    for cid, params in zip(configs["policy_config_id"], configs["policy_params"], strict=True):
+        try:
+            parsed[cid] = json.loads(params) if params else {}
+        except (TypeError, json.JSONDecodeError):
+            parsed[cid] = {"params": params}
+    labels: dict[str, str] = {}
+    for policy, group in configs.groupby("policy", sort=False):
+        ids = list(group["policy_config_id"])
+        default = defaults.get(str(policy), {})
+        keys = sorted({k for cid in ids for k in parsed[cid]})
+
+        def value(cid: str, key: str, default: dict[str, Any] = default) -> str:
+            # A parameter added after a run was recorded counts as its default there.
+            return _show(key, parsed[cid].get(key, default.get(key)))
+
+        shown = [
+            k
+            for k in keys
+            if len({value(cid, k) for cid in ids}) > 1
+            or (k in default and any(value(cid, k) != _show(k, default[k]) for cid in ids))
+            or (default and k not in default)
+        ]
+        for cid in ids:
+            parts = [f"{k}={value(cid, k)}" for k in shown if k in parsed[cid]]
+            labels[cid] = f"{policy} ({', '.join(parts)})" if parts else str(policy)
+    seen: dict[str, int] = {}
+    for label in labels.values():
+        seen[label] = seen.get(label, 0) + 1
+    return {cid: (f"{lab} [{cid}]" if seen[lab] > 1 else lab) for cid, lab in labels.items()}
+
+
+# --- speedups ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Timed:
+    policy: str
+    config_id: str
+    label: str
+    machine: str
+    runs: tuple[str, ...]
+    tokens_per_s: float
+
+
+def _same_machine(a: Timed, b: Timed) -> bool:
+    if a.machine or b.machine:
+        return a.machine == b.machine
+    return len(a.runs) == 1 and a.runs == b.runs  # no manifest: only rows of one run are known to match
+
+
+def speedups(items: Sequence[Timed], baseline: str) -> tuple[list[tuple[float | None, str]], list[str]]:
+    """Tokens/s over the baseline's on the same machine, or why there is none."""
+    bases = [b for b in items if baseline in (b.policy, b.config_id)]
+    warnings = []
+    out: list[tuple[float | None, str]] = []
+    for item in items:
+        mine = [b for b in bases if _same_machine(item, b)]
+        if not bases:
+            out.append((None, f"n/a: no {baseline} row"))
+            continue
+        if not mine:
+            unknown = not item.machine or all(not b.machine for b in bases)
+            out.append((None, "n/a: machine unknown" if unknown else "n/a: other machine"))
+            continue
+        base = next((b for b in mine if b.label == b.policy), mine[0])
+        if len(mine) > 1:
+            msg = (
+                f"baseline {baseline!r} has {len(mine)} configurations on one machine; speedups use "
+                f"{base.label} (pass --baseline CONFIG_ID to choose)"
+            )
+            if msg not in warnings:
+                warnings.append(msg)
+        if math.isnan(item.tokens_per_s):
+            out.append((None, "n/a: no tokens"))
+        elif math.isnan(base.tokens_per_s) or base.tokens_per_s <= 0:
+            out.append((None, "n/a: baseline decodes no tokens"))
+        else:
+            out.append((item.tokens_per_s / base.tokens_per_s, ""))
+    return out, warnings
+
+
+# --- warnings ---------------------------------------------------------------------
+
+
+def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
+    """What in a manifest changes scores: simulator and mujoco versions, rendering."""
+    env = manifest.get("environment") or {}
+    suite = manifest.get("suite") or {}
+    sims = dict(suite.get("simulator_packages") or {})
+    out = {f"{name} version": v for name, v in sims.items()}
+    out.setdefault("mujoco version", (env.get("packages") or {}).get("mujoco"))
+    if not sims:  # a manifest without the suite's own list: every simulator installed
+        out |= {f"{name} version": v for name, v in (env.get("simulators") or {}).items() if v is not None}
+    out["render backend"] = suite.get("render_backend")
+    out["MUJOCO_GL"] = env.get("mujoco_gl")
+    return out
+
+
+def _provenance_warnings(runs: Sequence[str], provenance: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    warnings = []
+    known = {r: _scoring_provenance(provenance[r]) for r in runs if provenance.get(r)}
+    for r in runs:
+        if r not in known:
+            warnings.append(
+                f"{r or 'rows'}: no manifest, so versions, render backend and machine are unknown"
+            )
+    for key in sorted({k for p in known.values() for k in p}):
+        values: dict[str, list[str]] = {}
+        for r, p in known.items():
+            values.setdefault(str(p.get(key)), []).append(r)
+        if len(values) > 1:
+            listed = "; ".join(f"{v} ({', '.join(rs)})" for v, rs in values.items())
+            warnings.append(f"runs differ in {key}: {listed}; success may not be comparable")
+    return warnings
+
+
+def _episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Mapping[str, str]) -> list[str]:
+    warnings = []
+
+    def name(key: tuple[str, str]) -> str:
+        return labels[key[0]] + (f" @ {key[1]}" if len({m for _, m in keys}) > 1 else "")
+
+    by_row = {k: g for k, g in df.groupby(["policy_config_id", "machine"], sort=False)}
+    counts = {k: len(by_row[k]) for k in keys}
+    if len(set(counts.values())) > 1:
+        listed = ", ".join(f"{name(k)} {n}" for k, n in counts.items())
+        warnings.append(f"episode counts differ between rows: {listed}; intervals differ in width")
+    episodes = {k: set(zip(by_row[k]["task"], by_row[k]["episode_index"], strict=True)) for k in keys}
+    if len(set(counts.values())) == 1 and len({frozenset(e) for e in episodes.values()}) > 1:
+        warnings.append("rows were evaluated on different episodes (task, episode index); compare with care")
+    starts = df.groupby(["task", "episode_index"])[["seed", "init_state_id"]].nunique(dropna=False)
+    differing = starts[(starts > 1).any(axis=1)]
+    if len(differing):
+        task, index = differing.index[0]
+        warnings.append(
+            f"seeds or initial states differ between rows for {len(differing)} episode(s) "
+            f"(e.g. {task} #{index}); rows did not start from the same states"
+        )
+    for column, what in (
+        ("suite_version", "suite version"),
+        ("replan_every", "replan_every"),
+        ("max_steps", "step budgets"),
+    ):
+        if df[column].nunique() > 1:
+            warnings.append(f"rows differ in {what}: {sorted(map(str, df[column].unique()))}")
+    machines = df.groupby("policy_config_id")["machine"].nunique()
+    for cid in machines[machines > 1].index:
+        warnings.append(f"{labels[cid]} was measured on {machines[cid]} machines: one row per machine")
+    return warnings
+
+
+# --- building ---------------------------------------------------------------------
+
+
+def prepare_rows(episodes: pd.DataFrame) -> tuple[pd.DataFrame, int]:
+    df = episodes.copy()
+    for column in ("run", "machine"):
+        if column not in df:
+            df[column] = ""
+    df["machine"] = df["machine"].fillna("")
+    before = len(df)
+    if "started_at" in df:
+        df = df.sort_values("started_at", kind="stable")
+    df = df.drop_duplicates([*EPISODE_KEY, "machine"], keep="last")
+    return df, before - len(df)
+
+
+def leaderboard(
+    episodes: pd.DataFrame,
+    baseline: str | None = None,
+    group_by: Callable[[str], str] | None = None,
+    provenance: Mapping[str, Mapping[str, Any]] | None = None,
+    labels: Mapping[str, str] | None = None,
+) -> Leaderboard:
+    """The leaderboard of one suite's rows (optionally with `run`/`machine` columns, as
+    from results.runs.combined_episodes; `provenance` maps run -> manifest)."""
+    df, duplicates = prepare_rows(episodes)
+    suites = df["suite"].unique()
+    if len(suites) != 1:
+        raise ValueError(f"one suite per leaderboard, got {sorted(suites)}; use leaderboards()")
+    labels = dict(labels or config_labels(df))
+    baseline = baseline or DEFAULT_BASELINE
+    tasks = list(df.sort_values("task_index", kind="stable")["task"].unique())
+    if group_by is None:
+        group_of = {t: t for t in tasks} if len(tasks) <= MAX_TASK_COLUMNS else {}
+    else:
+        group_of = {t: group_by(t) for t in tasks}
+    groups = tuple(dict.fromkeys(group_of[t] for t in tasks if t in group_of))
+    first = df.sort_values("started_at", kind="stable") if "started_at" in df else df
+    keys = list(dict.fromkeys(zip(first["policy_config_id"], first["machine"], strict=True)))
+    grouped = {k: g for k, g in df.groupby(["policy_config_id", "machine"], sort=False)}
+    drafts = []
+    for key in keys:
+        rows = grouped[key]
+        per_group = {g: Success(0, 0) for g in groups}
+        for group in groups:
+            mine = rows[rows["task"].map(group_of) == group]
+            per_group[group] = Success(int(mine["success"].sum()), len(mine))
+        drafts.append(
+            Entry(
+                policy=str(rows["policy"].iloc[0]),
+                label=labels[key[0]],
+                policy_config_id=key[0],
+                machine=key[1],
+                runs=tuple(dict.fromkeys(rows["run"])),
+                success=per_group,
+                overall=Success(int(rows["success"].sum()), len(rows)),
+                errors=int(rows["failure_reason"].notna().sum()),
+                nfe_per_chunk=float(rows["nfe_per_chunk"].mean()),
+                tokens_per_s=float(rows["tokens_per_s"].mean()),
+                control_hz=float(rows["control_hz"].mean()),
+                wall_clock_s=float(rows["wall_clock_s"].mean()),
+            )
+        )
+    timed = [Timed(e.policy, e.policy_config_id, e.label, e.machine, e.runs, e.tokens_per_s) for e in drafts]
+    ratios, warnings = speedups(timed, baseline)
+    entries = tuple(
+        Entry(**{**e.__dict__, "speedup": s, "speedup_note": note})
+        for e, (s, note) in zip(drafts, ratios, strict=True)
+    )
+    warnings = _episode_warnings(df, keys, labels) + warnings
+    if provenance is not None:
+        warnings = _provenance_warnings(list(dict.fromkeys(df["run"])), provenance) + warnings
+    if duplicates:
+        warnings.append(f"{duplicates} episode(s) appear in more than one run; the latest is counted")
+    return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings))
+
+
+def leaderboards(
+    runs: Sequence[Run], baseline: str | None = None, group_by: Callable[[str], str] | None = None
+) -> list[Leaderboard]:
+    """One leaderboard per suite found in the runs, in the order the suites appear."""
+    episodes = combined_episodes(runs)
+    provenance = {r.label: r.manifest for r in runs}
+    labels = config_labels(episodes)
+    return [
+        leaderboard(episodes[episodes["suite"] == suite], baseline, group_by, provenance, labels)
+        for suite in episodes["suite"].unique()
+    ]
+
+
+# --- text outputs -----------------------------------------------------------------
+
+
+def _md_escape(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(map(_md_escape, headers)) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(_md_escape(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def to_markdown(boards: Sequence[Leaderboard]) -> str:
+    parts = []
+    for b in boards:
+        headers, rows = b.cells()
+        parts.append(f"## {b.suite}\n\n" + markdown_table(headers, [[c.text for c in r] for r in rows]))
+        if b.warnings:
+            parts.append("Warnings:\n\n" + "\n".join(f"- {w}" for w in b.warnings))
+    return "\n\n".join(parts) + "\n"
+
+
+def to_csv(boards: Sequence[Leaderboard]) -> str:
+    return pd.concat([b.frame() for b in boards], ignore_index=True).to_csv(index=False)
+
+
+def rich_table(board: Leaderboard) -> Table:
+    headers, rows = board.cells()
+    table = Table(title=board.suite)
+    for i, h in enumerate(headers):
+        table.add_column(h, justify="left" if i == 0 or h == "machine" else "right")
+    for row in rows:
+        table.add_row(*(c.text for c in row))
+    return table
+
+
+@dataclass(frozen=True)
+class Block:
+    """A titled table of cells, as paper-table and the HTML report lay them out."""
+
+    title: str
+    headers: list[str]
+    rows: list[list[Cell]]
+    notes: tuple[str, ...] = ()
+    published_from: int | None = None  # rows from here on are published reference rows

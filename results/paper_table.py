@@ -1,0 +1,148 @@
+"""Runs laid out like Fast-dVLA's LIBERO table: methods x suites, average, tokens/s,
+speedup, with the published rows beneath, labelled with their source.
+
+Built from the per-suite leaderboards, so the same rows, labels, machine rule for
+speedups and warnings apply; only the layout differs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from results.leaderboard import (
+    DEFAULT_BASELINE,
+    Block,
+    Cell,
+    Success,
+    Timed,
+    finite_or_none,
+    leaderboards,
+    markdown_table,
+    number_cell,
+    prepare_rows,
+    speedups,
+)
+from results.published import LIBERO, libero_column, tables_for
+from results.runs import Run, combined_episodes
+
+
+@dataclass(frozen=True)
+class PaperRow:
+    label: str
+    policy_config_id: str
+    machine: str
+    success: dict[str, Success]  # suite -> success
+    average: float | None  # mean of the suite success rates; None unless every suite was run
+    tokens_per_s: float
+    speedup: float | None
+    speedup_note: str
+    runs: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class PaperTable:
+    """Fast-dVLA's LIBERO layout: methods x suites, average, tokens/s, speedup."""
+
+    suites: tuple[str, ...]
+    rows: tuple[PaperRow, ...]
+    baseline: str
+    warnings: tuple[str, ...]
+
+
+def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
+    boards = leaderboards(runs, baseline)
+    baseline = baseline or DEFAULT_BASELINE
+    df, _ = prepare_rows(combined_episodes(runs))
+    keys = list(dict.fromkeys((e.policy_config_id, e.machine) for b in boards for e in b.entries))
+    entries = {(e.policy_config_id, e.machine): e for b in boards for e in b.entries}
+    timed = []
+    for cid, machine in keys:
+        rows = df[(df["policy_config_id"] == cid) & (df["machine"] == machine)]
+        e = entries[(cid, machine)]
+        runs_of = tuple(dict.fromkeys(rows["run"]))
+        timed.append(Timed(e.policy, cid, e.label, machine, runs_of, float(rows["tokens_per_s"].mean())))
+    ratios, extra = speedups(timed, baseline)
+    out = []
+    for (cid, machine), t, (s, note) in zip(keys, timed, ratios, strict=True):
+        success = {
+            b.suite: e.overall
+            for b in boards
+            for e in b.entries
+            if (e.policy_config_id, e.machine) == (cid, machine)
+        }
+        average = (
+            sum(100 * v.rate for v in success.values()) / len(boards) if len(success) == len(boards) else None
+        )
+        out.append(PaperRow(t.label, cid, machine, success, average, t.tokens_per_s, s, note, t.runs))
+    warnings = [f"{b.suite}: {w}" for b in boards for w in b.warnings] + extra
+    return PaperTable(tuple(b.suite for b in boards), tuple(out), baseline, tuple(dict.fromkeys(warnings)))
+
+
+def paper_blocks(pt: PaperTable) -> list[Block]:
+    """The measured rows in the paper's layout, then the published rows beneath them:
+    in the same table when every measured suite is a LIBERO suite (same columns), else
+    in tables of their own. Published rows are always labelled with their source."""
+    columns = {s: libero_column(s) for s in pt.suites}
+    aligned = bool(columns) and all(columns.values()) and len(set(columns.values())) == len(columns)
+    suites = list(pt.suites)
+    if aligned:
+        suites.sort(key=lambda s: LIBERO.columns.index(columns[s]))  # type: ignore[arg-type]
+    names = [f"{columns[s]} ({s})" if aligned else s for s in suites]
+    headers = ["method", *names, "Avg", "tokens/s", f"speedup vs {pt.baseline}", "source"]
+    rows = []
+    for r in pt.rows:
+        rows.append(
+            [
+                Cell(r.label + (f" @ {r.machine}" if len({x.machine for x in pt.rows}) > 1 else ""), r.label),
+                *(
+                    Cell(r.success[s].text(), finite_or_none(r.success[s].rate))
+                    if s in r.success
+                    else Cell("-", None)
+                    for s in suites
+                ),
+                Cell(f"{r.average:.1f}", r.average)
+                if r.average is not None
+                else Cell("n/a: not every suite", None),
+                number_cell(r.tokens_per_s, ".0f"),
+                Cell(f"{r.speedup:.2f}x", r.speedup) if r.speedup is not None else Cell(r.speedup_note, None),
+                Cell("measured: " + ", ".join(r.runs), "measured"),
+            ]
+        )
+    blocks = [Block("measured", headers, rows, pt.warnings)]
+    for table in tables_for(list(pt.suites)):
+        label = f"published: {table.source}"
+        pub_rows = []
+        for p in table.rows:
+            if aligned and table is LIBERO:
+                cols = [columns[s] or "" for s in suites] + ["Avg"]
+            else:
+                cols = list(table.columns)
+            pub_rows.append(
+                [
+                    Cell(f"{p.method} (published)", p.method),
+                    *(Cell(table.text(c, p.values.get(c)), p.values.get(c)) for c in cols),
+                    Cell(table.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
+                    Cell("-" if p.speedup is None else f"{p.speedup:.1f}x (paper)", p.speedup),
+                    Cell(label, label),
+                ]
+            )
+        note = f"{table.name}, {label}; {table.note}; not measured here"
+        if aligned and table is LIBERO:
+            first = blocks[0]
+            blocks[0] = Block(
+                "measured, then published", headers, [*rows, *pub_rows], (*first.notes, note), len(rows)
+            )
+        else:
+            pub_headers = ["method", *table.columns, "tokens/s", "speedup", "source"]
+            blocks.append(Block(f"published: {table.name}", pub_headers, pub_rows, (note,), 0))
+    return blocks
+
+
+def blocks_markdown(blocks: Sequence[Block]) -> str:
+    parts = []
+    for b in blocks:
+        parts.append(f"### {b.title}\n\n" + markdown_table(b.headers, [[c.text for c in r] for r in b.rows]))
+        if b.notes:
+            parts.append("\n".join(f"- {n}" for n in b.notes))
+    return "\n\n".join(parts) + "\n"

@@ -1,0 +1,128 @@
+"""Published numbers from the papers, as data, for labelled reference rows.
+
+These are facts transcribed from the papers (via /work/shared/notes/dvla-reference.md,
+section 2), never measurements of ours: every row says `kind = "published"` and where
+it comes from, and outputs show them beneath measured rows, never mixed into them.
+Success values are percentages as printed in the paper; speedups are the paper's own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+PUBLISHED = "published"
+FAST_DVLA = "Fast-dVLA (arXiv 2603.25661)"
+
+
+@dataclass(frozen=True)
+class PublishedRow:
+    method: str
+    values: dict[str, float]  # column -> value as printed (success in %, avg length, ...)
+    tokens_per_s: float | None
+    speedup: float | None
+    source: str
+    kind: str = PUBLISHED
+
+
+@dataclass(frozen=True)
+class PublishedTable:
+    name: str
+    columns: tuple[str, ...]  # the value columns, in the paper's order
+    rows: tuple[PublishedRow, ...]
+    source: str
+    note: str = ""
+    decimals: int = 1  # as printed in the paper (CALVIN's avg len has 2)
+
+    def text(self, column: str, value: float | None) -> str:
+        if value is None:
+            return "-"
+        return f"{value:.2f}" if column == "avg len" else f"{value:.{self.decimals}f}"
+
+
+def _rows(source: str, columns: tuple[str, ...], data: list[tuple]) -> tuple[PublishedRow, ...]:
+    out = []
+    for method, *values, tok, speedup in data:
+        out.append(PublishedRow(method, dict(zip(columns, values, strict=True)), tok, speedup, source))
+    return tuple(out)
+
+
+_LIBERO_SOURCE = f"{FAST_DVLA}, LIBERO results table"
+LIBERO_COLUMNS = ("Spatial", "Goal", "Object", "Long", "Avg")
+LIBERO = PublishedTable(
+    name="LIBERO",
+    columns=LIBERO_COLUMNS,
+    source=_LIBERO_SOURCE,
+    note=(
+        "success in %; every speedup is relative to Dream-VLA's 98.8 tokens/s, even for the "
+        "DD-VLA rows; Goal/Object columns may be swapped in the transcription"
+    ),
+    rows=_rows(
+        _LIBERO_SOURCE,
+        LIBERO_COLUMNS,
+        [
+            ("Dream-VLA", 90.2, 92.0, 88.0, 72.0, 85.6, 98.8, 1.0),
+            ("Dream-VLA + Fast-dLLM", 88.4, 89.4, 83.4, 70.2, 82.8, 183.2, 1.9),
+            ("Dream-VLA + Block Diffusion", 91.8, 90.4, 88.6, 72.2, 85.8, 181.7, 1.8),
+            ("Dream-VLA + Fast-dVLA", 91.2, 92.0, 90.2, 74.6, 87.0, 313.1, 3.2),
+            ("DD-VLA", 97.2, 98.6, 97.4, 92.0, 96.3, 152.1, 1.5),
+            ("DD-VLA + Fast-dLLM", 94.0, 95.2, 94.8, 89.8, 93.5, 312.5, 3.2),
+            ("DD-VLA + Block Diffusion", 97.6, 98.6, 97.2, 93.2, 96.7, 322.1, 3.3),
+            ("DD-VLA + Fast-dVLA", 97.0, 98.8, 97.6, 92.8, 96.6, 402.7, 4.1),
+        ],
+    ),
+)
+
+_CALVIN_SOURCE = f"{FAST_DVLA}, CALVIN ABCD->D table (UD-VLA base)"
+CALVIN_COLUMNS = ("1/5", "2/5", "3/5", "4/5", "5/5", "avg len")
+CALVIN = PublishedTable(
+    name="CALVIN ABCD->D",
+    columns=CALVIN_COLUMNS,
+    source=_CALVIN_SOURCE,
+    note="success (%) of reaching the i-th instruction of a 5-chain; avg len = instructions completed (0-5); no speedup column in the paper",
+    rows=_rows(
+        _CALVIN_SOURCE,
+        CALVIN_COLUMNS,
+        [
+            ("UD-VLA", 99.2, 96.8, 93.6, 90.4, 84.0, 4.64, 67.3, None),
+            ("UD-VLA + Fast-dLLM", 97.2, 92.0, 85.8, 80.8, 76.2, 4.32, 132.5, None),
+            ("UD-VLA + Block Diffusion", 98.8, 94.4, 89.4, 86.2, 80.4, 4.50, 129.5, None),
+            ("UD-VLA + Fast-dVLA", 98.4, 95.2, 92.2, 87.0, 81.2, 4.54, 186.7, None),
+        ],
+    ),
+)
+
+_SIMPLER_SOURCE = f"{FAST_DVLA}, SimplerEnv result (Dream-VLA base; split not stated)"
+SIMPLERENV = PublishedTable(
+    name="SimplerEnv",
+    columns=("Avg",),
+    source=_SIMPLER_SOURCE,
+    note="success in %; the paper does not state the split",
+    rows=(PublishedRow("Dream-VLA + Fast-dVLA", {"Avg": 59.3}, 366.4, None, _SIMPLER_SOURCE),),
+)
+
+TABLES: tuple[PublishedTable, ...] = (LIBERO, CALVIN, SIMPLERENV)
+
+
+def libero_column(suite: str) -> str | None:
+    """The LIBERO table column a measured suite name corresponds to, if any.
+
+    Lets paper-table put measured LIBERO suites under the paper's own columns; any
+    other suite gets no column, and the published rows then go in a table of their own.
+    """
+    name = suite.lower()
+    if "libero" not in name:
+        return None
+    tail = name.split(":", 1)[0].rsplit("/", 1)[-1]  # "libero/10:obs=images" -> "10"
+    tail = tail.removeprefix("libero_").removeprefix("libero-")
+    return {"spatial": "Spatial", "goal": "Goal", "object": "Object", "10": "Long", "long": "Long"}.get(tail)
+
+
+def tables_for(suites: list[str]) -> list[PublishedTable]:
+    """The published tables worth showing beside these measured suites (LIBERO always)."""
+    names = " ".join(suites).lower()
+    out = [LIBERO]
+    if "calvin" in names:
+        out.append(CALVIN)
+    if "simpler" in names:
+        out.append(SIMPLERENV)
+    return out
