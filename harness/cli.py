@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -174,7 +175,7 @@ def _collect_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _train_parser(sub: argparse._SubParsersAction) -> None:
-    from policies.recipes import NOISE_SCHEDULES, RECIPES, TrainConfig
+    from policies.recipes import NOISE_SCHEDULES, RECIPES, SAMPLING, TrainConfig
 
     d = TrainConfig(recipe="bidirectional")
     p = sub.add_parser(
@@ -204,6 +205,12 @@ def _train_parser(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="continue training this checkpoint (its pattern must fit the recipe; tokenizer and "
         "normalisation are kept)",
+    )
+    p.add_argument(
+        "--sampling",
+        choices=SAMPLING,
+        default=d.sampling,
+        help="task: each instruction equally often in a batch (default); step: each demonstration step",
     )
     p.add_argument(
         "--warmup-steps", type=int, metavar="N", help=f"learning-rate warm-up (default {d.warmup})"
@@ -441,6 +448,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         teacher=args.teacher or "",
         init=args.init or "",
         warmup_steps=args.warmup_steps,
+        sampling=args.sampling,
     )
     try:
         cfg.validate()
@@ -459,8 +467,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     task = progress.add_task("train", total=cfg.steps, loss="-")
 
+    every = max(1, cfg.steps // 20)
+    started = time.monotonic()
+
     def on_step(step: int, loss: float) -> None:
         progress.update(task, advance=1, loss=f"{loss:.4f}")
+        # A log file or CI has no live bar: a line every 5% instead.
+        if not err_console.is_terminal and not args.quiet and (step + 1) % every == 0:
+            elapsed = time.monotonic() - started
+            eta = elapsed / (step + 1) * (cfg.steps - step - 1)
+            err_console.print(
+                f"step {step + 1}/{cfg.steps}  loss {loss:.4f}  {elapsed:.0f} s, ETA {eta:.0f} s"
+            )
 
     try:
         with progress:

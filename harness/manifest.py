@@ -2,6 +2,12 @@
 
 Scores move with the mujoco version, the render backend, the GPU and the seeds; the
 manifest records each so that two runs can be compared honestly (or refused).
+
+Timings move with the machine and with whatever else it is doing, so the manifest also
+carries a calibration: a fixed small torch workload timed at the start and the end of
+the run. Dividing a run's tokens/s by its own calibration speed gives a number that two
+runs on different (or differently loaded) machines can compare, which is what the CI
+regression gate (results/gate.py) does.
 """
 
 from __future__ import annotations
@@ -9,14 +15,17 @@ from __future__ import annotations
 import os
 import platform
 import shutil
+import statistics
 import subprocess
 import sys
+import time
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 from harness.config import ResolvedRun
+from policies.dvla import checkpoint_fields
 
 MANIFEST_VERSION = 1
 CORE_PACKAGES = ("dvla-harness", "numpy", "torch", "gymnasium", "mujoco", "pandas", "pyarrow")
@@ -101,6 +110,86 @@ def environment() -> dict[str, Any]:
     }
 
 
+# Bump "version" whenever the workload changes: calibrations of different versions are
+# not comparable, and the gate refuses to compare their ratios.
+CALIBRATION_WORKLOAD = {
+    "name": "tiny-attention-block",
+    "version": 1,
+    "definition": (
+        "x + attention(x) then + MLP: torch.nn.MultiheadAttention(64, 4 heads) and "
+        "Linear(64,256)-GELU-Linear(256,64), weights and a 1x16x64 input from seed 0, "
+        "inference_mode, torch.set_num_threads(1); 20 warm-up passes, then 11 repeats of "
+        "40 passes; speed = 1 / median seconds per pass"
+    ),
+}
+_WARMUP, _REPEATS, _PASSES = 20, 11, 40
+
+
+def measure_calibration() -> dict[str, Any]:
+    """Time the calibration workload (~0.1 s); torch's thread count is restored after."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        g = torch.Generator().manual_seed(0)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            attn = torch.nn.MultiheadAttention(64, 4, batch_first=True).eval()
+            mlp = torch.nn.Sequential(
+                torch.nn.Linear(64, 256), torch.nn.GELU(), torch.nn.Linear(256, 64)
+            ).eval()
+        x = torch.randn(1, 16, 64, generator=g)
+
+        def block() -> Any:
+            h = x + attn(x, x, x, need_weights=False)[0]
+            return h + mlp(h)
+
+        per_pass = []
+        with torch.inference_mode():
+            for _ in range(_WARMUP):
+                block()
+            for _ in range(_REPEATS):
+                start = time.perf_counter()
+                for _ in range(_PASSES):
+                    block()
+                per_pass.append((time.perf_counter() - start) / _PASSES)
+    finally:
+        torch.set_num_threads(threads)
+    median = statistics.median(per_pass)
+    return {
+        "at": now(),
+        "passes_per_s": 1.0 / median,
+        "median_s_per_pass": median,
+        "min_s_per_pass": min(per_pass),
+        "max_s_per_pass": max(per_pass),
+    }
+
+
+def start_calibration() -> dict[str, Any]:
+    """The manifest's `calibration` block, measured now; the run's end adds `end`.
+
+    Only runs whose policies loaded torch are calibrated: their tokens/s is what the
+    reference speed divides, and importing torch for the others would cost seconds.
+    """
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return {"skipped": "no policy of this run uses torch, so none of its timings depend on torch's speed"}
+    return {
+        "workload": CALIBRATION_WORKLOAD,
+        "torch_threads": torch.get_num_threads(),
+        "start": measure_calibration(),
+        "end": None,
+    }
+
+
+def record_end_calibration(manifest: dict[str, Any], status: str) -> None:
+    """Add the end-of-run measurement (not after an interrupt: the user wants out)."""
+    calibration = manifest.get("calibration")
+    if status == "finished" and calibration and "workload" in calibration:
+        calibration["end"] = measure_calibration()
+
+
 def now() -> str:
     return datetime.now(UTC).isoformat()
 
@@ -126,10 +215,13 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
                 "params": p.params_json,
                 "checkpoint": p.checkpoint,
                 "checkpoint_sha256": p.checkpoint_sha256,
+                # what training fixed (recipe, noise_schedule, block_size): plot axes and hues
+                "checkpoint_fields": checkpoint_fields(p.checkpoint) if p.checkpoint else {},
             }
             for p in resolved.policies
         ],
         "environment": environment(),
+        "calibration": start_calibration(),
         "command": sys.argv,
         "started_at": now(),
         "finished_at": None,

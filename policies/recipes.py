@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 RECIPES = ("bidirectional", "autoregressive", "block_diffusion", "distill")
 NOISE_SCHEDULES = ("frontier", "linear", "sorted_uniform")
+SAMPLING = ("task", "step")
 PATTERN = {
     "bidirectional": "bidirectional",
     "autoregressive": "causal",
@@ -38,6 +39,7 @@ class TrainConfig:
     obs_noise: float = 0.01  # std of Gaussian noise on normalised states
     teacher: str = ""  # distill: the bidirectional checkpoint
     init: str = ""  # start from this checkpoint's weights, tokenizer and normalisation
+    sampling: str = "task"  # "task": every instruction equally often; "step": every step equally
     probe_every: int = 0  # every N steps, the probe loss (see training.probe_loss); 0 = off
     warmup_steps: int | None = None  # None = `warmup`; a short one suits continued training
 
@@ -48,6 +50,8 @@ class TrainConfig:
             raise ValueError(
                 f"noise_schedule {self.noise_schedule!r} is not one of {', '.join(NOISE_SCHEDULES)}"
             )
+        if self.sampling not in SAMPLING:
+            raise ValueError(f"sampling {self.sampling!r} is not one of {', '.join(SAMPLING)}")
         if self.init and self.recipe == "distill":
             raise ValueError("--init does not apply to 'distill' (the student starts from --teacher)")
         if self.recipe == "distill" and not self.teacher:

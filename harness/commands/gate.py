@@ -1,0 +1,176 @@
+"""`dvla-harness gate`: fail CI when a candidate run regresses against a baseline run.
+
+The verdict comes from results/gate.py (usable from notebooks); this module only turns
+flags into a call, the result into a table, and the verdict into an exit status.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+from rich.table import Table
+
+from harness.errors import UsageError
+
+if TYPE_CHECKING:  # pandas and the gate load only when the command runs, not for every CLI call
+    from results.gate import GateResult
+
+DESCRIPTION = """\
+Compare a candidate run with a baseline run of the same episodes and exit 1 on a
+regression, so CI can run a short evaluation and then this command.
+
+What fails the gate:
+  success   a drop that is significant at --alpha by McNemar's exact test (one-sided)
+            on the paired episodes: overall at alpha, per task at alpha / tasks.
+            A drop that could be chance (e.g. 1 of 9 episodes) passes.
+  NFE       any increase of NFE per chunk (forward passes are counted, not timed,
+            so they are exact for deterministic decoders), unless --allow-nfe-increase.
+  tokens/s  a slowdown beyond --max-slowdown, measured as tokens/s divided by each run's
+            own calibration speed (a fixed torch workload timed in the same run), so
+            runs from different machines compare. Skipped, with the reason printed,
+            when either run has no calibration (e.g. a bare Parquet file).
+
+Episodes pair by (suite, task, episode_index, seed, init_state_id). Policy
+configurations pair by name + params + checkpoint hash; then by name alone when that
+is unambiguous; then, if one is left on each side, those two (so a run of policy A can
+gate a run of policy B). Runs whose episodes or configurations do not match are refused.
+
+Exit status: 0 the candidate holds; 1 regression; 2 unusable input (missing or foreign
+files, another schema version, mismatched episodes). Details: docs/ci-gate.md.
+"""
+
+EXAMPLES = """\
+examples:
+  # the committed CI baseline: a fresh short run, then the gate; the baseline came
+  # from another machine, so allow a generous calibrated slowdown (NFE stays exact)
+  dvla-harness run --config results/baselines/metaworld-mt10-smoke.toml --out runs/ci --quiet
+  dvla-harness gate --baseline results/baselines/metaworld-mt10-smoke --candidate runs/ci \\
+      --max-slowdown 0.5
+
+  # yesterday's run against today's, stricter, NFE allowed to grow
+  dvla-harness gate --baseline runs/old/episodes.parquet --candidate runs/new \\
+      --alpha 0.01 --allow-nfe-increase
+
+  # from Python
+  from results.runs import load_run; from results.gate import gate_runs
+  gate_runs(load_run("runs/old"), load_run("runs/new")).failures
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "gate",
+        help="exit 1 if a candidate run regresses against a baseline (success, NFE, speed)",
+        description=DESCRIPTION,
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--baseline", required=True, metavar="RUN_DIR|PARQUET", help="the reference run")
+    p.add_argument("--candidate", required=True, metavar="RUN_DIR|PARQUET", help="the run under test")
+    p.add_argument(
+        "--alpha",
+        type=float,
+        default=0.05,
+        help="significance level of a success drop (default 0.05; smaller = fewer false alarms)",
+    )
+    p.add_argument(
+        "--max-slowdown",
+        type=float,
+        default=0.10,
+        metavar="FRACTION",
+        help="largest allowed drop of calibrated tokens/s, e.g. 0.10 = 10%% (default 0.10)",
+    )
+    p.add_argument(
+        "--allow-nfe-increase", action="store_true", help="report NFE/chunk increases but do not fail"
+    )
+    p.set_defaults(func=cmd_gate)
+
+
+def _fmt(value: float | None, digits: int = 2) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def render(result: GateResult, title: str) -> Table:
+    table = Table(
+        "configuration",
+        "task",
+        "episodes",
+        "successes",
+        "drops/gains",
+        "p (drop)",
+        "NFE/chunk",
+        "tokens/s vs calib.",
+        "verdict",
+        title=title,
+        caption="successes and NFE/chunk: baseline -> candidate; * = significant drop",
+    )
+    speed = {s.pair: s for s in result.speed}
+    short = {p.label: p.short for p in result.pairs}
+    previous = None
+    for t in result.tasks:
+        s = speed.get(t.pair) if t.task == "ALL" else None
+        bad = [
+            name
+            for name, hit in (
+                ("success", t.success_regressed),
+                ("NFE", t.nfe_increased and t.nfe_gated),
+                ("speed", s is not None and s.regressed),
+            )
+            if hit
+        ]
+        nfe = f"{_fmt(t.baseline_nfe)} -> {_fmt(t.candidate_nfe)}"
+        table.add_row(
+            short[t.pair] if t.pair != previous else "",
+            t.task,
+            str(t.episodes),
+            f"{t.baseline_successes} -> {t.candidate_successes}",
+            f"{t.drops} / {t.gains}",
+            f"{t.p_value:.3g}" + (" *" if t.success_regressed else ""),
+            nfe + (" (up)" if t.nfe_increased else ""),
+            f"{s.change:+.1%}" if s else "",
+            "[red]FAIL " + ", ".join(bad) + "[/red]" if bad else "[green]ok[/green]",
+            end_section=t.task == "ALL",
+        )
+        previous = t.pair
+    return table
+
+
+def cmd_gate(args: argparse.Namespace) -> int:
+    from harness.cli import console, err_console
+    from results.gate import GateInputError, gate_runs
+    from results.runs import load_run
+    from results.store import ResultsFileError
+
+    if not 0 < args.alpha < 1:
+        raise UsageError(f"--alpha must be between 0 and 1, got {args.alpha}")
+    if not args.max_slowdown >= 0:
+        raise UsageError(f"--max-slowdown must be >= 0, got {args.max_slowdown}")
+    runs = {}
+    for side in ("baseline", "candidate"):
+        try:
+            runs[side] = load_run(getattr(args, side))
+        except ResultsFileError as exc:
+            raise UsageError(f"--{side}: {exc}") from None
+    try:
+        result = gate_runs(
+            runs["baseline"],
+            runs["candidate"],
+            alpha=args.alpha,
+            max_slowdown=args.max_slowdown,
+            allow_nfe_increase=args.allow_nfe_increase,
+        )
+    except GateInputError as exc:
+        raise UsageError(f"cannot compare {args.baseline} with {args.candidate}: {exc}") from None
+    title = f"gate: {args.candidate} vs baseline {args.baseline}"
+    console.print(render(result, title))
+    for pair in result.pairs:
+        if pair.rule != "same policy and params":
+            console.print(f"paired {pair.label}: {pair.rule}")
+    for note in result.notes:
+        console.print(f"note: {note}")
+    if result.passed:
+        console.print("[green]gate passed[/green]: no significant success drop, no NFE increase, no slowdown")
+        return 0
+    err_console.print("[red]gate failed[/red]:\n  " + "\n  ".join(result.failures))
+    return 1

@@ -1,0 +1,351 @@
+"""The regression gate: exact McNemar p-values, pairing rules, NFE and calibrated speed
+checks on constructed tables; refusals and exit codes through the CLI; and the committed
+Meta-World baseline against fresh runs of the real simulator."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from results.gate import GateInputError, gate, mcnemar_drop_p
+from results.schema import COLUMN_NAMES, SCHEMA_VERSION_KEY, arrow_schema
+from results.store import rows_to_table
+
+REPO = Path(__file__).resolve().parent.parent
+BASELINE = REPO / "results" / "baselines" / "metaworld-mt10-smoke"
+BASELINE_CONFIG = REPO / "results" / "baselines" / "metaworld-mt10-smoke.toml"
+
+
+def episodes(
+    outcomes: dict[str, list[bool]],
+    *,
+    policy: str = "fast_dvla",
+    params: dict | None = None,
+    sha: str = "",
+    suite: str = "metaworld/mt10",
+    nfe_per_chunk: int = 10,
+    tokens_per_s: float = 1000.0,
+    seed_offset: int = 0,
+) -> pd.DataFrame:
+    """A run's table: `outcomes` maps task -> success of its episodes 0, 1, 2..."""
+    params_json = json.dumps(params or {}, sort_keys=True, separators=(",", ":"))
+    config_id = hashlib.sha256(f"{policy}|{params_json}|{sha}".encode()).hexdigest()[:12]
+    rows = []
+    for t, (task, successes) in enumerate(outcomes.items()):
+        for i, ok in enumerate(successes):
+            chunks, tokens = 4, 128
+            rows.append(
+                {c: None for c in COLUMN_NAMES}
+                | {
+                    "run_id": "r",
+                    "suite": suite,
+                    "suite_version": "1",
+                    "task": task,
+                    "task_index": t,
+                    "instruction": task,
+                    "episode_index": i,
+                    "seed": 1000 + t + seed_offset,
+                    "init_state_id": i,
+                    "policy": policy,
+                    "policy_params": params_json,
+                    "policy_config_id": config_id,
+                    "checkpoint": "",
+                    "checkpoint_sha256": sha,
+                    "replan_every": 0,
+                    "max_steps": 500,
+                    "success": ok,
+                    "steps": 40,
+                    "chunks": chunks,
+                    "nfe_total": nfe_per_chunk * chunks,
+                    "nfe_per_chunk": float(nfe_per_chunk),
+                    "action_tokens_total": tokens,
+                    "tokens_per_s": tokens_per_s,
+                    "policy_time_s": tokens / tokens_per_s,
+                    "env_time_s": 0.1,
+                    "overhead_s": 0.0,
+                    "wall_clock_s": 0.1 + tokens / tokens_per_s,
+                    "started_at": pd.Timestamp("2026-01-01", tz="UTC") + pd.Timedelta(seconds=len(rows)),
+                }
+            )
+    return rows_to_table(rows).to_pandas()[list(COLUMN_NAMES)]
+
+
+ALL_OK = {"a": [True] * 6, "b": [True] * 6}
+
+
+# ---- the test statistic ----------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("drops", "gains", "p"),
+    [
+        (6, 0, 1 / 64),  # every discordant pair a drop: (1/2)^6
+        (5, 0, 1 / 32),
+        (0, 0, 1.0),  # no evidence at all
+        (0, 4, 1.0),
+        (3, 1, 5 / 16),  # P(X >= 3 | n = 4) = (C(4,3) + C(4,4)) / 16
+        (1, 5, 63 / 64),
+        (7, 2, 46 / 512),  # (C(9,7) + C(9,8) + C(9,9)) / 2^9
+    ],
+)
+def test_mcnemar_exact_one_sided_p_values(drops, gains, p):
+    assert mcnemar_drop_p(drops, gains) == pytest.approx(p, rel=1e-12)
+
+
+# ---- verdicts on constructed tables ----------------------------------------------
+
+
+def test_identical_runs_pass():
+    result = gate(episodes(ALL_OK), episodes(ALL_OK))
+    assert result.passed, result.failures
+    overall = [t for t in result.tasks if t.task == "ALL"]
+    assert len(overall) == 1 and overall[0].episodes == 12 and overall[0].p_value == 1.0
+    assert "time comparison skipped" in result.notes[0]
+
+
+def test_a_significant_drop_fails_and_names_the_task_and_p():
+    cand = episodes({"a": [False] * 3 + [True] * 3, "b": [False] * 3 + [True] * 3})
+    result = gate(episodes(ALL_OK), cand)
+    assert not result.passed
+    overall = next(t for t in result.tasks if t.task == "ALL")
+    assert (overall.drops, overall.gains, overall.p_value) == (6, 0, 1 / 64)
+    assert any("ALL: success 12 -> 6" in f for f in result.failures)
+    # per task: 3 drops, p = 1/8, above alpha / 2 tasks: only the overall test fires
+    assert not any(t.success_regressed for t in result.tasks if t.task != "ALL")
+
+
+def test_an_insignificant_drop_passes():
+    cand = episodes({"a": [False, False] + [True] * 4, "b": [True] * 6})
+    result = gate(episodes(ALL_OK), cand)
+    assert result.passed, result.failures
+    assert next(t for t in result.tasks if t.task == "ALL").p_value == 0.25
+
+
+def test_gains_offset_drops():
+    base = episodes({"a": [True] * 6 + [False] * 3})
+    cand = episodes({"a": [False] * 6 + [True] * 3})  # 6 drops, 3 gains: p = 0.254
+    assert gate(base, cand).passed
+
+
+def test_one_collapsed_task_fails_at_a_bonferroni_level():
+    tasks = {"a": [True] * 8, "b": [True] * 8, "c": [True] * 8}
+    cand = episodes(tasks | {"a": [False] * 8})
+    base_b = episodes(tasks | {"b": [False] * 8})  # b gains offset a's drops overall
+    result = gate(base_b, cand)
+    a = next(t for t in result.tasks if t.task == "a")
+    assert a.alpha == pytest.approx(0.05 / 3) and a.p_value == 1 / 256 and a.success_regressed
+    assert not next(t for t in result.tasks if t.task == "ALL").success_regressed
+    assert not result.passed
+
+
+def test_an_nfe_increase_fails_unless_allowed_and_a_decrease_passes():
+    base = episodes(ALL_OK, nfe_per_chunk=10)
+    assert not gate(base, episodes(ALL_OK, nfe_per_chunk=11)).passed
+    assert gate(base, episodes(ALL_OK, nfe_per_chunk=11), allow_nfe_increase=True).passed
+    assert gate(base, episodes(ALL_OK, nfe_per_chunk=9)).passed
+
+
+def test_speed_is_compared_as_a_ratio_to_the_calibration():
+    base = episodes(ALL_OK, tokens_per_s=1000.0)
+    slower = episodes(ALL_OK, tokens_per_s=800.0)
+    refs = {"baseline_reference": 5000.0}
+    # same machine speed: a 20% slowdown fails at the 10% default
+    result = gate(base, slower, candidate_reference=5000.0, **refs)
+    assert not result.passed and result.speed[0].change == pytest.approx(-0.2)
+    # the candidate's machine is 20% slower too: the policy itself did not slow down
+    assert gate(base, slower, candidate_reference=4000.0, **refs).passed
+    assert gate(base, slower, candidate_reference=5000.0, max_slowdown=0.25, **refs).passed
+    # no calibration on one side: not compared, and said so
+    result = gate(base, slower, **refs)
+    assert result.passed and not result.speed and "time comparison skipped" in result.notes[0]
+
+
+# ---- pairing and refusals --------------------------------------------------------
+
+
+def test_configurations_pair_by_params_ignoring_the_checkpoint_path():
+    base = pd.concat(
+        [
+            episodes(ALL_OK, params={"checkpoint": "/ci/a.safetensors", "n": 2}, sha="f00d"),
+            episodes(ALL_OK, policy="scripted"),
+        ]
+    )
+    cand = pd.concat(
+        [
+            episodes(ALL_OK, policy="scripted"),
+            episodes(ALL_OK, params={"checkpoint": "/home/me/a.safetensors", "n": 2}, sha="f00d"),
+        ]
+    )
+    result = gate(base, cand)
+    assert [p.rule for p in result.pairs] == ["same policy and params"] * 2
+    assert [p.label for p in result.pairs] == ["fast_dvla", "scripted"]
+
+
+def test_a_changed_param_pairs_by_name_and_a_lone_other_policy_pairs_too():
+    base = pd.concat([episodes(ALL_OK, params={"n": 2}), episodes(ALL_OK, policy="scripted")])
+    cand = pd.concat([episodes(ALL_OK, params={"n": 4}), episodes(ALL_OK, policy="random")])
+    labels = {p.label: p.rule for p in gate(base, cand).pairs}
+    assert labels == {
+        "fast_dvla (n: 2 -> 4)": "same policy, params differ",
+        "scripted -> random": "the only configuration left on each side",
+    }
+
+
+def test_unpartnered_configurations_are_refused():
+    base = pd.concat([episodes(ALL_OK, policy="scripted"), episodes(ALL_OK, policy="bidirectional")])
+    cand = pd.concat([episodes(ALL_OK, policy="random"), episodes(ALL_OK, policy="autoregressive")])
+    with pytest.raises(GateInputError, match=r"without a partner: baseline scripted \{\}"):
+        gate(base, cand)
+
+
+@pytest.mark.parametrize(
+    ("candidate", "message"),
+    [
+        (
+            episodes(ALL_OK, suite="metaworld/mt50"),
+            "suite: baseline metaworld/mt10; candidate metaworld/mt50",
+        ),
+        (episodes(ALL_OK, seed_offset=7), "no common episodes"),
+        (episodes({"a": [True] * 6, "b": [True] * 4}), "12 episodes in the baseline, 10 in the candidate"),
+        (episodes({"a": [True] * 6}), r"only in the baseline: b #0 \(seed 1001, init 0\)"),
+        (episodes({"c": [True] * 2}), "no common episodes"),
+    ],
+)
+def test_mismatched_episodes_are_refused_with_the_mismatch(candidate, message):
+    with pytest.raises(GateInputError, match=message):
+        gate(episodes(ALL_OK), candidate)
+
+
+# ---- the command line ------------------------------------------------------------
+
+
+def write_run(path: Path, df: pd.DataFrame, calibration: float | None = None) -> Path:
+    path.mkdir(parents=True)
+    pq.write_table(
+        pa.Table.from_pandas(df, schema=arrow_schema(), preserve_index=False), path / "episodes.parquet"
+    )
+    manifest: dict = {"run_id": path.name}
+    if calibration:
+        manifest["calibration"] = {
+            "workload": {"name": "tiny-attention-block", "version": 1},
+            "torch_threads": 1,
+            "start": {"passes_per_s": calibration},
+            "end": {"passes_per_s": calibration},
+        }
+    (path / "manifest.json").write_text(json.dumps(manifest))
+    return path
+
+
+def test_cli_exit_status_is_the_verdict_and_a_table_is_printed_either_way(cli, tmp_path):
+    base = write_run(tmp_path / "base", episodes(ALL_OK), calibration=5000.0)
+    same = write_run(tmp_path / "same", episodes(ALL_OK), calibration=5000.0)
+    worse = write_run(tmp_path / "worse", episodes({"a": [False] * 6, "b": [True] * 6}, tokens_per_s=500.0))
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(same))
+    assert code == 0, err
+    assert "gate passed" in out and "fast_dvla" in out and "+0.0%" in out
+    code, out, err = cli("gate", "--baseline", str(base / "episodes.parquet"), "--candidate", str(worse))
+    assert code == 1
+    assert "6 -> 0" in out and "FAIL success" in out and "gate failed" in err
+    assert "time comparison skipped (candidate: its manifest has no calibration" in out.replace("\n", " ")
+
+
+def test_cli_gate_help_teaches_with_examples(cli):
+    code, out, _ = cli("gate", "--help")
+    assert code == 0
+    for words in ("McNemar", "--max-slowdown", "calibration", "examples:", "results/baselines"):
+        assert words in out
+
+
+def _bad_inputs(tmp_path: Path) -> dict[str, tuple[Path, str]]:
+    other = pa.Table.from_pandas(episodes(ALL_OK), schema=arrow_schema(), preserve_index=False)
+    (tmp_path / "v0").mkdir()
+    pq.write_table(other.replace_schema_metadata({SCHEMA_VERSION_KEY: b"0"}), tmp_path / "v0" / "e.parquet")
+    pq.write_table(other.replace_schema_metadata({}), tmp_path / "foreign.parquet")
+    (tmp_path / "notes.txt").write_text("hello")
+    (tmp_path / "empty").mkdir()
+    elsewhere = write_run(tmp_path / "elsewhere", episodes(ALL_OK, seed_offset=9))
+    return {
+        "missing": (tmp_path / "nope", "no such run folder or file"),
+        "not a run": (tmp_path / "empty", "not a run folder"),
+        "foreign file": (tmp_path / "notes.txt", "expected a run folder or an episodes .parquet file"),
+        "foreign parquet": (tmp_path / "foreign.parquet", "not a dvla-harness episode table"),
+        "schema version": (tmp_path / "v0" / "e.parquet", "schema version 0, but this dvla-harness reads"),
+        "no common episodes": (elsewhere, "no common episodes"),
+    }
+
+
+def test_cli_bad_input_is_one_clear_line_and_exit_2(cli, tmp_path):
+    base = write_run(tmp_path / "base", episodes(ALL_OK))
+    for case, (path, message) in _bad_inputs(tmp_path).items():
+        code, _, err = cli("gate", "--baseline", str(base), "--candidate", str(path))
+        assert code == 2, case
+        assert err.startswith("dvla-harness gate: error:") and message in err, (case, err)
+        assert len(err.strip().splitlines()) == 1, (case, err)
+
+
+# ---- calibration and the committed baseline --------------------------------------
+
+
+def test_calibration_restores_torch_threads_and_random_state():
+    torch = pytest.importorskip("torch")
+    from harness.manifest import measure_calibration
+
+    threads, state = torch.get_num_threads(), torch.random.get_rng_state()
+    m = measure_calibration()
+    assert m["passes_per_s"] > 0 and m["min_s_per_pass"] <= m["median_s_per_pass"] <= m["max_s_per_pass"]
+    assert torch.get_num_threads() == threads and torch.equal(torch.random.get_rng_state(), state)
+
+
+def test_committed_baseline_is_the_committed_config():
+    config = tomllib.loads(BASELINE_CONFIG.read_text())
+    manifest = json.loads((BASELINE / "manifest.json").read_text())
+    assert manifest["config"]["tasks"] == config["tasks"]
+    assert manifest["config"]["episodes_per_task"] == config["episodes_per_task"]
+    assert [p["name"] for p in manifest["config"]["policies"]] == [p["name"] for p in config["policy"]]
+    assert manifest["calibration"]["start"] and manifest["calibration"]["end"]
+
+
+@pytest.fixture
+def one_torch_thread():
+    """The baseline was made with OMP_NUM_THREADS=1; CI machines have more cores."""
+    torch = pytest.importorskip("torch")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.metaworld
+def test_fresh_run_passes_and_degraded_run_fails_against_committed_baseline(cli, tmp_path, one_torch_thread):
+    pytest.importorskip("metaworld")
+    base = str(BASELINE)
+    # The baseline came from another machine and moment: timing is compared only through
+    # the calibration ratio, with a generous bound (a shared CI box swings by tens of %).
+    code, _, err = cli("run", "--config", str(BASELINE_CONFIG), "--out", str(tmp_path / "fresh"), "--quiet")
+    assert code == 0, err
+    code, out, err = cli(
+        "gate", "--baseline", base, "--candidate", str(tmp_path / "fresh"), "--max-slowdown", "0.75"
+    )
+    assert code == 0, out + err
+    assert "gate passed" in out
+    calibration = json.loads((tmp_path / "fresh" / "manifest.json").read_text())["calibration"]
+    assert calibration["workload"]["version"] == 1 and calibration["torch_threads"] == 1
+    assert calibration["start"]["passes_per_s"] > 0 and calibration["end"]["passes_per_s"] > 0
+    degraded = ("--policy", "random", "--policy", "fast_dvla:tau_conf=0.9")  # worse success, more NFE
+    code, _, err = cli(
+        "run", "--config", str(BASELINE_CONFIG), *degraded, "--out", str(tmp_path / "bad"), "--quiet"
+    )
+    assert code == 0, err
+    code, out, err = cli(
+        "gate", "--baseline", base, "--candidate", str(tmp_path / "bad"), "--max-slowdown", "0.75"
+    )
+    assert code == 1, out + err
+    assert "scripted -> random / ALL: success 9 ->" in err
+    assert "fast_dvla (" in err and "tau_conf: 0.5 -> 0.9) / ALL: NFE/chunk" in err
