@@ -68,9 +68,12 @@ def _mt10_inputs(ckpt):
     return inputs
 
 
-def measure(name: str, chunks: int, checkpoint_dir: str = "") -> dict:
+def measure(name: str, chunks: int, checkpoint_dir: str = "", device: str = "auto") -> dict:
     """Runs in a subprocess: build or load the model, warm up, decode `chunks` chunks."""
     import torch
+
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
 
     from harness.nfe import NFECounter
     from policies import decoders as d
@@ -94,6 +97,9 @@ def measure(name: str, chunks: int, checkpoint_dir: str = "") -> dict:
                 torch.randn(1, SHAPE["state_dim"], generator=g),
             )
         ]
+    model = model.to(device)
+    inputs = [tuple(t.to(device) for t in pair) for pair in inputs]
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     run = {
         "bidirectional": lambda w, s: d.decode_bidirectional(model, w, s, steps=12),
         "fast_dllm": lambda w, s: d.decode_bidirectional(model, w, s, steps=12, reuse_prefix_cache=True),
@@ -109,10 +115,12 @@ def measure(name: str, chunks: int, checkpoint_dir: str = "") -> dict:
     counter = NFECounter(Holder())
     with torch.inference_mode():
         run(*inputs[0])  # warm-up
+        sync()
         counter.take()
         start = time.perf_counter()
         for i in range(chunks):
             run(*inputs[i % len(inputs)])
+        sync()
         seconds = time.perf_counter() - start
     tokens = chunks * model.cfg.action_tokens
     return {
@@ -122,18 +130,19 @@ def measure(name: str, chunks: int, checkpoint_dir: str = "") -> dict:
         "ms_per_chunk": 1000 * seconds / chunks,
         "nfe_per_chunk": counter.take() / chunks,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "device": "cpu",
+        "device": torch.cuda.get_device_name(0) if device == "cuda" else "cpu",
+        "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None,
         "threads": torch.get_num_threads(),
     }
 
 
-def compare(rounds: int, chunks: int, checkpoint_dir: str = "") -> list[dict]:
+def compare(rounds: int, chunks: int, checkpoint_dir: str = "", device: str = "auto") -> list[dict]:
     """Every decoder in its own subprocess, taking turns round by round; medians."""
     root = Path(__file__).resolve().parent.parent
     samples: dict[str, list[dict]] = {name: [] for name in DECODERS}
     for _ in range(rounds):
         for name in DECODERS:
-            argv = [sys.executable, __file__, "--worker", name, "--chunks", str(chunks)]
+            argv = [sys.executable, __file__, "--worker", name, "--chunks", str(chunks), "--device", device]
             if checkpoint_dir:
                 argv += ["--checkpoints", checkpoint_dir]
             done = subprocess.run(
@@ -155,6 +164,8 @@ def compare(rounds: int, chunks: int, checkpoint_dir: str = "") -> list[dict]:
                 "ms_per_chunk": statistics.median(r["ms_per_chunk"] for r in runs),
                 "nfe_per_chunk": statistics.median(r["nfe_per_chunk"] for r in runs),
                 "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
+                "peak_gpu_mb": max((r["peak_gpu_mb"] or 0) for r in runs) or None,
+                "device": runs[0]["device"],
             }
         )
     base = next(r for r in rows if r["decoder"] == "bidirectional")["tokens_per_s"]
@@ -164,7 +175,7 @@ def compare(rounds: int, chunks: int, checkpoint_dir: str = "") -> list[dict]:
 
 
 def report(title: str, rows: list[dict]) -> bool:
-    print(title)
+    print(f"{title} [device: {rows[0]['device']}]")
     print(f"{'decoder':18}{'tokens/s':>10}{'ms/chunk':>10}{'NFE/chunk':>11}{'speedup':>9}{'peak RSS MB':>13}")
     for r in rows:
         print(
@@ -193,27 +204,34 @@ def main() -> None:
         help="folder with the metaworld-mt10-*.safetensors checkpoints (part a)",
     )
     parser.add_argument("--json", default="benchmarks/results/decoders.json")
+    parser.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where the decoders run; auto = CUDA when torch sees a GPU (the table says which)",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         ckpts = args.checkpoints if "--checkpoints" in sys.argv else ""
-        print(json.dumps(measure(args.worker, args.chunks, ckpts)))
+        print(json.dumps(measure(args.worker, args.chunks, ckpts, args.device)))
         return
     result: dict = {
         "benchmark": "decoders",
         "rounds": args.rounds,
         "chunks_per_round": args.chunks,
-        "machine": {"cpu": platform.processor() or platform.machine(), "device": "cpu"},
+        "machine": {"cpu": platform.processor() or platform.machine()},
     }
     needed = {f"metaworld-mt10-{c}.safetensors" for c in CHECKPOINT_OF.values()}
     have = {p.name for p in Path(args.checkpoints).glob("*.safetensors")}
     if needed <= have:
-        rows = compare(args.rounds, args.chunks * 4, args.checkpoints)
+        rows = compare(args.rounds, args.chunks * 4, args.checkpoints, args.device)
         report("(a) shipped Meta-World MT10 checkpoints, real MT10 observations", rows)
         result["mt10_checkpoints"] = {"folder": args.checkpoints, "rows": rows}
     else:
         print(f"(a) skipped: {args.checkpoints} lacks {', '.join(sorted(needed - have))}\n")
-    rows = compare(args.rounds, args.chunks)
+    rows = compare(args.rounds, args.chunks, device=args.device)
+    result["machine"]["device"] = rows[0]["device"]
     faster = report(
         "(b) paper-like shapes, RANDOM weights (speed only): 256 prefix + 56 action tokens, "
         "8 layers, width 512",

@@ -4,7 +4,9 @@ Every env and policy call is timed with one monotonic clock; the overhead column
 the episode's wall-clock minus both, so the three add up by construction and the
 overhead is exactly the loop's own bookkeeping. NFE is read from the harness's hooks.
 A Python exception from the env or the policy ends the episode with a failure reason;
-it never ends the run.
+it never ends the run. With `record_traces`, each chunk's decode trace (what the policy
+returned in ChunkBatch.trace) is kept in memory and written by the runner after the
+episode, so recording costs the loop one list append per chunk.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -35,6 +38,8 @@ class EpisodeOutcome:
     started_at: datetime
     failure_reason: str | None = None
     traceback: str | None = None
+    # With record_traces: per chunk, slot 0's trace plus "chunk" and "step" (env steps before it).
+    traces: list[dict[str, Any]] | None = None
 
 
 def _check_chunk(actions: np.ndarray, action_dim: int) -> None:
@@ -53,6 +58,7 @@ def run_episode(
     context: EpisodeContext,
     spec: EpisodeSpec,
     replan_every: int = 0,
+    record_traces: bool = False,
 ) -> EpisodeOutcome:
     clock = time.perf_counter
     started_at = datetime.now(UTC)
@@ -61,6 +67,7 @@ def run_episode(
     steps = chunks = tokens = 0
     policy_time = env_time = 0.0
     failure = trace = None
+    traces: list[dict[str, Any]] | None = [] if record_traces else None
     nfe.take()
     start = clock()
     try:
@@ -78,6 +85,8 @@ def run_episode(
             policy_time += t2 - t
             chunks += 1
             tokens += batch.action_tokens
+            if traces is not None and batch.trace:
+                traces.append({**batch.trace[0], "chunk": chunks - 1, "step": steps})
             actions = np.asarray(batch.actions)
             _check_chunk(actions, action_dim)
             chunk = actions[0] if replan_every == 0 else actions[0, :replan_every]
@@ -110,4 +119,5 @@ def run_episode(
         started_at=started_at,
         failure_reason=failure,
         traceback=trace,
+        traces=traces,
     )

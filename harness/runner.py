@@ -24,7 +24,7 @@ from adapters.base import EpisodeSpec, TaskSpec
 from harness.config import PolicyRun, ResolvedRun
 from harness.episode import EpisodeOutcome, run_episode
 from harness.errors import UsageError
-from harness.manifest import build_manifest, now
+from harness.manifest import build_manifest, now, record_end_calibration
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext
 from results.schema import EPISODE_KEY
@@ -226,8 +226,25 @@ def _failed(exc: BaseException) -> EpisodeOutcome:
     )
 
 
+def trace_lines(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOutcome) -> list[dict]:
+    """traces.jsonl lines of one episode: its key fields, then each chunk's trace."""
+    key = {
+        "run_id": run_id,
+        "suite": resolved.suite.name,
+        "task": job.task.name,
+        "episode_index": job.spec.index,
+        "policy": job.policy.spec.name,
+        "policy_config_id": job.policy.config_id,
+        "started_at": out.started_at,
+    }
+    return [key | chunk for chunk in out.traces or ()]
+
+
 def execute_local(
-    resolved: ResolvedRun, jobs: list[EpisodeJob], on_done: Callable[[EpisodeJob, EpisodeOutcome], None]
+    resolved: ResolvedRun,
+    jobs: list[EpisodeJob],
+    on_done: Callable[[EpisodeJob, EpisodeOutcome], None],
+    traces: bool = False,
 ) -> None:
     """The laptop backend: one process, episodes one after another, envs reused per task."""
     envs: dict[str, gym.Env] = {}
@@ -249,6 +266,7 @@ def execute_local(
                 context,
                 job.spec,
                 resolved.config.replan_every,
+                record_traces=traces,
             )
             if outcome.failure_reason is not None:
                 envs.pop(job.task.name).close()  # its state is suspect: rebuild next time
@@ -268,9 +286,19 @@ def run(
     overwrite: bool = False,
     retry_failed: bool = False,
     progress: Callable[[int, int], Any] | None = None,
+    traces: bool = False,
 ) -> RunReport:
-    """Evaluate `resolved` into `out`. `progress(total, skipped)` returns a per-episode callback."""
+    """Evaluate `resolved` into `out`. `progress(total, skipped)` returns a per-episode callback.
+
+    traces: also write each chunk's decode trace to traces.jsonl. Not part of the config
+    (recording changes no decoded token), so it is kept in the manifest and a resumed
+    run goes on recording if the run it resumes did.
+    """
     run_dir, run_id, recorded = open_run(resolved, out, resume, overwrite)
+    manifest = run_dir.read_manifest()
+    if traces and not manifest.get("traces"):
+        run_dir.write_manifest(manifest | {"traces": True})
+    traces = traces or bool(manifest.get("traces"))
     if retry_failed and len(recorded):
         recorded = recorded[recorded["failure_reason"].isna()]
     done = {_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")} if len(recorded) else set()
@@ -280,6 +308,8 @@ def run(
     tick = progress(len(jobs), skipped) if progress else None
 
     def on_done(job: EpisodeJob, outcome: EpisodeOutcome) -> None:
+        if outcome.traces:
+            run_dir.append_traces(trace_lines(run_id, resolved, job, outcome))
         run_dir.append_episode(make_row(run_id, resolved, job, outcome))
         report.executed += 1
         if outcome.failure_reason is not None:
@@ -297,12 +327,13 @@ def run(
 
     status = "finished"
     try:
-        execute_local(resolved, jobs, on_done)
+        execute_local(resolved, jobs, on_done, traces)
     except KeyboardInterrupt:
         status, report.interrupted = "interrupted", True
     finally:
         run_dir.compact()
         manifest = run_dir.read_manifest()
+        record_end_calibration(manifest, status)
         manifest.update(status=status, finished_at=now())
         run_dir.write_manifest(manifest)
         run_dir.log_event("run_" + status, executed=report.executed, failed=report.failed)

@@ -6,6 +6,9 @@ probability of the arg-max token (`max_prob`) or its margin over the runner-up
 (`margin`). Decoding is greedy (arg-max) unless a temperature is given, and never
 depends on global random state, so the same inputs give the same tokens.
 
+Every tensor a decoder makes lives on the device of its inputs, so a model moved to a
+GPU decodes there (benchmarks/decoders.py uses CUDA when it is available).
+
 NFE per chunk, by construction: bidirectional and fast_dllm T; block_diffusion
 blocks x steps_per_block; autoregressive one per action token; fast_dvla data-dependent.
 """
@@ -72,9 +75,9 @@ def decode_bidirectional(
     the prefix does not see the actions, stale (the Fast-dLLM approximation) when it does.
     """
     cfg = model.cfg
-    b, total = words.shape[0], cfg.action_tokens
-    tokens = torch.full((b, total), cfg.mask_id, dtype=torch.long)
-    positions = torch.arange(total)
+    b, total, dev = words.shape[0], cfg.action_tokens, words.device
+    tokens = torch.full((b, total), cfg.mask_id, dtype=torch.long, device=dev)
+    positions = torch.arange(total, device=dev)
     out = Decoded(tokens)
     cache: KVCache | None = None
     for step in range(1, steps + 1):
@@ -109,13 +112,13 @@ def decode_autoregressive(
     """One token per forward pass with a KV cache. Input at action position i is token
     i-1 ([MASK] stands for 'begin' at position 0); its logits predict token i."""
     cfg = model.cfg
-    b, total = words.shape[0], cfg.action_tokens
-    tokens = torch.empty((b, total), dtype=torch.long)
-    previous = torch.full((b, 1), cfg.mask_id, dtype=torch.long)
+    b, total, dev = words.shape[0], cfg.action_tokens, words.device
+    tokens = torch.empty((b, total), dtype=torch.long, device=dev)
+    previous = torch.full((b, 1), cfg.mask_id, dtype=torch.long, device=dev)
     out = Decoded(tokens)
     cache: KVCache | None = None
     for i in range(total):
-        pos = torch.tensor([i])
+        pos = torch.tensor([i], device=dev)
         result = model(previous, pos, words, state) if cache is None else model(previous, pos, cache=cache)
         cache = result.kv if cache is None else cache.extend(result.kv)
         choice, _, _ = _scores(result.logits[:, -1], "max_prob", temperature, generator)
@@ -137,13 +140,13 @@ def decode_block_diffusion(
     block is re-run once with its final tokens as part of the next block's first pass,
     which gives its exact keys/values for the cache at no extra forward pass."""
     cfg = model.cfg
-    b, total, k = words.shape[0], cfg.action_tokens, cfg.block
-    tokens = torch.full((b, total), cfg.mask_id, dtype=torch.long)
+    b, total, k, dev = words.shape[0], cfg.action_tokens, cfg.block, words.device
+    tokens = torch.full((b, total), cfg.mask_id, dtype=torch.long, device=dev)
     out = Decoded(tokens)
     cache: KVCache | None = None
     finished: Tensor | None = None  # positions of the block whose keys are not cached yet
     for start in range(0, total, k):
-        block = torch.arange(start, start + k)
+        block = torch.arange(start, start + k, device=dev)
         for step in range(1, steps_per_block + 1):
             run = block if finished is None else torch.cat([finished, block])
             if cache is None:
@@ -203,9 +206,9 @@ def decode_fast_dvla(
 
 def _fast_dvla_row(model, words, state, tau_conf, tau_add, tau_act, n, confidence) -> Decoded:
     cfg = model.cfg
-    total, k = cfg.action_tokens, cfg.block
+    total, k, dev = cfg.action_tokens, cfg.block, words.device
     blocks = total // k
-    tokens = torch.full((1, total), cfg.mask_id, dtype=torch.long)
+    tokens = torch.full((1, total), cfg.mask_id, dtype=torch.long, device=dev)
     status = ["full"] + ["inactive"] * (blocks - 1)
     out = Decoded(tokens)
     cache: KVCache | None = None
@@ -218,7 +221,7 @@ def _fast_dvla_row(model, words, state, tau_conf, tau_add, tau_act, n, confidenc
         first_open = next(i for i in range(blocks) if done(i) < k)
         active = [i for i in range(blocks) if status[i] != "inactive" and done(i) < k]
         run_blocks = sorted(set(range(cached, first_open)) | set(active))
-        run = torch.cat([torch.arange(i * k, (i + 1) * k) for i in run_blocks])
+        run = torch.cat([torch.arange(i * k, (i + 1) * k, device=dev) for i in run_blocks])
         if cache is None:
             result = model(tokens[:, run], run, words, state)
         else:

@@ -7,6 +7,8 @@ The checkpoint's attention pattern must be the one its decoder needs.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,8 +23,57 @@ from policies.schedules import CONFIDENCES, SCHEDULES
 SHIPPED = Path(__file__).resolve().parent / "checkpoints"
 
 
+# Training recipes whose per-block noise profile (`--noise-schedule`) shaped the weights.
+NOISE_SCHEDULE_RECIPES = ("block_diffusion", "distill")
+BLOCK_SIZE_HELP = (
+    "action tokens per block when decoding (0 = the checkpoint's); must divide the chunk's tokens"
+)
+
+
 def shipped(recipe: str) -> str:
     return str(SHIPPED / f"metaworld-mt10-{recipe}.safetensors")
+
+
+def checkpoint_fields(path: str) -> dict[str, Any]:
+    """The header fields ablations group by, read without torch; {} if unreadable.
+
+    Recorded per policy configuration in a run's manifest, so plots can use what
+    training fixed (recipe, noise schedule, block size) as an axis or a hue.
+    noise_schedule is None for recipes that do not use one.
+    """
+    try:
+        with open(path, "rb") as fh:
+            size = int.from_bytes(fh.read(8), "little")
+            if not 0 < size < 1 << 26:
+                return {}
+            header = json.loads(fh.read(size))
+        ours = json.loads(header["__metadata__"]["dvla_harness"])
+        model, meta = ours["model"], ours.get("meta") or {}
+        train = meta.get("train_config") or {}
+        recipe = meta.get("recipe")
+        block_causal = model.get("pattern") == "block_causal"
+        return {
+            "recipe": recipe,
+            "noise_schedule": train.get("noise_schedule") if recipe in NOISE_SCHEDULE_RECIPES else None,
+            "block_size": (model.get("block_size") or model["action_dim"]) if block_causal else None,
+            "pattern": model.get("pattern"),
+            "action_tokens": model["chunk_len"] * model["action_dim"],
+            "train_steps": train.get("steps"),
+        }
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def block_size_error(block_size: int, action_tokens: int, checkpoint_block: int | None) -> str | None:
+    """Why a decode block size cannot be used, naming the valid ones; None if it can."""
+    if block_size == 0 or action_tokens % block_size == 0:
+        return None
+    valid = [d for d in range(1, action_tokens + 1) if action_tokens % d == 0]
+    own = f" (the checkpoint's, {checkpoint_block})" if checkpoint_block else " (the checkpoint's)"
+    return (
+        f"block_size={block_size} does not divide the chunk's {action_tokens} action tokens; "
+        f"valid: 0{own}, {', '.join(map(str, valid))}"
+    )
 
 
 @dataclass(frozen=True)
@@ -53,6 +104,7 @@ class BlockDiffusionParams:
         "linear", "how many tokens of a block stay masked after each step", choices=SCHEDULES
     )
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
+    block_size: int = param(0, BLOCK_SIZE_HELP, low=0, high=4096)
 
 
 @dataclass(frozen=True)
@@ -65,6 +117,7 @@ class FastDVLAParams:
     )
     n: int = param(2, "a fully activated block commits at least 1/n of its masked tokens", low=1, high=64)
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
+    block_size: int = param(0, BLOCK_SIZE_HELP, low=0, high=4096)
 
     def validate(self) -> None:
         if self.tau_add > self.tau_act:
@@ -96,10 +149,28 @@ class DVLAPolicy:
         got = self.ckpt.model.cfg.pattern
         if got != pattern:
             raise ValueError(f"{params.checkpoint}: a {got} model; this decoder needs a {pattern} model")
+        self._set_block_size(getattr(params, "block_size", 0))
         self.model = self.ckpt.model
         self.params = params
         self._decode = decode
         self._instructions: list[str] = []
+
+    def _set_block_size(self, block_size: int) -> None:
+        """Decode with another block size than training used: the attention mask and the
+        decoders' block bookkeeping both follow the model config, so a copy of the model
+        with that config (same weights; the mask is not a weight) is all it takes."""
+        cfg = self.ckpt.model.cfg
+        error = block_size_error(block_size, cfg.action_tokens, cfg.block)
+        if error:
+            raise ValueError(error)
+        if block_size in (0, cfg.block):
+            return
+        from policies.model import ActionTokenModel
+
+        model = ActionTokenModel(dataclasses.replace(cfg, block_size=block_size))
+        model.load_state_dict(self.ckpt.model.state_dict())
+        device = next(self.ckpt.model.parameters()).device
+        self.ckpt.model = model.to(device).eval()
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         cfg = self.model.cfg

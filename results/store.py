@@ -6,6 +6,9 @@
       pending.jsonl     one row per finished episode, appended and flushed before the
                         next episode starts; survives a SIGKILL of the process
       episodes.parquet  all rows, compacted from pending.jsonl when a run ends
+      traces.jsonl      with --traces: one line per action chunk, which positions each
+                        forward pass committed; an episode's lines are written (one
+                        flushed write) just before its row (docs/sweeps-and-plots.md)
 
 Readers take episodes.parquet and pending.jsonl together, so an interrupted run can
 be read and resumed; if the same episode appears twice, the later write wins. A row
@@ -39,6 +42,12 @@ MANIFEST = "manifest.json"
 EPISODES = "episodes.parquet"
 EVENTS = "events.jsonl"
 PENDING = "pending.jsonl"
+TRACES = "traces.jsonl"
+# Fields of every trace line besides what the policy put in its trace ("committed": a
+# list, one entry per forward pass, of the action positions that pass committed).
+TRACE_FIELDS = (
+    "run_id", "suite", "task", "episode_index", "policy", "policy_config_id", "started_at", "chunk", "step",
+)  # fmt: skip
 
 
 class ResultsFileError(ValueError):
@@ -102,10 +111,28 @@ def read_table(path: Path) -> pa.Table:
     return table
 
 
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """The records of an append-only JSON-lines file; a last line cut short by a kill
+    (that episode was in flight) is dropped, any other bad line is an error."""
+    if not path.is_file():
+        return []
+    lines = path.read_text().splitlines()
+    records = []
+    for i, line in enumerate(lines):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            if i == len(lines) - 1:
+                break
+            raise ResultsFileError(f"{path}: line {i + 1} is not valid JSON") from None
+    return records
+
+
 class RunDir:
     def __init__(self, path: str | os.PathLike[str]):
         self.path = Path(path)
         self._pending: Any = None  # open append handle, kept across episodes
+        self._traces: Any = None  # the same for traces.jsonl
 
     @property
     def manifest_path(self) -> Path:
@@ -145,22 +172,38 @@ class RunDir:
         self._pending.write(line)
         self._pending.flush()  # in the kernel now: a killed process cannot lose it
 
+    def append_traces(self, lines: Iterable[Mapping[str, Any]]) -> None:
+        """One episode's chunk traces in one flushed write, made before its row is appended:
+        a recorded row always has its traces; an episode killed in between runs again on
+        --resume and its newer lines win on read."""
+        text = "".join(
+            json.dumps(dict(t), default=_json_default, separators=(",", ":")) + "\n" for t in lines
+        )
+        if not text:
+            return
+        if self._traces is None:
+            self._traces = open(self.path / TRACES, "a")  # closed in compact()
+        self._traces.write(text)
+        self._traces.flush()
+
+    def has_traces(self) -> bool:
+        return (self.path / TRACES).is_file()
+
+    def read_traces(self) -> pd.DataFrame:
+        """Every recorded chunk trace, one row each; of an episode traced twice (run again
+        after a kill, or by --retry-failed), only the latest attempt."""
+        records = _read_jsonl(self.path / TRACES)
+        if not records:
+            return pd.DataFrame(columns=[*TRACE_FIELDS, "committed"])
+        df = pd.DataFrame(records)
+        latest = df.groupby(["policy_config_id", "task", "episode_index"])["started_at"].transform("max")
+        return df[df["started_at"] == latest].reset_index(drop=True)
+
     def pending_rows(self) -> list[dict[str, Any]]:
-        path = self.path / PENDING
-        if not path.is_file():
-            return []
-        lines = path.read_text().splitlines()
-        rows = []
-        for i, line in enumerate(lines):
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError:
-                if i == len(lines) - 1:  # a write cut short by a kill: that episode was in flight
-                    break
-                raise ResultsFileError(f"{path}: line {i + 1} is not valid JSON") from None
+        rows = _read_jsonl(self.path / PENDING)
+        for row in rows:
             if row.get("started_at"):
                 row["started_at"] = datetime.fromisoformat(row["started_at"])
-            rows.append(row)
         return rows
 
     def read_episodes(self) -> pd.DataFrame:
@@ -185,6 +228,9 @@ class RunDir:
         if self._pending is not None:
             self._pending.close()
             self._pending = None
+        if self._traces is not None:
+            self._traces.close()
+            self._traces = None
         pending = self.path / PENDING
         if not pending.is_file():
             return

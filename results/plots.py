@@ -1,0 +1,466 @@
+"""Figures for ablations, the speed/success trade-off and decoding order, from tidy rows.
+
+Pure functions: DataFrames in, a matplotlib `Figure` out, saved as PNG or SVG when
+`out` is given (written to a temporary file and renamed, so a failure never leaves half
+a figure). Figures are built with the object API on the Agg renderer: no pyplot state,
+no display needed.
+
+Any knob can be an axis without code: a column may be an episode-table column, a
+policy parameter (parsed from `policy_params`) or a field of the checkpoint's header
+(recipe, noise_schedule, block_size, ...: what training fixed). Prefixed names
+(`param.steps`, `checkpoint.block_size`) are always available; the bare name works when
+it is unambiguous (an episode column wins over a parameter, a parameter over a
+checkpoint field). A decode `block_size` of 0 means "the checkpoint's" and is shown as
+that block size.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from matplotlib import rc_context
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator, PercentFormatter
+
+from results.schema import COLUMNS
+from results.summary import wilson_interval
+
+SUFFIXES = (".png", ".svg")
+PARAM, CKPT = "param.", "checkpoint."
+# Axes where smaller is better; everything else (success, tokens/s, Hz) is larger-better.
+LOWER_IS_BETTER = frozenset(
+    {"nfe_per_chunk", "nfe_total", "wall_clock_s", "policy_time_s", "env_time_s", "overhead_s", "steps"}
+)
+_UNITS = {c.name: c.unit for c in COLUMNS}
+_MARKERS = "osD^vP*Xhp<>"
+# Two-sided 95% Student t quantiles; between rows the smaller df is used (conservative).
+_T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262,
+         10: 2.228, 12: 2.179, 15: 2.131, 20: 2.086, 25: 2.060, 30: 2.042, 40: 2.021, 60: 2.000,
+         120: 1.980}  # fmt: skip
+
+
+class PlotInputError(ValueError):
+    """A figure cannot be made from these inputs; the message names the valid choices."""
+
+
+# ---------------------------------------------------------------------------- columns
+
+
+def _checkpoint_fields_from_files(paths: Sequence[str]) -> dict[str, dict[str, Any]]:
+    from policies.dvla import checkpoint_fields  # torch-free header read
+
+    return {p: checkpoint_fields(p) for p in paths if p}
+
+
+def plot_frame(
+    episodes: pd.DataFrame, checkpoints: Mapping[str, Mapping[str, Any]] | None = None
+) -> pd.DataFrame:
+    """`episodes` plus a column per policy parameter and per checkpoint-header field.
+
+    `checkpoints` maps policy_config_id to header fields (as recorded in a run's
+    manifest); configurations it lacks are looked up in the checkpoint file, if present.
+    """
+    if any(c.startswith(PARAM) for c in episodes.columns):
+        return episodes  # already expanded
+    df = episodes.copy()
+    parsed = {s: json.loads(s) for s in df["policy_params"].unique()} if "policy_params" in df else {}
+    for key in sorted({k for params in parsed.values() for k in params}):
+        df[PARAM + key] = df["policy_params"].map(lambda s, k=key: parsed[s].get(k))
+    known = dict(checkpoints or {})
+    missing = df.loc[~df["policy_config_id"].isin(list(known)), ["policy_config_id", "checkpoint"]]
+    missing = missing.drop_duplicates("policy_config_id")
+    from_files = _checkpoint_fields_from_files(list(missing["checkpoint"].unique()))
+    for config_id, path in missing.itertuples(index=False):
+        known[config_id] = from_files.get(path, {})
+    for field in sorted({f for fields in known.values() for f in fields}):
+        df[CKPT + field] = df["policy_config_id"].map(lambda c, f=field: (known.get(c) or {}).get(f))
+    if PARAM + "block_size" in df and CKPT + "block_size" in df:
+        use_ckpt = (df[PARAM + "block_size"] == 0) & df[CKPT + "block_size"].notna()
+        df[PARAM + "block_size"] = df[PARAM + "block_size"].where(~use_ckpt, df[CKPT + "block_size"])
+    aliases: dict[str, str] = {}
+    for prefixed in [c for c in df.columns if c.startswith((PARAM, CKPT))]:
+        bare = prefixed.split(".", 1)[1]
+        if bare not in df.columns:
+            df[bare] = df[prefixed]
+            aliases[bare] = prefixed
+    df.attrs["aliases"] = aliases
+    df["config_label"] = df["policy_config_id"].map(config_labels(df))
+    return df
+
+
+def config_labels(df: pd.DataFrame) -> dict[str, str]:
+    """A short name per configuration: the policy, plus the parameters that vary across
+    that policy's configurations here (a checkpoint by its file name)."""
+    labels: dict[str, str] = {}
+    configs = df.drop_duplicates("policy_config_id")
+    for policy, group in configs.groupby("policy", sort=False):
+        params = {row.policy_config_id: json.loads(row.policy_params) for row in group.itertuples()}
+        for config_id in params:  # shown as used: a block size of 0 is the checkpoint's
+            row = group[group["policy_config_id"] == config_id].iloc[0]
+            params[config_id] = {k: row.get(PARAM + k, v) for k, v in params[config_id].items()}
+        keys = sorted({k for p in params.values() for k in p})
+        varying = [k for k in keys if len({json.dumps(p.get(k), default=str) for p in params.values()}) > 1]
+        for config_id, p in params.items():
+            parts = [
+                f"{k}={Path(str(p.get(k))).stem if k == 'checkpoint' else _fmt(p.get(k))}" for k in varying
+            ]
+            labels[config_id] = " ".join([str(policy), *parts])
+    return labels
+
+
+def natural_key(text: str) -> list[Any]:
+    """Sort key that puts block_size=4 before block_size=16."""
+    return [
+        (0, float(t), "") if re.fullmatch(r"\d+(\.\d+)?", t) else (1, 0.0, t)
+        for t in re.split(r"(\d+(?:\.\d+)?)", text)
+        if t
+    ]
+
+
+def _numeric(series: pd.Series) -> pd.Series | None:
+    if series.dtype == bool:
+        return series.astype(float)
+    values = pd.to_numeric(series, errors="coerce")
+    return values if values.notna().any() and values[series.notna()].notna().all() else None
+
+
+def _resolve(df: pd.DataFrame, name: str, role: str, numeric: bool = False) -> str:
+    if name in df.columns and (not numeric or _numeric(df[name]) is not None):
+        return name
+    hidden = {"config_label", "run_id", "policy_params", "started_at", "instruction", "failure_reason"}
+    aliases = df.attrs.get("aliases", {})
+    shown = {v: k for k, v in aliases.items()}  # a prefixed column by its bare name when it has one
+    groups: dict[str, list[str]] = {"episode columns": [], "policy parameters": [], "checkpoint fields": []}
+    for c in df.columns:
+        if c in hidden or c in aliases or (numeric and _numeric(df[c].dropna()) is None):
+            continue
+        group = (
+            "policy parameters"
+            if c.startswith(PARAM)
+            else "checkpoint fields"
+            if c.startswith(CKPT)
+            else "episode columns"
+        )
+        groups[group].append(shown.get(c, c))
+    listed = "; ".join(f"{g}: {', '.join(names)}" for g, names in groups.items() if names)
+    what = "numeric " if numeric else ""
+    raise PlotInputError(f"no {what}column {name!r} for {role}; valid choices are {listed}")
+
+
+def _axis_label(name: str) -> str:
+    unit = _UNITS.get(name, "")
+    if name == "success":
+        return "success rate"
+    return f"{name} ({unit})" if unit and unit not in ("JSON", "path", "UTC") else name
+
+
+# ---------------------------------------------------------------------------- statistics
+
+
+def t_quantile(df: int) -> float:
+    if df < 1:
+        return math.nan
+    return _T975[max(k for k in _T975 if k <= df)] if df <= 120 else 1.96
+
+
+def interval(values: pd.Series, is_success: bool) -> tuple[float, float, float, int]:
+    """(estimate, low, high, n): Wilson for success, a t interval of the mean otherwise."""
+    values = values.dropna().astype(float)
+    n = len(values)
+    if n == 0:
+        return (math.nan, math.nan, math.nan, 0)
+    if is_success:
+        low, high = wilson_interval(int(values.sum()), n)
+        rate = float(values.mean())  # inside its interval despite rounding (error bars >= 0)
+        return (rate, min(low, rate), max(high, rate), n)
+    mean = float(values.mean())
+    if n == 1:
+        return (mean, mean, mean, 1)
+    half = t_quantile(n - 1) * float(values.std(ddof=1)) / math.sqrt(n)
+    floor = 0.0 if values.min() >= 0 else -math.inf  # a rate's interval stays >= 0
+    return (mean, max(mean - half, floor), mean + half, n)
+
+
+# ---------------------------------------------------------------------------- output
+
+
+def check_out(out: str | os.PathLike[str] | None) -> Path | None:
+    if out is None:
+        return None
+    path = Path(out)
+    if path.suffix.lower() not in SUFFIXES:
+        raise PlotInputError(
+            f"{str(path)!r}: cannot write a {path.suffix or 'suffix-less'} figure; use one of {', '.join(SUFFIXES)}"
+        )
+    return path
+
+
+def _save(fig: Figure, out: str | os.PathLike[str] | None) -> None:
+    path = check_out(out)
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fmt = path.suffix.lower()[1:]
+    try:
+        metadata = {"Date": None} if fmt == "svg" else None  # same rows, same bytes
+        with rc_context({"svg.hashsalt": "dvla-harness"}):
+            fig.savefig(tmp, format=fmt, dpi=150, bbox_inches="tight", metadata=metadata)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _colors(n: int) -> list[Any]:
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10" if n <= 10 else "tab20"]
+    return [cmap(i % cmap.N) for i in range(n)]
+
+
+# ---------------------------------------------------------------------------- figures
+
+
+def _x_positions(values: pd.Series) -> tuple[dict[Any, float], bool, list[Any]]:
+    """Where each x value goes, whether the axis is log2, and the values in order."""
+    numeric = _numeric(values)
+    if numeric is not None:
+        order = sorted(numeric.dropna().unique())
+        log = len(order) > 2 and order[0] > 0 and order[-1] / order[0] >= 4  # block sizes double
+        return {v: float(v) for v in order}, log, order
+    order = sorted(set(values.dropna().astype(str)), key=natural_key)
+    return {v: float(i) for i, v in enumerate(order)}, False, order
+
+
+def ablation_plot(
+    episodes: pd.DataFrame,
+    x: str,
+    y: list[str],
+    hue: str | None = None,
+    out: str | os.PathLike[str] | None = None,
+) -> Figure:
+    """One panel per y column against x, a line per hue value, with 95% intervals
+    (Wilson for success, t for means of rates)."""
+    check_out(out)
+    if not y:
+        raise PlotInputError("no y column given; e.g. success,tokens_per_s")
+    df = plot_frame(episodes)
+    x = _resolve(df, x, "x")
+    ys = [_resolve(df, c, "y", numeric=True) for c in y]
+    hue = _resolve(df, hue, "hue") if hue else None
+    numeric_x = _numeric(df[x]) is not None
+    xkey = _numeric(df[x]) if numeric_x else df[x].astype(str)
+    df = df.assign(_x=xkey)
+    positions, log, order = _x_positions(df[x])
+    groups = [(None, df)] if hue is None else list(df.groupby(df[hue].map(_fmt), sort=False))
+    groups.sort(key=lambda g: natural_key(str(g[0])))
+    colors = _colors(len(groups))
+    fig = Figure(figsize=(4.3 * len(ys) + (1.6 if hue else 0), 3.6), layout="constrained")
+    axes = fig.subplots(1, len(ys), squeeze=False)[0]
+    counts: list[int] = []
+    step = min(np.diff(sorted(positions.values())), default=1.0) if not log else 1.0
+    for ax, col in zip(axes, ys, strict=True):
+        is_success = col == "success"
+        for i, (name, part) in enumerate(groups):
+            spread = (0.15 if not numeric_x else 0.06) * min(1.0, 4 / len(groups))
+            dodge = (i - (len(groups) - 1) / 2) * spread  # side by side, bars not on top of each other
+            px, est, low, high = [], [], [], []
+            for value in order:
+                cell = part[part["_x"] == value]
+                if cell.empty:
+                    continue
+                e, lo, hi, n = interval(_numeric(cell[col]), is_success)
+                if n == 0:
+                    continue
+                counts.append(n)
+                pos = positions[value]
+                px.append(pos * 2**dodge if log else pos + dodge * step)
+                est.append(e)
+                low.append(e - lo)
+                high.append(hi - e)
+            if not px:
+                continue
+            ax.errorbar(
+                px,
+                est,
+                yerr=[low, high],
+                marker=_MARKERS[i % len(_MARKERS)],
+                color=colors[i],
+                capsize=3,
+                linewidth=1.6,
+                linestyle="-" if numeric_x else "none",  # no line through unordered categories
+                markersize=6,
+                label=str(name) if name is not None else None,
+            )
+        if log:
+            ax.set_xscale("log", base=2)
+        ax.set_xticks([positions[v] for v in order], [_fmt(v) for v in order])
+        ax.minorticks_off()
+        ax.set_xlabel(_axis_label(x))
+        ax.set_ylabel(_axis_label(col))
+        ax.grid(alpha=0.3)
+        if is_success:
+            ax.yaxis.set_major_formatter(PercentFormatter(1.0))
+            ax.set_ylim(-0.03, 1.03)
+    n_text = (
+        f"{min(counts)}"
+        if counts and min(counts) == max(counts)
+        else f"{min(counts, default=0)}-{max(counts, default=0)}"
+    )
+    fig.suptitle(
+        f"{', '.join(ys)} vs {x}: mean and 95% interval (Wilson for success, t for means); "
+        f"{n_text} episodes per point",
+        fontsize=9,
+    )
+    if hue:
+        handles, labels = axes[0].get_legend_handles_labels()
+        fig.legend(
+            handles,
+            labels,
+            title=hue,
+            loc="outside lower center",
+            ncols=min(len(labels), 6),
+            fontsize=8,
+            title_fontsize=9,
+        )
+    _save(fig, out)
+    return fig
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float) and value.is_integer():
+        return str(int(value))
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _frontier(xs: np.ndarray, ys: np.ndarray, x_up: bool, y_up: bool) -> list[int]:
+    """Indices of configurations no other one beats on both axes, in x order."""
+    sx, sy = (xs if x_up else -xs), (ys if y_up else -ys)
+    keep = []
+    for i in range(len(xs)):
+        dominated = any(
+            sx[j] >= sx[i] and sy[j] >= sy[i] and (sx[j] > sx[i] or sy[j] > sy[i])
+            for j in range(len(xs))
+            if j != i
+        )
+        if not dominated and not (math.isnan(sx[i]) or math.isnan(sy[i])):
+            keep.append(i)
+    return sorted(keep, key=lambda i: xs[i])
+
+
+def pareto_plot(
+    episodes: pd.DataFrame,
+    x: str = "tokens_per_s",
+    y: str = "success",
+    out: str | os.PathLike[str] | None = None,
+) -> Figure:
+    """Speed against success, one marker per policy configuration with its 95% intervals,
+    and the frontier of configurations that no other beats on both."""
+    check_out(out)
+    df = plot_frame(episodes)
+    x = _resolve(df, x, "x", numeric=True)
+    y = _resolve(df, y, "y", numeric=True)
+    points = []
+    for _, part in df.groupby("policy_config_id", sort=False):
+        ex = interval(_numeric(part[x]), x == "success")
+        ey = interval(_numeric(part[y]), y == "success")
+        points.append((part["config_label"].iloc[0], ex, ey, len(part)))
+    points.sort(key=lambda p: natural_key(p[0]))
+    xs = np.array([p[1][0] for p in points], dtype=float)
+    ys = np.array([p[2][0] for p in points], dtype=float)
+    x_up, y_up = x not in LOWER_IS_BETTER, y not in LOWER_IS_BETTER
+    front = _frontier(xs, ys, x_up, y_up)
+    fig = Figure(figsize=(7.2, 4.2), layout="constrained")
+    ax = fig.subplots()
+    if len(front) > 1:
+        ax.plot(
+            xs[front], ys[front], "--", color="0.45", linewidth=1.2, zorder=1, label="Pareto frontier (*)"
+        )
+    colors = _colors(len(points))
+    for i, (label, ex, ey, n) in enumerate(points):
+        ax.errorbar(
+            ex[0],
+            ey[0],
+            xerr=[[ex[0] - ex[1]], [ex[2] - ex[0]]],
+            yerr=[[ey[0] - ey[1]], [ey[2] - ey[0]]],
+            marker=_MARKERS[i % len(_MARKERS)],
+            markersize=8 if i in front else 6,
+            markeredgecolor="black" if i in front else colors[i],
+            color=colors[i],
+            ecolor=(*colors[i][:3], 0.45),  # light bars: the markers are what to read
+            elinewidth=1.2,
+            capsize=3,
+            linestyle="none",
+            zorder=2,
+            label=f"{label} (n={n})" + (" *" if i in front else ""),
+        )
+    for axis, col in (("x", x), ("y", y)):
+        direction = "lower is better" if col in LOWER_IS_BETTER else "higher is better"
+        getattr(ax, f"set_{axis}label")(f"{_axis_label(col)}, {direction}")
+        if col == "success":
+            getattr(ax, f"{axis}axis").set_major_formatter(PercentFormatter(1.0))
+            getattr(ax, f"set_{axis}lim")(-0.03, 1.03)
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{y} vs {x}, 95% intervals", fontsize=10)
+    ncols = 1 if len(points) <= 4 else 2  # below the axes: long labels never squeeze the plot
+    fig.legend(loc="outside lower center", ncols=ncols, fontsize=8)
+    _save(fig, out)
+    return fig
+
+
+def decoding_order_plot(traces: pd.DataFrame, out: str | os.PathLike[str] | None = None) -> Figure:
+    """Per configuration, how often each action position is committed at each forward
+    pass of a chunk; white dots mark each position's mean pass, thin lines the block
+    boundaries (left-to-right, block-wise decoding is a descending staircase)."""
+    check_out(out)
+    if traces is None or traces.empty or "committed" not in traces:
+        raise PlotInputError("no decode traces to plot (record them with `--traces` on run or sweep)")
+    if "config_label" not in traces:
+        traces = traces.assign(config_label=traces.get("policy_config_id", pd.Series("all", traces.index)))
+    panels = sorted(traces.groupby("config_label", sort=False), key=lambda p: natural_key(str(p[0])))
+    width = 1 + max(p for passes in traces["committed"] for step in passes for p in step)
+    cols = min(3, len(panels))
+    rows = math.ceil(len(panels) / cols)
+    fig = Figure(figsize=(4.2 * cols + 1.0, 3.3 * rows), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    image = None
+    for ax, (label, part) in zip(axes, panels, strict=False):
+        depth = max(len(passes) for passes in part["committed"])
+        counts = np.zeros((depth, width))
+        for passes in part["committed"]:
+            for step, positions in enumerate(passes):
+                counts[step, positions] += 1
+        freq = counts / len(part)
+        image = ax.imshow(
+            freq, aspect="auto", cmap="viridis", vmin=0, vmax=1, origin="upper", interpolation="nearest",
+            extent=(-0.5, width - 0.5, depth + 0.5, 0.5),
+        )  # fmt: skip
+        with np.errstate(invalid="ignore"):
+            mean_pass = (counts * np.arange(1, depth + 1)[:, None]).sum(0) / counts.sum(0)
+        ax.plot(np.arange(width), mean_pass, "o", color="white", markersize=2.5, markeredgecolor="black",
+                markeredgewidth=0.3)  # fmt: skip
+        block = part["block_size"].iloc[0] if "block_size" in part else None
+        if block and not pd.isna(block) and 0 < int(block) < width:
+            for edge in range(int(block), width, int(block)):
+                ax.axvline(edge - 0.5, color="white", linewidth=0.5, alpha=0.6)
+        nfe = np.mean([len(p) for p in part["committed"]])
+        ax.set_title(f"{label}\n{len(part)} chunks, {nfe:.1f} passes/chunk", fontsize=9)
+        ax.set_xlabel("action token position")
+        ax.set_ylabel("forward pass")
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
+    if image is not None:
+        fig.colorbar(
+            image, ax=list(axes[: len(panels)]), label="fraction of chunks committing it", shrink=0.9
+        )
+    _save(fig, out)
+    return fig

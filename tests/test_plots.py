@@ -1,0 +1,184 @@
+"""Plots from a real short sweep's rows and traces: valid files, clear exit-2 errors,
+nothing half-written; the statistics and columns they rest on."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+from matplotlib.figure import Figure
+
+from results import plots
+from results.store import TRACES, RunDir
+from tests.real_sweep import real_sweep
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    return real_sweep(tmp_path_factory)
+
+
+def _only(folder, name):
+    """The folder holds exactly `name`: no temporary or half-written figure beside it."""
+    assert sorted(p.name for p in folder.iterdir()) == [name]
+
+
+# ---------------------------------------------------------------- statistics, columns
+
+
+def test_intervals_wilson_for_success_t_for_means():
+    est, low, high, n = plots.interval(pd.Series([True] * 8 + [False] * 2), is_success=True)
+    assert (
+        (est, n) == (0.8, 10)
+        and low == pytest.approx(0.4902, abs=1e-3)
+        and high == pytest.approx(0.9433, abs=1e-3)
+    )
+    est, low, high, n = plots.interval(pd.Series([1.0, 2.0, 3.0]), is_success=False)
+    assert est == 2.0 and high - est == pytest.approx(4.303 * 1.0 / np.sqrt(3), rel=1e-3)
+    assert low == 0.0  # clipped: a rate is never negative
+    assert plots.interval(pd.Series([5.0]), is_success=False)[1:] == (5.0, 5.0, 1)
+
+
+def test_the_frontier_keeps_what_nothing_beats_on_both_axes():
+    xs, ys = np.array([1.0, 2.0, 3.0, 2.5]), np.array([0.9, 0.8, 0.5, 0.4])
+    assert plots._frontier(xs, ys, x_up=True, y_up=True) == [0, 1, 2]
+    assert plots._frontier(xs, ys, x_up=False, y_up=True) == [0]
+
+
+@pytest.mark.metaworld
+def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
+    frame = plots.plot_frame(RunDir(sweep.path).read_episodes())
+    assert set(frame["block_size"]) == {4, 8} and set(frame["param.tau_conf"]) == {0.5}
+    assert set(frame["noise_schedule"]) == {"frontier"} and set(frame["checkpoint.recipe"]) == {"distill"}
+    assert set(frame["config_label"]) == {"fast_dvla block_size=4", "fast_dvla block_size=8"}
+    zero = frame.assign(policy_params=frame["policy_params"].str.replace('"block_size":4', '"block_size":0'))
+    zero = zero.drop(columns=[c for c in zero if c.startswith(("param.", "checkpoint."))])
+    assert set(plots.plot_frame(zero)["block_size"]) == {4, 8}  # 0 is the checkpoint's 4
+
+
+# ---------------------------------------------------------------- figures from the real sweep
+
+
+@pytest.mark.metaworld
+def test_ablation_png_and_svg(sweep, cli, tmp_path):
+    out = tmp_path / "figs" / "ablation.png"
+    code, _, err = cli(
+        "plot", "ablation", str(sweep.path), "--x", "block_size", "--y", "success,tokens_per_s,nfe_per_chunk",
+        "--out", str(out),
+    )  # fmt: skip
+    assert code == 0, err
+    assert out.read_bytes()[:8] == PNG and out.stat().st_size > 10_000
+    _only(out.parent, "ablation.png")
+    svg = tmp_path / "ablation.svg"
+    code, _, err = cli(
+        "plot", "ablation", str(sweep.path), "--x", "block_size", "--y", "tokens_per_s", "--hue", "task",
+        "--out", str(svg),
+    )  # fmt: skip
+    assert code == 0, err
+    text = svg.read_text()
+    assert text.startswith("<?xml") and "<svg" in text and "drawer-close-v3" in text
+
+
+@pytest.mark.metaworld
+def test_pareto_has_one_marker_per_configuration(sweep, cli, tmp_path):
+    episodes = RunDir(sweep.path).read_episodes()
+    fig = plots.pareto_plot(episodes)  # the signature other outputs (the HTML report) use
+    assert isinstance(fig, Figure)
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert sum(label.startswith("fast_dvla block_size=") for label in labels) == 2
+    out = tmp_path / "pareto.svg"
+    code, _, err = cli(
+        "plot", "pareto", str(sweep.path), "--x", "tokens_per_s", "--y", "success", "--out", str(out)
+    )
+    assert code == 0, err
+    assert "<svg" in out.read_text()
+    again = tmp_path / "again.svg"
+    plots.pareto_plot(episodes, out=again)
+    assert again.read_bytes() == out.read_bytes()  # same rows, same file
+
+
+@pytest.mark.metaworld
+def test_decoding_order_from_recorded_traces(sweep, cli, tmp_path):
+    out = tmp_path / "order.png"
+    code, _, err = cli("plot", "decoding-order", str(sweep.path), "--out", str(out))
+    assert code == 0, err
+    assert out.read_bytes()[:8] == PNG
+    traces = RunDir(sweep.path).read_traces()
+    fig = plots.decoding_order_plot(traces)
+    image = fig.axes[0].images[0].get_array()
+    assert image.shape[1] == 32 and np.allclose(image.sum(), image.shape[1])  # each position once a chunk
+
+
+@pytest.mark.metaworld
+@pytest.mark.parametrize(
+    ("kind", "extra", "out_name", "message"),
+    [
+        ("ablation", ["--x", "block_size", "--y", "success,speed"], "f.png",
+         "no numeric column 'speed' for y; valid choices are episode columns: .*tokens_per_s.*; policy parameters: block_size"),
+        ("ablation", ["--x", "blocks", "--y", "success"], "f.png", "no column 'blocks' for x; valid choices are"),
+        ("ablation", ["--x", "block_size", "--y", "success"], "f.jpg", r"use one of \.png, \.svg"),
+        ("pareto", ["--y", "task"], "f.svg", "no numeric column 'task' for y"),
+        ("decoding-order", [], "f.pdf", r"use one of \.png, \.svg"),
+    ],
+)  # fmt: skip
+def test_bad_inputs_exit_2_with_the_valid_choices_and_write_nothing(
+    sweep, cli, tmp_path, kind, extra, out_name, message
+):
+    import re
+
+    out = tmp_path / "figs" / out_name
+    code, _, err = cli("plot", kind, str(sweep.path), *extra, "--out", str(out))
+    assert code == 2 and re.search(message, err), err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.parent.exists() or not any(out.parent.iterdir())
+
+
+@pytest.mark.metaworld
+def test_a_run_without_traces_or_no_run_at_all_exits_2(sweep, cli, tmp_path):
+    copy = tmp_path / "untraced"
+    shutil.copytree(sweep.path, copy)
+    (copy / TRACES).unlink()
+    out = tmp_path / "order.png"
+    code, _, err = cli("plot", "decoding-order", str(copy), "--out", str(out))
+    assert code == 2 and "no traces.jsonl" in err and "--traces" in err and not out.exists()
+    code, _, err = cli("plot", "pareto", str(tmp_path / "nope"), "--out", str(out))
+    assert code == 2 and "no such run folder" in err and not out.exists()
+
+
+# ---------------------------------------------------------------- noise schedule via checkpoints
+
+
+@pytest.mark.metaworld
+def test_a_noise_schedule_ablation_sweeps_checkpoints_and_plots_by_header(cli, tmp_path):
+    """Two checkpoints whose headers differ in the training noise schedule: the sweep
+    records each one's header fields in the manifest, and --hue noise_schedule uses them."""
+    pytest.importorskip("metaworld")
+    from policies.checkpoint import load, save
+    from policies.dvla import shipped
+
+    ckpt = load(shipped("fast_dvla"))
+    ckpt.meta["train_config"] = dict(ckpt.meta["train_config"], noise_schedule="linear")
+    linear = save(ckpt, tmp_path / "linear.safetensors")
+    run = tmp_path / "run"
+    code, _, err = cli(
+        "sweep", "--suite", "metaworld/mt10", "--tasks", "drawer-close-v3", "--episodes-per-task", "1",
+        "--policy", "fast_dvla", "--grid", f"checkpoint={shipped('fast_dvla')},{linear}",
+        "--grid", "block_size=4,8", "--quiet", "--out", str(run),
+    )  # fmt: skip
+    assert code == 0, err
+    manifest = json.loads((run / "manifest.json").read_text())
+    assert sorted(p["checkpoint_fields"]["noise_schedule"] for p in manifest["policies"]) == [
+        "frontier", "frontier", "linear", "linear",
+    ]  # fmt: skip
+    out = tmp_path / "noise.png"
+    code, _, err = cli(
+        "plot", "ablation", str(run), "--x", "block_size", "--y", "success,tokens_per_s",
+        "--hue", "noise_schedule", "--out", str(out),
+    )  # fmt: skip
+    assert code == 0, err
+    assert out.read_bytes()[:8] == PNG
