@@ -489,6 +489,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         f"wrote {out} ({cfg.recipe}, {cfg.steps} steps, {report.seconds:.0f} s, "
         f"final loss {sum(report.losses[-50:]) / len(report.losses[-50:]):.4f}); curve: {out.with_suffix('.loss.png')}"
     )
+    from policies.checkpoint import load
+
+    error = load(out).meta.get("tokenizer_round_trip_error")
+    console.print(f"action tokenizer round-trip error on the training actions: {error:.5f} (mean |a - a'|)")
     return 0
 
 

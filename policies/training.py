@@ -247,6 +247,9 @@ def train(
         "recipe": cfg.recipe,
         "train_config": asdict(cfg),
         "data_sha256": demos.sha256,
+        # Mean |action - detokenize(tokenize(action))| over the training actions (clipped to
+        # the bins' range): the precision floor no amount of training can beat.
+        "tokenizer_round_trip_error": ckpt.tokenizer.round_trip_error(demos.actions),
         # Which weights it grew from, by content: a path alone says nothing once the file changes.
         "teacher_sha256": _sha256(cfg.teacher) if cfg.teacher else "",
         "init_sha256": _sha256(cfg.init) if cfg.init else "",
