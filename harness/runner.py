@@ -246,11 +246,17 @@ def execute_local(
     on_done: Callable[[EpisodeJob, EpisodeOutcome], None],
     traces: bool = False,
 ) -> None:
-    """The laptop backend: one process, episodes one after another, envs reused per task."""
+    """The laptop backend: one process, episodes one after another, envs reused per task.
+
+    Jobs come task by task, so a task's env is closed when the next task starts: a
+    LIBERO env holds ~0.5 GB, and ninety of them open at once would not fit.
+    """
     envs: dict[str, gym.Env] = {}
     counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
     try:
         for job in jobs:
+            for name in [n for n in envs if n != job.task.name]:
+                envs.pop(name).close()
             try:
                 if job.task.name not in envs:
                     envs[job.task.name] = resolved.suite.make_env(job.task)

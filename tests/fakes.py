@@ -24,8 +24,14 @@ class CountdownEnv(gym.Env):
         self.succeed_at, self.step_delay, self.fail_at = succeed_at, step_delay, fail_at
         self.t = 0
         self.actions: list[np.ndarray] = []
+        self.closed = False
+
+    def close(self):
+        self.closed = True
 
     def reset(self, *, seed=None, options=None):
+        if self.closed:
+            raise RuntimeError("reset after close")
         self.t = 0
         return np.zeros(1), {"success": False}
 
@@ -78,10 +84,14 @@ def fake_resolved(
     max_steps: int = 20,
     succeed_at: int | None = 5,
     fail_episode: int | None = None,
+    tasks: int = 1,
 ) -> ResolvedRun:
     """A ResolvedRun over the fake env; episode `fail_episode` raises inside step 2."""
     specs = tuple(EpisodeSpec(index=i, seed=100 + i) for i in range(episodes))
-    task = TaskSpec("count", "count to n", max_steps, specs)
+    all_tasks = tuple(
+        TaskSpec("count" if t == 0 else f"count{t}", "count to n", max_steps, specs, index=t)
+        for t in range(tasks)
+    )
     made: list[CountdownEnv] = []
 
     class PerEpisodeEnv(CountdownEnv):
@@ -92,14 +102,15 @@ def fake_resolved(
 
     def make_env(_task: TaskSpec) -> gym.Env:
         env = PerEpisodeEnv(succeed_at)
+        env.open_when_made = sum(not e.closed for e in made)  # type: ignore[attr-defined]
         made.append(env)
         return env
 
-    suite = Suite("fake/countdown", "1", (task,), make_env)
+    suite = Suite("fake/countdown", "1", all_tasks, make_env)
     spec = PolicySpec("fake", "test policy", NoParams, lambda _p: policy)
     run = PolicyRun(spec, NoParams(), "{}", "", "", "fakeconfig01", policy)  # type: ignore[arg-type]
     config = RunConfig(suite=suite.name, policies=())
-    resolved = ResolvedRun(config, suite, (task,), [run])
+    resolved = ResolvedRun(config, suite, all_tasks, [run])
     resolved.made_envs = made  # type: ignore[attr-defined]
     return resolved
 

@@ -88,3 +88,15 @@ def test_summary_lists_policies_in_the_order_they_ran(cli, tmp_path):
     assert cli(*args, "--policy", "scripted", "--policy", "random", "--out", str(out))[0] == 0
     summary = summarize(RunDir(out).read_episodes())
     assert summary["policy"].drop_duplicates().tolist() == ["scripted", "random"]
+
+
+def test_a_tasks_env_is_closed_when_the_next_task_starts(tmp_path):
+    # LIBERO envs hold ~0.5 GB each: a 90-task suite must not keep them all open.
+    resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=2, succeed_at=3, tasks=3)
+    report = run(resolved, tmp_path / "run")
+    assert report.executed == 6 and report.failed == 0
+    envs = resolved.made_envs
+    assert len(envs) == 3  # one per task, reused across that task's episodes
+    assert [env.open_when_made for env in envs] == [0, 0, 0]  # the previous task's was closed first
+    assert all(env.closed for env in envs)
+    assert [len(env.actions) for env in envs] == [6, 6, 6]
