@@ -63,7 +63,14 @@ class RecordingEnv(gym.Wrapper):
 
     def step(self, action):
         self.observations.append(np.asarray(self._last, dtype=np.float32))
-        self.actions.append(np.asarray(action, dtype=np.float32))
+        executed = np.asarray(action, dtype=np.float32)
+        space = self.env.action_space
+        if isinstance(space, gym.spaces.Box):
+            # What the env executes: Meta-World's experts emit up to ~10 where the env
+            # clips to [-1, 1], and tokenizer bins fitted on unclipped values would
+            # spend most of their range on actions that never happen.
+            executed = np.clip(executed, space.low, space.high)
+        self.actions.append(executed)
         obs, reward, terminated, truncated, info = self.env.step(action)
         self._last = obs
         return obs, reward, terminated, truncated, info
@@ -141,7 +148,7 @@ def _write(resolved: ResolvedRun, out: Path, table: pa.Table, report: CollectRep
     digest = hashlib.sha256((staging / STEPS).read_bytes()).hexdigest()
     p = resolved.policies[0]
     manifest = {
-        "format": "dvla-harness-demos/1",
+        "format": "dvla-harness-demos/2",
         "suite": resolved.suite.name,
         "suite_version": resolved.suite.version,
         "split": resolved.config.split,

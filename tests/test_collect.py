@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pyarrow.parquet as pq
 
 from adapters.registry import load_suite
@@ -32,6 +33,9 @@ def test_collect_keeps_successful_episodes_from_the_train_split(cli, tmp_path):
     df = pq.read_table(out / "steps.parquet").to_pandas()
     assert df["episode_id"].nunique() == 4 and len(df) == manifest["steps"]
     assert (df.groupby("episode_id")["step"].min() == 0).all()
+    actions = np.stack(df["action"].to_numpy())
+    assert actions.min() >= -1.0 and actions.max() <= 1.0  # the expert's own go beyond; the env clips
+    assert (np.abs(actions[:, :3]) == 1.0).any()  # saturated steps are kept at the bound
     eval_seeds = {t.episodes[0].seed for t in load_suite("metaworld/mt10").tasks}
     assert not set(df["seed"]) & eval_seeds  # never an evaluation layout
     assert not (tmp_path / "demos.tmp").exists()
