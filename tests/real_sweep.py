@@ -36,14 +36,15 @@ def real_sweep(tmp_path_factory: pytest.TempPathFactory) -> SweepRun:
     pytest.importorskip("metaworld")
     if "run" in _CACHE:
         return _CACHE["run"]
-    from harness.cli import _config_from_args, build_parser, main
+    from harness.cli import build_parser, main
+    from harness.commands.run import config_from_args
     from harness.config import resolve
     from harness.runner import run
     from harness.sweep import expand, parse_grid
 
     out = tmp_path_factory.mktemp("sweep") / "run"
     args = build_parser().parse_args(["sweep", *SWEEP_ARGS, "--out", str(out)])
-    resolved = resolve(expand(_config_from_args(args), parse_grid(args.grid)))
+    resolved = resolve(expand(config_from_args(args), parse_grid(args.grid)))
 
     def progress(total: int, skipped: int):
         done = []

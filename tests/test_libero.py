@@ -135,6 +135,60 @@ def test_collect_writes_demonstrations_train_can_read(cli, tmp_path):
     assert len(table["observation"][0]) == manifest["observation_dim"]
 
 
+# A tiny model (as tests/test_training.py's TINY): the point is the path, not the skill.
+TINY = {
+    "steps": 6,
+    "batch_size": 32,
+    "lr": 3e-3,
+    "warmup": 2,
+    "chunk_len": 4,
+    "width": 32,
+    "layers": 2,
+    "heads": 4,
+    "ffn": 64,
+    "bins": 64,
+}
+
+
+@needs_libero
+def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
+    """Expert demonstrations -> tiny bidirectional checkpoint -> two episodes through the CLI."""
+    from policies.recipes import TrainConfig
+    from policies.training import train
+    from results.store import RunDir
+
+    demos = tmp_path / "demos"
+    code, _, err = cli(
+        "collect",
+        "--suite",
+        "libero/spatial",
+        "--tasks",
+        "0",
+        "--policy",
+        "libero_scripted",
+        "--episodes-per-task",
+        "2",
+        "--out",
+        str(demos),
+        "--quiet",
+    )
+    assert code == 0, err
+    assert json.loads((demos / "manifest.json").read_text())["episodes_kept"]
+    ckpt = tmp_path / "m.safetensors"
+    train(TrainConfig(recipe="bidirectional", **TINY), demos, ckpt)
+    steps = 3
+    code, _, err = _run(
+        cli, tmp_path / "run", "libero/spatial", "0", f"bidirectional:checkpoint={ckpt},steps={steps}", "2"
+    )
+    assert code == 0, err
+    df = RunDir(tmp_path / "run").read_episodes()
+    assert len(df) == 2 and sorted(df["episode_index"]) == [0, 1]
+    assert df["failure_reason"].isna().all(), df["failure_reason"].tolist()
+    assert (df["chunks"] > 0).all() and (df["steps"] > 0).all()
+    assert (df["nfe_total"] == steps * df["chunks"]).all()
+    assert (df["nfe_per_chunk"] == steps).all()
+
+
 @pytest.mark.parametrize(
     ("suite", "tasks", "episodes", "needle"),
     [

@@ -1,4 +1,4 @@
-"""Subcommands that build on run folders (leaderboard, report, gate, sweep, plot...).
+"""The subcommands of `dvla-harness`, one module each.
 
 One module per subcommand, found by listing this package, so adding a command never
 edits a shared file. Each module defines `register(sub)`, which adds its parser to the
@@ -12,10 +12,11 @@ import argparse
 import importlib
 import pkgutil
 
+# The evaluation loop's commands first in --help, then the rest alphabetically.
+FIRST = ("run", "listing", "show", "collect", "train")
+
 
 def register_all(sub: argparse._SubParsersAction) -> None:
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
-        module.register(sub)
+    names = [m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")]
+    for name in sorted(names, key=lambda n: (FIRST.index(n) if n in FIRST else len(FIRST), n)):
+        importlib.import_module(f"{__name__}.{name}").register(sub)

@@ -137,7 +137,7 @@ def render(result: GateResult, title: str) -> Table:
 
 
 def cmd_gate(args: argparse.Namespace) -> int:
-    from harness.cli import console, err_console
+    from harness.console import console, err_console
     from results.gate import GateInputError, gate_runs
     from results.runs import load_run
     from results.store import ResultsFileError

@@ -93,14 +93,14 @@ def check_out_file(out: str) -> Path:
 
 
 def print_warnings(warnings: Sequence[str]) -> None:
-    from harness.cli import err_console
+    from harness.console import err_console
 
     for w in warnings:
         err_console.print(f"[yellow]warning:[/yellow] {w}", markup=True, highlight=False, soft_wrap=True)
 
 
 def cmd_leaderboard(args: argparse.Namespace) -> int:
-    from harness.cli import console
+    from harness.console import console
     from results.leaderboard import leaderboards, rich_table, to_csv, to_markdown
 
     fmt = output_format(args.format, args.out)

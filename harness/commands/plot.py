@@ -78,7 +78,7 @@ def _checkpoint_fields(runs: list[Any]) -> dict[str, dict[str, Any]]:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from harness.cli import console
+    from harness.console import console
     from results import plots
     from results.runs import combined_episodes, load_runs
     from results.store import ResultsFileError, RunDir

@@ -57,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_paper_table(args: argparse.Namespace) -> int:
-    from harness.cli import console
+    from harness.console import console
     from results.paper_table import blocks_markdown, paper_blocks, paper_table
 
     runs = load(args.runs)
@@ -70,7 +70,7 @@ def cmd_paper_table(args: argparse.Namespace) -> int:
 
 
 def cmd_html(args: argparse.Namespace) -> int:
-    from harness.cli import console
+    from harness.console import console
     from results.html_report import ReportError, check_out, write_report
 
     try:

@@ -23,7 +23,7 @@ examples:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from harness.cli import add_run_arguments
+    from harness.commands.run import add_run_arguments
 
     p = sub.add_parser(
         "sweep",
@@ -51,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from harness.cli import _config_from_args, execute_run
+    from harness.commands.run import config_from_args, execute_run
     from harness.config import load_config_file, resolve
     from harness.sweep import expand, parse_grid, point_label
 
@@ -60,7 +60,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if not args.policy and not (args.config and load_config_file(args.config).get("policy")):
         raise UsageError("sweep needs the policy to vary: --policy NAME (e.g. --policy fast_dvla)")
     grid = parse_grid(args.grid or [])
-    config = expand(_config_from_args(args), grid)
+    config = expand(config_from_args(args), grid)
     resolved = resolve(config)
     labels = {p.config_id: point_label(p.spec.name, _raw(p.params), grid) for p in resolved.policies}
     return execute_run(resolved, args, "the same `dvla-harness sweep` command with --resume", labels)

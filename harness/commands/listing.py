@@ -1,0 +1,70 @@
+"""`dvla-harness list`: suites, policies and a suite's tasks, without importing simulators."""
+
+from __future__ import annotations
+
+import argparse
+
+from rich.table import Table
+
+from harness.console import console
+from harness.errors import UsageError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "list",
+        help="list suites, policies, or a suite's tasks",
+        description="List what can be evaluated. Suites whose simulator is missing show the pip extra to install.",
+        epilog="examples:\n  dvla-harness list suites\n  dvla-harness list policies\n  dvla-harness list tasks metaworld/mt10",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("what", choices=("suites", "policies", "tasks"))
+    p.add_argument("suite", nargs="?", help="with `tasks`: the suite whose tasks to list")
+    p.set_defaults(func=cmd_list)
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    if args.what == "suites":
+        from adapters.registry import list_suites
+
+        table = Table("suite", "tasks", "episodes/task", "description", "needs extra")
+        for info in list_suites():
+            extra = (
+                "-"
+                if not info.extra
+                else (
+                    f"{info.extra} (installed)"
+                    if info.installed
+                    else f"[yellow]pip install 'dvla-harness[{info.extra}]'[/yellow]"
+                )
+            )
+            table.add_row(
+                info.name, str(info.num_tasks), str(info.episodes_per_task), info.description, extra
+            )
+        console.print(table)
+    elif args.what == "policies":
+        import dataclasses
+
+        from policies.registry import all_policies, describe_param, param_types
+
+        for spec in all_policies().values():
+            where = ", ".join(p + "*" for p in spec.suites) or "any suite"
+            console.print(f"[bold]{spec.name}[/bold]  {spec.summary}  [dim](suites: {where})[/dim]")
+            types = param_types(spec.params)
+            for f in dataclasses.fields(spec.params):
+                console.print("    " + describe_param(f, types[f.name].__name__), markup=False)
+    else:
+        if not args.suite:
+            raise UsageError("`list tasks` needs a suite, e.g. dvla-harness list tasks metaworld/mt10")
+        from harness.config import RunConfig, resolve_suite
+
+        suite, tasks = resolve_suite(RunConfig(suite=args.suite, policies=()))
+        table = Table(
+            "#", "task", "instruction", "max steps", "episodes", title=f"{suite.name} (v{suite.version})"
+        )
+        for task in tasks:
+            table.add_row(
+                str(task.index), task.name, task.instruction, str(task.max_steps), str(len(task.episodes))
+            )
+        console.print(table)
+    return 0

@@ -1,0 +1,183 @@
+"""`dvla-harness run`: evaluate policies on a suite into a run folder.
+
+The flags and the run-with-progress-and-summary step are shared with `sweep`, which
+is a run whose policy list is a grid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+from pathlib import Path
+from typing import Any
+
+from harness.console import console, episode_progress, err_console, raise_interrupt
+from harness.errors import UsageError
+
+EXAMPLES = """\
+examples:
+  dvla-harness run                                   # the main job (embedded default config)
+  dvla-harness run --suite metaworld/mt10 --policy scripted --episodes-per-task 10 --out runs/demo
+  dvla-harness run --suite metaworld/mt1/reach-v3 --policy random:seed=3 --episodes-per-task 2
+  dvla-harness run --suite metaworld/mt10 --policy fast_dvla --policy bidirectional --traces
+  dvla-harness run --out runs/demo --resume          # finish an interrupted run
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="evaluate policies on a suite into a run folder",
+        description=(
+            "Evaluate one or more policies on a suite. Every finished episode is appended to "
+            "OUT/pending.jsonl at once and compacted into OUT/episodes.parquet at the end; "
+            "OUT/manifest.json holds the resolved config and provenance. With no arguments, "
+            "runs the embedded default config (the README's main job). Flags override "
+            "--config, which overrides the embedded default; naming another suite runs its "
+            "whole protocol (every task, every episode spec) unless --tasks or "
+            "--episodes-per-task cut it to a prefix."
+        ),
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_run_arguments(p)
+    p.set_defaults(func=cmd_run)
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of `run`, shared with `sweep` (a sweep is a run over a grid of policies)."""
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        help="TOML file with keys: suite, tasks, episodes_per_task, replan_every, [[policy]] name/params",
+    )
+    p.add_argument("--suite", help="suite name (see `dvla-harness list suites`)")
+    p.add_argument(
+        "--tasks",
+        metavar="NAME_OR_INDEX,...",
+        help="only these tasks of the suite (names or 0-based indices)",
+    )
+    p.add_argument(
+        "--policy",
+        action="append",
+        metavar="NAME[:k=v,...]",
+        help="policy to evaluate, with parameters; repeat to compare several (see `dvla-harness list policies`)",
+    )
+    p.add_argument(
+        "--episodes-per-task",
+        type=int,
+        metavar="N",
+        help="the first N episode specs of each task (default: the config's, else the whole protocol)",
+    )
+    p.add_argument(
+        "--replan-every",
+        type=int,
+        metavar="K",
+        help="execute K actions of each chunk before asking again; 0 = the whole chunk (default 0)",
+    )
+    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/<run id>)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--resume",
+        action="store_true",
+        help="run only the episodes OUT does not have yet; refuses a folder made by another config",
+    )
+    mode.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    p.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="with --resume, also re-run episodes recorded with a failure_reason",
+    )
+    p.add_argument(
+        "--traces",
+        action="store_true",
+        help="also write which action positions each forward pass committed to OUT/traces.jsonl "
+        "(for `dvla-harness plot decoding-order`)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def config_from_args(args: argparse.Namespace):
+    from harness.config import build_config, default_config_data, load_config_file, parse_policy_arg
+
+    data = default_config_data()
+    overrides = load_config_file(args.config) if args.config else {}
+    if args.suite:
+        overrides["suite"] = args.suite
+    if overrides.get("suite", data["suite"]) != data["suite"]:
+        # The default's task subset and episode count are the main job's, not the protocol's.
+        data.pop("tasks", None)
+        data.pop("episodes_per_task", None)
+    data |= overrides
+    if args.tasks is not None:
+        data["tasks"] = [t.strip() for t in args.tasks.split(",") if t.strip()]
+        if not data["tasks"]:
+            raise UsageError("--tasks is empty; give task names or indices, comma-separated")
+    if args.policy:
+        data["policy"] = [parse_policy_arg(p) for p in args.policy]
+    if args.episodes_per_task is not None:
+        data["episodes_per_task"] = args.episodes_per_task
+    if args.replan_every is not None:
+        data["replan_every"] = args.replan_every
+    return build_config(data)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from harness.config import resolve
+
+    if args.retry_failed and not args.resume:
+        raise UsageError("--retry-failed only makes sense with --resume")
+    resolved = resolve(config_from_args(args))
+    return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
+
+
+def execute_run(
+    resolved: Any, args: argparse.Namespace, again: str, labels: dict[str, str] | None = None
+) -> int:
+    """Run `resolved` with the progress bar, print the summary, return the exit status.
+
+    again: the command that continues an interrupted run ({out} is filled in); labels:
+    display names per policy_config_id for the summary (a sweep's grid points).
+    """
+    from harness.runner import run
+    from results.render import summary_table
+    from results.summary import summarize
+
+    out = Path(args.out) if args.out else None
+    if out is None:
+        from datetime import UTC, datetime
+
+        out = Path("runs") / datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    progress, start = episode_progress(args.quiet)
+    # CI cancels with SIGTERM: stop like Ctrl-C, keeping every finished episode.
+    signal.signal(signal.SIGTERM, raise_interrupt)
+    with progress:
+        report = run(
+            resolved,
+            out,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            retry_failed=args.retry_failed,
+            progress=start,
+            traces=args.traces,
+        )
+    episodes = report.run_dir.read_episodes()
+    if labels and len(episodes):
+        episodes["policy"] = episodes["policy_config_id"].map(labels).fillna(episodes["policy"])
+    if len(episodes):
+        console.print(
+            summary_table(summarize(episodes), title=f"{resolved.suite.name} - run {report.run_id}")
+        )
+    console.print(
+        f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
+    )
+    if report.interrupted:
+        err_console.print(f"interrupted; continue with: {again.format(out=out)}")
+        return 130
+    if report.failed:
+        err_console.print(
+            f"[red]{report.failed} episode(s) raised an exception[/red]; see failure_reason in the rows "
+            f"and tracebacks in {report.run_dir.path / 'events.jsonl'}"
+        )
+        return 1
+    return 0

@@ -1,0 +1,60 @@
+"""Terminal output shared by every subcommand: where tables and progress go.
+
+Pipes and CI logs get wide tables instead of rich's 80-column default; progress goes
+to stderr so that stdout stays the table (or the Markdown/CSV a command prints).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from typing import Any
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+console = Console(width=None if sys.stdout.isatty() else 160)
+err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
+
+
+def episode_progress(quiet: bool) -> tuple[Progress, Callable[[int, int], Callable[[bool], None]]]:
+    progress = Progress(
+        TextColumn("[bold]episodes"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[success]}"),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=err_console,
+        disable=quiet,
+    )
+    state = {"done": 0, "ok": 0}
+
+    def start(total: int, skipped: int) -> Callable[[bool], None]:
+        if skipped:
+            err_console.print(f"resuming: {skipped} episode(s) already recorded, {total} to run")
+        task_id = progress.add_task("episodes", total=total, success="success -")
+
+        def tick(success: bool) -> None:
+            state["done"] += 1
+            state["ok"] += int(success)
+            rate = 100 * state["ok"] / state["done"]
+            progress.update(
+                task_id, advance=1, success=f"success {rate:.0f}% ({state['ok']}/{state['done']})"
+            )
+
+        return tick
+
+    return progress, start
+
+
+def raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
