@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+
 import pytest
 
 from policies.checkpoint import load
@@ -25,6 +27,10 @@ def test_shipped_checkpoints_load_with_their_provenance():
         assert ckpt.meta["data_sha256"] and ckpt.meta["recipe"]
     teacher, student = load(files["bidirectional"]), load(files["fast_dvla"])
     assert student.meta["recipe"] == "distill" and student.vocab == teacher.vocab
+    # The student names its teacher by content: the shipped teacher, not some other file.
+    assert student.meta["teacher_sha256"] == hashlib.sha256(files["bidirectional"].read_bytes()).hexdigest()
+    # Bins span the executed actions ([-1, 1] on Meta-World), so decoding is precise.
+    assert teacher.meta["tokenizer_round_trip_error"] < 0.005
 
 
 @pytest.mark.parametrize("policy", ["bidirectional", "fast_dvla"])
