@@ -23,8 +23,10 @@ docs/ci-gate.md explains the rules; in short:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -56,6 +58,7 @@ class ConfigPair:
     candidate: str
     changes: str  # params (or checkpoint) that differ, "key: old -> new; ..."
     rule: str  # why these two were paired
+    tag: str = ""  # set when another pair would carry the same label (the baseline's config id)
 
     @property
     def short(self) -> str:
@@ -64,8 +67,10 @@ class ConfigPair:
     @property
     def label(self) -> str:
         if self.baseline != self.candidate:
-            return f"{self.baseline} -> {self.candidate}"
-        return f"{self.baseline} ({self.changes})" if self.changes else self.baseline
+            label = f"{self.baseline} -> {self.candidate}"
+        else:
+            label = f"{self.baseline} ({self.changes})" if self.changes else self.baseline
+        return f"{label} [{self.tag}]" if self.tag else label
 
 
 @dataclass(frozen=True)
@@ -124,10 +129,12 @@ class GateResult:
     tasks: tuple[TaskDiff, ...]
     speed: tuple[SpeedDiff, ...]
     notes: tuple[str, ...] = field(default=())  # skipped comparisons and why
+    # Pairs whose candidate raised in more episodes than the baseline did.
+    raised: tuple[str, ...] = field(default=())
 
     @property
     def failures(self) -> list[str]:
-        out = []
+        out = list(self.raised)
         for t in self.tasks:
             if t.success_regressed:
                 out.append(
@@ -206,10 +213,14 @@ def pair_configs(baseline: pd.DataFrame, candidate: pd.DataFrame) -> list[Config
     full_b, full_c = _configs(baseline), _configs(candidate)
     order = list(full_b)  # the baseline's order, whichever rule paired them
     pairs.sort(key=lambda pair: order.index(pair[0]))
-    return [
+    out = [
         ConfigPair(b, c, full_b[b][0], full_c[c][0], _changes(full_b[b], full_c[c]), rule)
         for b, c, rule in pairs
     ]
+    # Labels key the report's rows: two configurations of one policy (a sweep) must not
+    # share one, or one pair's verdict would be printed under the other's name.
+    counts = Counter(p.label for p in out)
+    return [dataclasses.replace(p, tag=p.baseline_id) if counts[p.label] > 1 else p for p in out]
 
 
 def _keys(df: pd.DataFrame) -> pd.DataFrame:
@@ -241,6 +252,12 @@ def check_episodes_match(baseline: pd.DataFrame, candidate: pd.DataFrame, pair: 
             problems.append(f"{col}: baseline {', '.join(bs)}; candidate {', '.join(cs)}")
     if not problems:
         bk, ck = _keys(b)[list(PAIR_KEY)], _keys(c)[list(PAIR_KEY)]
+        for side, keys in (("baseline", bk), ("candidate", ck)):
+            # A table (not a run folder, which keeps the latest write) may repeat an episode;
+            # paired counts would then multiply it.
+            repeated = keys[keys.duplicated()]
+            if len(repeated):
+                problems.append(f"the {side} holds some episodes twice: {_describe(repeated)}")
         both = bk.merge(ck, how="outer", indicator=True)
         only_b, only_c = both[both["_merge"] == "left_only"], both[both["_merge"] == "right_only"]
         if len(only_b) == len(bk) and len(only_c) == len(ck):
@@ -321,6 +338,7 @@ def gate(
     notes = [speed_skipped] if speed_skipped else []
     tasks: list[TaskDiff] = []
     speed: list[SpeedDiff] = []
+    errors: list[str] = []
     for pair in pairs:
         b = _keys(baseline[baseline["policy_config_id"] == pair.baseline_id])
         c = _keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
@@ -331,10 +349,20 @@ def gate(
             rows = merged[merged["task"] == task]
             tasks.append(_task_diff(pair.label, task, rows, alpha / len(order), not allow_nfe_increase))
         tasks.append(_task_diff(pair.label, "ALL", merged, alpha, not allow_nfe_increase))
-        for side, rows in (("baseline", b), ("candidate", c)):
-            raised = int(rows["failure_reason"].notna().sum())
-            if raised:
-                notes.append(f"{pair.label}: {raised} {side} episode(s) raised; counted as failures")
+        raised = {
+            side: int(rows["failure_reason"].notna().sum())
+            for side, rows in (("baseline", b), ("candidate", c))
+        }
+        for side, count in raised.items():
+            if count:
+                notes.append(f"{pair.label}: {count} {side} episode(s) raised; counted as failures")
+        if raised["candidate"] > raised["baseline"]:
+            # Episodes that raise decode nothing, so NFE and speed cannot catch them, and a
+            # baseline with few successes leaves McNemar's test no room to: fail outright.
+            errors.append(
+                f"{pair.label}: {raised['candidate']} candidate episode(s) raised, "
+                f"{raised['baseline']} in the baseline (failure_reason in the rows)"
+            )
         if not timed:
             continue
         base_tps, cand_tps = _tokens_per_s(_side(merged, "b")), _tokens_per_s(_side(merged, "c"))
@@ -347,7 +375,7 @@ def gate(
         )
     if allow_nfe_increase:
         notes.append("NFE increases reported but allowed (--allow-nfe-increase)")
-    return GateResult(tuple(pairs), tuple(tasks), tuple(speed), tuple(notes))
+    return GateResult(tuple(pairs), tuple(tasks), tuple(speed), tuple(notes), tuple(errors))
 
 
 # ---- timing reference from manifests ---------------------------------------------

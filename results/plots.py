@@ -168,7 +168,7 @@ def _axis_label(name: str) -> str:
 def t_quantile(df: int) -> float:
     if df < 1:
         return math.nan
-    return _T975[max(k for k in _T975 if k <= df)] if df <= 120 else 1.96
+    return _T975[max(k for k in _T975 if k <= df)] if df <= 120 else 1.980  # t(120): conservative
 
 
 def interval(values: pd.Series, is_success: bool) -> tuple[float, float, float, int]:
@@ -183,7 +183,7 @@ def interval(values: pd.Series, is_success: bool) -> tuple[float, float, float, 
         return (rate, min(low, rate), max(high, rate), n)
     mean = float(values.mean())
     if n == 1:
-        return (mean, mean, mean, 1)
+        return (mean, math.nan, math.nan, 1)  # one episode: no interval, not a zero-width one
     half = t_quantile(n - 1) * float(values.std(ddof=1)) / math.sqrt(n)
     floor = 0.0 if values.min() >= 0 else -math.inf  # a rate's interval stays >= 0
     return (mean, max(mean - half, floor), mean + half, n)

@@ -198,6 +198,34 @@ def test_a_changed_param_pairs_by_name_and_a_lone_other_policy_pairs_too():
     }
 
 
+def test_two_configurations_of_one_policy_keep_their_own_rows_and_verdicts():
+    base = pd.concat([episodes(ALL_OK, params={"n": 2}), episodes(ALL_OK, params={"n": 4})])
+    slow = episodes({"a": [False] * 6, "b": [False] * 6}, params={"n": 4})
+    result = gate(base, pd.concat([episodes(ALL_OK, params={"n": 2}), slow]))
+    labels = [p.label for p in result.pairs]
+    assert len(set(labels)) == 2 and all(label.startswith("fast_dvla [") for label in labels)
+    failed = {f.split(" / ")[0] for f in result.failures}
+    assert failed == {labels[1]}  # the n=4 pair regressed, and only it is named
+
+
+def test_a_table_that_repeats_an_episode_is_refused():
+    base = episodes(ALL_OK)
+    twice = pd.concat([base, base.iloc[[0]]])
+    with pytest.raises(GateInputError, match=r"the candidate holds some episodes twice: a #0"):
+        gate(base, twice)
+
+
+def test_a_candidate_that_raises_more_than_the_baseline_fails():
+    # A baseline with few successes leaves McNemar no power; raised episodes still fail.
+    base = episodes({"a": [False] * 6, "b": [False] * 6})
+    cand = base.copy()
+    cand.loc[:2, "failure_reason"] = "RuntimeError: simulator exploded"
+    result = gate(base, cand)
+    assert not result.passed
+    assert any("3 candidate episode(s) raised, 0 in the baseline" in f for f in result.failures)
+    assert gate(cand, cand).passed  # as many as the baseline: a note, not a failure
+
+
 def test_unpartnered_configurations_are_refused():
     base = pd.concat([episodes(ALL_OK, policy="scripted"), episodes(ALL_OK, policy="bidirectional")])
     cand = pd.concat([episodes(ALL_OK, policy="random"), episodes(ALL_OK, policy="autoregressive")])
