@@ -4,7 +4,7 @@ Both sides drive the same env object with the suite's scripted expert (Meta-Worl
 own policies, or `libero_scripted` for LIBERO) on the same episode specs, interleaved
 (the order alternates every round) so that both see the same machine noise. The
 harness side is everything a real run does per episode: the timed loop, NFE hooks,
-building the row and writing it durably as a Parquet part.
+building the row and appending it to pending.jsonl, flushed, as a run does.
 
     python benchmarks/overhead.py [--episodes 5] [--tasks reach-v3,push-v3] [--json PATH]
     python benchmarks/overhead.py --suite libero/object [--episodes 3] [--tasks 0,1,2]
