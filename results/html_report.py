@@ -37,6 +37,7 @@ _CSS = """
 body{font:14px/1.45 system-ui,sans-serif;margin:2em auto;max-width:1400px;padding:0 1em;color:#222}
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:2em;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums}
+.scroll{overflow-x:auto;max-width:100%}
 th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
 th:first-child,td:first-child{text-align:left}
 thead th{background:#f3f3f3;cursor:pointer;user-select:none}
@@ -90,7 +91,9 @@ def table_html(
         if part:
             trs = "".join("<tr>" + "".join(_td(c) for c in r) + "</tr>" for r in part)
             bodies.append(f'<tbody class="{cls}">{trs}</tbody>')
-    return f'<table class="sortable"><thead><tr>{head}</tr></thead>{"".join(bodies)}</table>'
+    # Ten task columns do not fit a laptop screen: the table scrolls, the page does not.
+    table = f'<table class="sortable"><thead><tr>{head}</tr></thead>{"".join(bodies)}</table>'
+    return f'<div class="scroll">{table}</div>'
 
 
 def _board_html(board: Leaderboard) -> str:
