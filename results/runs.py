@@ -59,7 +59,7 @@ def load_run(path: str | os.PathLike[str]) -> Run:
     if episodes.empty:
         raise ResultsFileError(f"{p}: holds no episodes")
     return Run(
-        path=p if p.is_dir() else p.parent if p.name == EPISODES else p, manifest=manifest, episodes=episodes
+        path=p.parent if p.is_file() and p.name == EPISODES else p, manifest=manifest, episodes=episodes
     )
 
 

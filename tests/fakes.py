@@ -137,3 +137,18 @@ def tiny_model(pattern: str, state_dim: int = 6, **kw):
         **kw,
     )
     return ActionTokenModel(cfg).eval()
+
+
+# The smallest training setup that still learns: tests check the path, not the skill.
+TINY_TRAIN = {
+    "steps": 40,
+    "batch_size": 64,
+    "lr": 3e-3,
+    "warmup": 5,
+    "chunk_len": 4,
+    "width": 32,
+    "layers": 2,
+    "heads": 4,
+    "ffn": 64,
+    "bins": 64,
+}

@@ -11,6 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from adapters import libero as lb
+from tests.fakes import TINY_TRAIN
 
 pytestmark = pytest.mark.libero
 needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
@@ -135,21 +136,6 @@ def test_collect_writes_demonstrations_train_can_read(cli, tmp_path):
     assert len(table["observation"][0]) == manifest["observation_dim"]
 
 
-# A tiny model (as tests/test_training.py's TINY): the point is the path, not the skill.
-TINY = {
-    "steps": 6,
-    "batch_size": 32,
-    "lr": 3e-3,
-    "warmup": 2,
-    "chunk_len": 4,
-    "width": 32,
-    "layers": 2,
-    "heads": 4,
-    "ffn": 64,
-    "bins": 64,
-}
-
-
 @needs_libero
 def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
     """Expert demonstrations -> tiny bidirectional checkpoint -> two episodes through the CLI."""
@@ -175,7 +161,11 @@ def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
     assert code == 0, err
     assert json.loads((demos / "manifest.json").read_text())["episodes_kept"]
     ckpt = tmp_path / "m.safetensors"
-    train(TrainConfig(recipe="bidirectional", **TINY), demos, ckpt)
+    train(
+        TrainConfig(recipe="bidirectional", **{**TINY_TRAIN, "steps": 6, "batch_size": 32, "warmup": 2}),
+        demos,
+        ckpt,
+    )
     steps = 3
     code, _, err = _run(
         cli, tmp_path / "run", "libero/spatial", "0", f"bidirectional:checkpoint={ckpt},steps={steps}", "2"

@@ -11,19 +11,9 @@ from policies.checkpoint import load
 from policies.recipes import NOISE_SCHEDULES, TrainConfig
 from policies.training import block_ratios, train
 from results.store import RunDir
+from tests.fakes import TINY_TRAIN
 
-TINY = {
-    "steps": 40,
-    "batch_size": 64,
-    "lr": 3e-3,
-    "warmup": 5,
-    "chunk_len": 4,
-    "width": 32,
-    "layers": 2,
-    "heads": 4,
-    "ffn": 64,
-    "bins": 64,
-}
+TINY = TINY_TRAIN
 
 
 @pytest.fixture(scope="module")
