@@ -7,6 +7,13 @@ split, task), not from the suite name, so `mt1/reach-v3` and `mt10` evaluate the
 reach layouts, and demonstrations collected on the "train" split never share a layout
 with evaluation ("eval").
 
+Evaluation keeps the protocol's 50 layouts per task. The train split offers
+TRAIN_LAYOUT_SETS x 50: episode j draws layout j % 50 of set j // 50, so a policy
+trained on more than 50 demonstrations per task sees new goal and object positions
+instead of repeats (the goal-conditioned tasks fail at the edge of what was seen).
+Set 0 is the seed the train split always had, so earlier demonstrations stay
+reproducible.
+
 Meta-World does not end an episode on success; the runner does.
 """
 
@@ -23,6 +30,7 @@ from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteErro
 SUITE_VERSION = "1"
 MAX_STEPS = 500  # Meta-World's max_path_length for every v3 task.
 LAYOUTS_PER_TASK = 50  # metaworld._N_GOALS: layouts drawn per task and seed.
+TRAIN_LAYOUT_SETS = 20  # train split only: up to 1,000 distinct layouts per task.
 
 # Every v3 task with an English instruction (Meta-World ships names only).
 INSTRUCTIONS: dict[str, str] = {
@@ -149,6 +157,12 @@ def _make_env(task: TaskSpec) -> gym.Env:
     return env
 
 
+def _layout_seed(split: str, task: str, layout_set: int) -> int:
+    if layout_set == 0:
+        return derive_seed("metaworld", split, task)
+    return derive_seed("metaworld", split, task, layout_set)
+
+
 def build_suite(name: str, task_names: tuple[str, ...], split: str = "eval") -> Suite:
     tasks = tuple(
         TaskSpec(
@@ -157,8 +171,12 @@ def build_suite(name: str, task_names: tuple[str, ...], split: str = "eval") -> 
             max_steps=MAX_STEPS,
             index=i,
             episodes=tuple(
-                EpisodeSpec(index=j, seed=derive_seed("metaworld", split, task), init_state_id=j)
-                for j in range(LAYOUTS_PER_TASK)
+                EpisodeSpec(
+                    index=j,
+                    seed=_layout_seed(split, task, j // LAYOUTS_PER_TASK),
+                    init_state_id=j % LAYOUTS_PER_TASK,
+                )
+                for j in range(LAYOUTS_PER_TASK * (TRAIN_LAYOUT_SETS if split == "train" else 1))
             ),
         )
         for i, task in enumerate(task_names)

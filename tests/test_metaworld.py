@@ -37,6 +37,24 @@ def test_episode_specs_are_fixed_and_shared_across_suites():
     assert mt10.task("push-v3").episodes[0].seed != mt10.task("reach-v3").episodes[0].seed
 
 
+def test_train_split_offers_new_layouts_beyond_the_first_50():
+    train = load_suite("metaworld/mt1/reach-v3", "train").tasks[0].episodes
+    evaluation = load_suite("metaworld/mt1/reach-v3").tasks[0].episodes
+    assert len(evaluation) == 50 and len(train) == mw.LAYOUTS_PER_TASK * mw.TRAIN_LAYOUT_SETS
+    # set 0 is the train split's original seed (earlier demonstrations stay reproducible)
+    assert {s.seed for s in train[:50]} == {mw.derive_seed("metaworld", "train", "reach-v3")}
+    assert [s.init_state_id for s in train[50:100]] == list(range(50))
+    assert len({s.seed for s in train}) == mw.TRAIN_LAYOUT_SETS
+    assert not {s.seed for s in train} & {s.seed for s in evaluation}
+    env = load_suite("metaworld/mt1/reach-v3").make_env(load_suite("metaworld/mt1/reach-v3").tasks[0])
+    goals = set()
+    for spec in (train[0], train[50], train[100], evaluation[0]):
+        obs, _ = env.reset(options={"episode": spec})
+        goals.add(tuple(round(float(x), 6) for x in obs[-3:]))
+    env.close()
+    assert len(goals) == 4  # four different goal positions
+
+
 def test_same_episode_spec_gives_the_same_start():
     suite = load_suite("metaworld/mt1/pick-place-v3")
     task = suite.tasks[0]

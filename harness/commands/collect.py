@@ -30,7 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--tasks", metavar="NAME_OR_INDEX,...", help="only these tasks")
     p.add_argument(
-        "--episodes-per-task", type=int, metavar="N", help="episodes attempted per task (default: all specs)"
+        "--episodes-per-task",
+        type=int,
+        metavar="N",
+        help="episodes attempted per task (default: all of the split; Meta-World's train split has 1,000 layouts per task)",
     )
     p.add_argument(
         "--split", default="train", choices=("train", "eval"), help="which episode specs (default train)"
