@@ -6,7 +6,8 @@ probability of the arg-max token (`max_prob`) or its margin over the runner-up
 (`margin`). Decoding is greedy (arg-max) unless a temperature is given, and never
 depends on global random state, so the same inputs give the same tokens.
 
-Every tensor a decoder makes lives on the device of its inputs, so a model moved to a
+`images` (camera images, for models trained on them) travel with words and state: they
+are part of the prefix. Every tensor a decoder makes lives on the device of its inputs, so a model moved to a
 GPU decodes there (benchmarks/decoders.py uses CUDA when it is available).
 
 NFE per chunk, by construction: bidirectional and fast_dllm T; block_diffusion
@@ -66,6 +67,7 @@ def decode_bidirectional(
     confidence: str = "max_prob",
     remask: float = 0.0,
     reuse_prefix_cache: bool = False,
+    images: Tensor | None = None,
 ) -> Decoded:
     """MaskGIT-style parallel refinement over all action tokens, T forward passes.
 
@@ -82,7 +84,7 @@ def decode_bidirectional(
     cache: KVCache | None = None
     for step in range(1, steps + 1):
         if cache is None:
-            result = model(tokens, positions, words, state)
+            result = model(tokens, positions, words, state, images=images)
             if reuse_prefix_cache:
                 cache = result.kv.select(result.kv.positions < cfg.prefix_len)
         else:
@@ -108,6 +110,7 @@ def decode_autoregressive(
     state: Tensor,
     temperature: float = 0.0,
     generator: torch.Generator | None = None,
+    images: Tensor | None = None,
 ) -> Decoded:
     """One token per forward pass with a KV cache. Input at action position i is token
     i-1 ([MASK] stands for 'begin' at position 0); its logits predict token i."""
@@ -119,7 +122,11 @@ def decode_autoregressive(
     cache: KVCache | None = None
     for i in range(total):
         pos = torch.tensor([i], device=dev)
-        result = model(previous, pos, words, state) if cache is None else model(previous, pos, cache=cache)
+        result = (
+            model(previous, pos, words, state, images=images)
+            if cache is None
+            else model(previous, pos, cache=cache)
+        )
         cache = result.kv if cache is None else cache.extend(result.kv)
         choice, _, _ = _scores(result.logits[:, -1], "max_prob", temperature, generator)
         tokens[:, i] = choice
@@ -135,6 +142,7 @@ def decode_block_diffusion(
     steps_per_block: int = 4,
     schedule: str = "linear",
     confidence: str = "max_prob",
+    images: Tensor | None = None,
 ) -> Decoded:
     """Blocks strictly one after another, a fixed number of steps each. A finished
     block is re-run once with its final tokens as part of the next block's first pass,
@@ -150,7 +158,7 @@ def decode_block_diffusion(
         for step in range(1, steps_per_block + 1):
             run = block if finished is None else torch.cat([finished, block])
             if cache is None:
-                result = model(tokens[:, run], run, words, state)
+                result = model(tokens[:, run], run, words, state, images=images)
             else:
                 result = model(tokens[:, run], run, cache=cache)
             if finished is not None or cache is None:
@@ -180,6 +188,7 @@ def decode_fast_dvla(
     tau_act: float = 4 / 7,
     n: int = 2,
     confidence: str = "max_prob",
+    images: Tensor | None = None,
 ) -> Decoded:
     """Fast-dVLA's pipelined decoding over a block-causal model.
 
@@ -197,14 +206,24 @@ def decode_fast_dvla(
     (their block states diverge).
     """
     rows = [
-        _fast_dvla_row(model, words[i : i + 1], state[i : i + 1], tau_conf, tau_add, tau_act, n, confidence)
+        _fast_dvla_row(
+            model,
+            words[i : i + 1],
+            state[i : i + 1],
+            None if images is None else images[i : i + 1],
+            tau_conf,
+            tau_add,
+            tau_act,
+            n,
+            confidence,
+        )
         for i in range(words.shape[0])
     ]
     out = Decoded(torch.cat([r.tokens for r in rows]), rows[0].trace)
     return out
 
 
-def _fast_dvla_row(model, words, state, tau_conf, tau_add, tau_act, n, confidence) -> Decoded:
+def _fast_dvla_row(model, words, state, images, tau_conf, tau_add, tau_act, n, confidence) -> Decoded:
     cfg = model.cfg
     total, k, dev = cfg.action_tokens, cfg.block, words.device
     blocks = total // k
@@ -223,7 +242,7 @@ def _fast_dvla_row(model, words, state, tau_conf, tau_add, tau_act, n, confidenc
         run_blocks = sorted(set(range(cached, first_open)) | set(active))
         run = torch.cat([torch.arange(i * k, (i + 1) * k, device=dev) for i in run_blocks])
         if cache is None:
-            result = model(tokens[:, run], run, words, state)
+            result = model(tokens[:, run], run, words, state, images=images)
         else:
             result = model(tokens[:, run], run, cache=cache)
         new_done = result.kv.positions < cfg.prefix_len + first_open * k

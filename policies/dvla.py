@@ -131,6 +131,37 @@ class AutoregressiveParams:
     seed: int = param(0, "seed of the sampler", low=0)
 
 
+def check_observation_space(cfg: Any, space: Any, state_dims: Sequence[int] = ()) -> None:
+    """Refuse a suite whose observations the checkpoint cannot read, before any episode:
+    a wrong state size, or camera images it was trained on and the suite does not give
+    (ask for them with the suite's options, e.g. `libero/spatial:obs=images`)."""
+    import gymnasium as gym
+
+    state = space["state"] if isinstance(space, gym.spaces.Dict) else space
+    sizes = state_dims or (cfg.state_dim,)
+    if len(state.shape) != 1 or state.shape[0] not in sizes:
+        raise ValueError(
+            f"checkpoint reads states of size {' or '.join(map(str, sizes))}, the suite gives {state.shape}"
+        )
+    if not cfg.cameras:
+        return
+    given = set(space.spaces) - {"state"} if isinstance(space, gym.spaces.Dict) else set()
+    missing = [c for c in cfg.cameras if c not in given]
+    if missing:
+        raise ValueError(
+            f"checkpoint reads camera images {list(cfg.cameras)}, the suite gives "
+            f"{sorted(given) or 'none'}; ask the suite for images (e.g. libero/spatial:obs=images,"
+            f"image_size={cfg.image_size})"
+        )
+    want = (cfg.image_size, cfg.image_size, 3)
+    for cam in cfg.cameras:
+        if space[cam].shape != want:
+            raise ValueError(
+                f"checkpoint reads {cfg.image_size}x{cfg.image_size} images, the suite's {cam!r} is "
+                f"{space[cam].shape[:2]}; set the suite's image_size={cfg.image_size}"
+            )
+
+
 class DVLAPolicy:
     """A checkpointed action-token model decoded by one of the decoders."""
 
@@ -179,10 +210,7 @@ class DVLAPolicy:
                 raise ValueError(
                     f"checkpoint acts in {cfg.action_dim}-D, the suite's actions are {ep.action_space.shape}"
                 )
-            if ep.observation_space.shape != (cfg.state_dim,):
-                raise ValueError(
-                    f"checkpoint reads {cfg.state_dim}-D states, the suite gives {ep.observation_space.shape}"
-                )
+            check_observation_space(cfg, ep.observation_space, self.ckpt.meta.get("state_dims") or ())
         self._instructions = [ep.instruction for ep in episodes]
 
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
@@ -190,10 +218,18 @@ class DVLAPolicy:
 
         from policies.checkpoint import to_tensors
 
-        states = np.stack([o["state"] if isinstance(o, Mapping) else o for o in observations])
+        states = np.zeros((len(observations), self.model.cfg.state_dim), dtype=np.float32)
+        for row, o in zip(states, observations, strict=True):
+            state = np.asarray(o["state"] if isinstance(o, Mapping) else o)
+            row[: len(state)] = state  # zero-padded like training (mixed state layouts)
         words, state = to_tensors(self.ckpt, self._instructions, states)
+        images = None
+        if self.model.cfg.cameras:
+            images = torch.from_numpy(
+                np.stack([[o[cam] for cam in self.model.cfg.cameras] for o in observations])
+            )
         with torch.inference_mode():
-            decoded = self._decode(self.model, words, state, self.params)
+            decoded = self._decode(self.model, words, state, self.params, images)
         actions = self.ckpt.tokenizer.decode(decoded.tokens.numpy())
         return ChunkBatch(
             actions=actions, action_tokens=int(decoded.tokens.numel()), trace=[{"committed": decoded.trace}]
@@ -206,37 +242,39 @@ def _spec(name: str, summary: str, params: type, pattern: str, decode: Callable[
     )
 
 
-def _bidirectional(m, w, s, p):
+def _bidirectional(m, w, s, p, i=None):
     from policies.decoders import decode_bidirectional
 
-    return decode_bidirectional(m, w, s, p.steps, p.schedule, p.confidence, p.remask, p.cache_prefix)
+    return decode_bidirectional(
+        m, w, s, p.steps, p.schedule, p.confidence, p.remask, p.cache_prefix, images=i
+    )
 
 
-def _fast_dllm(m, w, s, p):
+def _fast_dllm(m, w, s, p, i=None):
     from policies.decoders import decode_bidirectional
 
-    return decode_bidirectional(m, w, s, p.steps, p.schedule, p.confidence, reuse_prefix_cache=True)
+    return decode_bidirectional(m, w, s, p.steps, p.schedule, p.confidence, reuse_prefix_cache=True, images=i)
 
 
-def _block_diffusion(m, w, s, p):
+def _block_diffusion(m, w, s, p, i=None):
     from policies.decoders import decode_block_diffusion
 
-    return decode_block_diffusion(m, w, s, p.steps_per_block, p.schedule, p.confidence)
+    return decode_block_diffusion(m, w, s, p.steps_per_block, p.schedule, p.confidence, images=i)
 
 
-def _fast_dvla(m, w, s, p):
+def _fast_dvla(m, w, s, p, i=None):
     from policies.decoders import decode_fast_dvla
 
-    return decode_fast_dvla(m, w, s, p.tau_conf, p.tau_add, p.tau_act, p.n, p.confidence)
+    return decode_fast_dvla(m, w, s, p.tau_conf, p.tau_add, p.tau_act, p.n, p.confidence, images=i)
 
 
-def _autoregressive(m, w, s, p):
+def _autoregressive(m, w, s, p, i=None):
     import torch
 
     from policies.decoders import decode_autoregressive
 
     generator = torch.Generator().manual_seed(p.seed) if p.temperature > 0 else None
-    return decode_autoregressive(m, w, s, p.temperature, generator)
+    return decode_autoregressive(m, w, s, p.temperature, generator, images=i)
 
 
 SPECS = [

@@ -1,7 +1,9 @@
 """The action-token transformer every decoder runs on.
 
-Sequence layout: [instruction words | state tokens | action tokens]. The first two form
-the prefix (length P); action token a sits at absolute position P + a. Which key a
+Sequence layout: [instruction words | state tokens | image tokens | action tokens]. All
+but the last form the prefix (length P; image tokens only when the model was trained on
+camera images: a small strided CNN per camera, pooled to a few tokens); action token a
+sits at absolute position P + a. Which key a
 query may attend to follows one rule, `group(key) <= group(query)`, with the prefix in
 group -1 and action token a in group:
 
@@ -20,6 +22,7 @@ call.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -45,6 +48,12 @@ class ModelConfig:
     pattern: str = "bidirectional"
     block_size: int = 0  # action tokens per block; 0 = one action step (action_dim)
     prefix_sees_actions: bool = True  # only meaningful for "bidirectional"
+    cameras: tuple[str, ...] = ()  # observation keys of the camera images, in token order
+    image_size: int = 0  # square images of this many pixels (with cameras)
+    image_tokens: int = 4  # tokens per camera (a square number: the pooled feature grid)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "cameras", tuple(self.cameras))  # JSON gives a list
 
     @property
     def action_tokens(self) -> int:
@@ -52,7 +61,7 @@ class ModelConfig:
 
     @property
     def prefix_len(self) -> int:
-        return self.max_words + self.state_tokens
+        return self.max_words + self.state_tokens + len(self.cameras) * self.image_tokens
 
     @property
     def mask_id(self) -> int:
@@ -74,6 +83,17 @@ class ModelConfig:
         for name in ("action_dim", "chunk_len", "state_dim", "layers", "heads", "width", "ffn"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.cameras:
+            side = math.isqrt(self.image_tokens)
+            if self.image_tokens < 1 or side * side != self.image_tokens:
+                raise ValueError(
+                    f"image_tokens must be a square number (1, 4, 9, ...), got {self.image_tokens}"
+                )
+            if self.image_size < 8 * side:
+                raise ValueError(
+                    f"image_size {self.image_size} is too small for {self.image_tokens} tokens per "
+                    f"camera; use at least {8 * side} pixels"
+                )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -133,6 +153,34 @@ class Block(nn.Module):
         return x, k, v
 
 
+class ImageEncoder(nn.Module):
+    """Camera images to `image_tokens` tokens each: three stride-2 convolutions (1/8 of
+    the resolution), average-pooled to a square grid, plus a learned camera embedding.
+    Small on purpose: CPU training here, and the state vector carries the geometry."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        w = cfg.width
+        self.convs = nn.Sequential(
+            nn.Conv2d(3, 32, 5, stride=2, padding=2),
+            nn.GELU(),
+            nn.Conv2d(32, 64, 3, stride=2, padding=1),
+            nn.GELU(),
+            nn.Conv2d(64, w, 3, stride=2, padding=1),
+            nn.AdaptiveAvgPool2d(math.isqrt(cfg.image_tokens)),
+        )
+        self.camera = nn.Embedding(len(cfg.cameras), w)
+
+    def forward(self, images: Tensor) -> Tensor:
+        """(B, cameras, H, W, 3) uint8 -> (B, cameras * image_tokens, width)."""
+        b, c, h, w, _ = images.shape
+        x = images.reshape(b * c, h, w, 3).permute(0, 3, 1, 2).float() / 255.0 - 0.5
+        feats = self.convs(x).flatten(2).transpose(1, 2)  # (B*C, tokens, width)
+        feats = feats.view(b, c, -1, feats.shape[-1]) + self.camera.weight[None, :, None, :]
+        return feats.reshape(b, -1, feats.shape[-1])
+
+
 class ActionTokenModel(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
@@ -142,6 +190,7 @@ class ActionTokenModel(nn.Module):
         self.state = nn.Sequential(
             nn.Linear(cfg.state_dim, cfg.width), nn.GELU(), nn.Linear(cfg.width, cfg.state_tokens * cfg.width)
         )
+        self.images = ImageEncoder(cfg) if cfg.cameras else None
         self.tokens = nn.Embedding(cfg.bins + 1, cfg.width)  # + [MASK]
         self.positions = nn.Embedding(cfg.prefix_len + cfg.action_tokens, cfg.width)
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.layers))
@@ -168,12 +217,19 @@ class ActionTokenModel(nn.Module):
         words: Tensor | None = None,  # (B, max_words): with state, computes the prefix
         state: Tensor | None = None,  # (B, state_dim)
         cache: KVCache | None = None,  # keys/values of earlier positions to attend to
+        images: Tensor | None = None,  # (B, cameras, H, W, 3) uint8, with the prefix
     ) -> StepOutput:
         cfg = self.cfg
         parts, positions = [], []
         if words is not None:
             b = words.shape[0]
             parts += [self.words(words), self.state(state).view(b, cfg.state_tokens, cfg.width)]
+            if self.images is not None:
+                if images is None:
+                    raise ValueError(
+                        f"this model reads camera images ({', '.join(cfg.cameras)}); pass images"
+                    )
+                parts.append(self.images(images))
             positions.append(torch.arange(cfg.prefix_len, device=words.device))
         n_actions = 0
         if action_tokens is not None:

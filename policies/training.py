@@ -51,6 +51,21 @@ class Demos:
     chunk_index: np.ndarray  # (N, H) rows of `actions` forming each step's target chunk
     instructions: list[str]  # per row
     sha256: str
+    cameras: tuple[str, ...] = ()
+    image_size: int = 0
+    images: list[np.ndarray] = field(default_factory=list)  # per camera: (N,) PNG bytes
+    state_dims: tuple[int, ...] = ()  # observation sizes before padding (one unless mixed)
+
+    def image_batch(self, rows: torch.Tensor) -> torch.Tensor | None:
+        """(B, cameras, H, W, 3) uint8 for some rows, decoded on demand: the PNGs of a
+        LIBERO suite are ~1 GB as pixels, a tenth of that compressed."""
+        if not self.cameras:
+            return None
+        from harness.collect import unpng
+
+        idx = rows.tolist()
+        frames = [[unpng(column[i]) for column in self.images] for i in idx]
+        return torch.from_numpy(np.asarray(frames, dtype=np.uint8))
 
 
 def load_demos(folder: str | Path, chunk_len: int) -> Demos:
@@ -60,7 +75,7 @@ def load_demos(folder: str | Path, chunk_len: int) -> Demos:
         raise ValueError(f"{folder}: not a demonstrations folder (needs manifest.json and steps.parquet)")
     manifest = json.loads(manifest_path.read_text())
     df = pq.read_table(folder / "steps.parquet").to_pandas()
-    obs = np.stack(df["observation"].to_numpy()).astype(np.float32)
+    obs, state_dims = _padded(df["observation"].to_numpy())
     actions = np.stack(df["action"].to_numpy()).astype(np.float64)
     # Target chunk of step t: actions t..t+H-1 of the same episode, the last one repeated.
     episode = df["episode_id"].to_numpy()
@@ -71,7 +86,36 @@ def load_demos(folder: str | Path, chunk_len: int) -> Demos:
             start -= 1
         last[start : ep_end + 1] = ep_end
     idx = np.minimum(np.arange(len(df))[:, None] + np.arange(chunk_len)[None, :], last[:, None])
-    return Demos(obs, actions, idx, df["instruction"].tolist(), manifest.get("steps_sha256", ""))
+    cameras = tuple(manifest.get("cameras") or ())
+    missing = [c for c in cameras if f"image_{c}" not in df.columns]
+    if missing:
+        raise ValueError(f"{folder}: the manifest lists cameras {missing} that steps.parquet lacks")
+    return Demos(
+        obs,
+        actions,
+        idx,
+        df["instruction"].tolist(),
+        manifest.get("steps_sha256", ""),
+        cameras,
+        int(manifest.get("image_size") or 0),
+        [df[f"image_{c}"].to_numpy() for c in cameras],
+        state_dims,
+    )
+
+
+def _padded(rows: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Observations as one (N, D) array, zero-padded at the end to the longest.
+
+    LIBERO goal/10/90 tasks have different objects, so their state vectors differ in
+    length; the instruction tells the model which layout it is reading. The sizes seen
+    are recorded in the checkpoint so the policy pads (and accepts) exactly those."""
+    sizes = tuple(sorted({len(r) for r in rows}))
+    if len(sizes) == 1:
+        return np.stack(rows).astype(np.float32), sizes
+    out = np.zeros((len(rows), sizes[-1]), dtype=np.float32)
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
+    return out, sizes
 
 
 def block_ratios(schedule: str, batch: int, blocks: int, g: torch.Generator) -> torch.Tensor:
@@ -104,6 +148,11 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         teacher = load(cfg.teacher)
         if teacher.model.cfg.pattern != "bidirectional":
             raise ValueError(f"{cfg.teacher}: the teacher must be a bidirectional model")
+        if teacher.model.cfg.cameras != demos.cameras:
+            raise ValueError(
+                f"{cfg.teacher}: reads cameras {list(teacher.model.cfg.cameras)}, the demonstrations "
+                f"have {list(demos.cameras)}"
+            )
         student_cfg = ModelConfig(
             **{
                 **teacher.model.cfg.to_dict(),
@@ -131,6 +180,12 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
             or ckpt.model.cfg.action_dim != demos.actions.shape[1]
         ):
             raise ValueError(f"{cfg.init}: its state/action sizes do not match the demonstrations")
+        if (ckpt.model.cfg.cameras, ckpt.model.cfg.image_size) != (demos.cameras, demos.image_size):
+            raise ValueError(
+                f"{cfg.init}: reads cameras {list(ckpt.model.cfg.cameras)} at "
+                f"{ckpt.model.cfg.image_size} px, the demonstrations have {list(demos.cameras)} at "
+                f"{demos.image_size} px"
+            )
         unknown = {w for t in set(demos.instructions) for w in words_of(t)} - set(ckpt.vocab)
         if unknown:
             raise ValueError(
@@ -156,6 +211,8 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         ffn=cfg.ffn,
         pattern=PATTERN[cfg.recipe],
         block_size=cfg.block_size,
+        cameras=demos.cameras,
+        image_size=demos.image_size,
     )
     return Checkpoint(ActionTokenModel(model_cfg), tokenizer, vocab, mean, std), None
 
@@ -172,7 +229,7 @@ PROBE_SAMPLES = 512
 PROBE_SEED = 20260
 
 
-def probe_loss(model: ActionTokenModel, clean, words, state, positions) -> float:
+def probe_loss(model: ActionTokenModel, clean, words, state, positions, images=None) -> float:
     """One yardstick for recipes whose training losses differ (KL for distill, CE else).
 
     Cross-entropy of the true tokens at masked positions, with masks drawn once from a
@@ -187,7 +244,7 @@ def probe_loss(model: ActionTokenModel, clean, words, state, positions) -> float
     was_training = model.training
     model.eval()
     with torch.no_grad():
-        value = _loss(recipe, "frontier", model, None, clean, words, state, positions, g).item()
+        value = _loss(recipe, "frontier", model, None, clean, words, state, positions, g, images).item()
     model.train(was_training)
     return value
 
@@ -216,7 +273,13 @@ def train(
     probe_rows = torch.randint(
         0, len(tokens_all), (PROBE_SAMPLES,), generator=torch.Generator().manual_seed(PROBE_SEED)
     )
-    probe_inputs = (tokens_all[probe_rows], words_all[probe_rows], states_all[probe_rows], positions)
+    probe_inputs = (
+        tokens_all[probe_rows],
+        words_all[probe_rows],
+        states_all[probe_rows],
+        positions,
+        demos.image_batch(probe_rows),
+    )
     start = time.perf_counter()
     for step in range(cfg.steps):
         if cfg.probe_every and step % cfg.probe_every == 0:
@@ -228,7 +291,10 @@ def train(
             batch = torch.multinomial(task_weights, size, replacement=True, generator=g)
         clean, words = tokens_all[batch], words_all[batch]
         state = states_all[batch] + cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
-        loss = _loss(cfg.recipe, cfg.noise_schedule, model, teacher, clean, words, state, positions, g)
+        images = demos.image_batch(batch)
+        loss = _loss(
+            cfg.recipe, cfg.noise_schedule, model, teacher, clean, words, state, positions, g, images
+        )
         for group in opt.param_groups:
             group["lr"] = _lr(step, cfg)
         opt.zero_grad(set_to_none=True)
@@ -247,6 +313,8 @@ def train(
         "recipe": cfg.recipe,
         "train_config": asdict(cfg),
         "data_sha256": demos.sha256,
+        # Observation sizes the model was trained on; shorter ones were zero-padded.
+        "state_dims": list(demos.state_dims),
         # Mean |action - detokenize(tokenize(action))| over the training actions (clipped to
         # the bins' range): the precision floor no amount of training can beat.
         "tokenizer_round_trip_error": ckpt.tokenizer.round_trip_error(demos.actions),
@@ -277,12 +345,12 @@ def _sha256(path: str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g) -> torch.Tensor:
+def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g, images=None) -> torch.Tensor:
     cfg = model.cfg
     b, n = clean.shape
     if recipe == "autoregressive":
         inputs = torch.cat([torch.full((b, 1), cfg.mask_id), clean[:, :-1]], dim=1)
-        logits = model(inputs, positions, words, state).logits
+        logits = model(inputs, positions, words, state, images=images).logits
         return F.cross_entropy(logits.reshape(-1, cfg.bins), clean.reshape(-1))
     if recipe == "bidirectional":
         ratio = torch.rand(b, 1, generator=g).expand(b, n)
@@ -292,10 +360,10 @@ def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g) -
     none = ~mask.any(dim=1)
     mask[none, torch.randint(0, n, (int(none.sum()),), generator=g)] = True  # at least one per sample
     noisy = torch.where(mask, torch.full_like(clean, cfg.mask_id), clean)
-    logits = model(noisy, positions, words, state).logits
+    logits = model(noisy, positions, words, state, images=images).logits
     if recipe == "distill":
         with torch.no_grad():
-            target = torch.log_softmax(teacher(noisy, positions, words, state).logits, dim=-1)
+            target = torch.log_softmax(teacher(noisy, positions, words, state, images=images).logits, dim=-1)
         kl = F.kl_div(torch.log_softmax(logits, dim=-1), target, log_target=True, reduction="none").sum(-1)
         return kl[mask].mean()
     return F.cross_entropy(logits[mask], clean[mask])

@@ -179,6 +179,69 @@ def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
     assert (df["nfe_per_chunk"] == steps).all()
 
 
+@needs_libero
+def test_camera_images_are_collected_trained_on_and_read_by_the_policy(cli, tmp_path):
+    """obs=images: PNG frames in the demonstrations, a model with an image encoder, and a
+    decoder policy that acts on a real image observation (and refuses a state-only one)."""
+    from harness.collect import unpng
+    from harness.runner import episode_context
+    from policies.checkpoint import load
+    from policies.recipes import TrainConfig
+    from policies.registry import get_policy, parse_params
+    from policies.training import train
+
+    suite_name = "libero/spatial:obs=images,image_size=32"
+    demos = tmp_path / "demos"
+    code, _, err = cli(
+        "collect",
+        "--suite",
+        suite_name,
+        "--tasks",
+        "0",
+        "--policy",
+        "libero_scripted",
+        "--episodes-per-task",
+        "1",
+        "--out",
+        str(demos),
+        "--quiet",
+    )
+    assert code == 0, err
+    manifest = json.loads((demos / "manifest.json").read_text())
+    assert manifest["cameras"] == ["agentview", "wrist"] and manifest["image_size"] == 32
+    table = pq.read_table(demos / "steps.parquet")
+    first = unpng(table["image_agentview"][0].as_py())
+    assert first.shape == (32, 32, 3) and first.std() > 5  # a rendered scene, not a blank
+    assert len(table["image_wrist"]) == manifest["steps"]
+
+    ckpt = tmp_path / "m.safetensors"
+    train(
+        TrainConfig(recipe="bidirectional", **{**TINY_TRAIN, "steps": 2, "batch_size": 8, "warmup": 1}),
+        demos,
+        ckpt,
+    )
+    assert load(ckpt).model.cfg.cameras == ("agentview", "wrist")
+
+    spec = get_policy("bidirectional")
+    policy = spec.build(parse_params(spec, {"checkpoint": str(ckpt), "steps": 2}))
+    for name, works in ((suite_name, True), ("libero/spatial", False)):
+        suite = lb.load_suite(name)
+        task = suite.tasks[0]
+        env = suite.make_env(task)
+        try:
+            context = episode_context(name, task, task.episodes[0], env)
+            if not works:
+                with pytest.raises(ValueError, match="ask the suite for images"):
+                    policy.reset([context])
+                continue
+            obs, _ = env.reset(options={"episode": task.episodes[0]})
+            policy.reset([context])
+            chunk = policy.act([obs])
+        finally:
+            env.close()
+        assert chunk.actions.shape == (1, TINY_TRAIN["chunk_len"], 7)
+
+
 @pytest.mark.parametrize(
     ("suite", "tasks", "episodes", "needle"),
     [

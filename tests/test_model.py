@@ -104,3 +104,40 @@ def test_tokenizer_round_trip_and_serialisation():
         tok.decode(np.array([[256, 0, 0, 0]]))
     with pytest.raises(ValueError, match="invalid tokenizer description"):
         ActionTokenizer.from_dict({"low": [0.0], "high": [0.0], "bins": 256, "binary_dims": []})
+
+
+@pytest.mark.parametrize(("pattern", "step"), [("block_causal", 4), ("causal", 1)])
+def test_camera_images_join_the_prefix_and_the_cache_stays_exact(pattern, step):
+    model = _model(
+        pattern,
+        block_size=step if pattern == "block_causal" else 0,
+        cameras=["agentview", "wrist"],
+        image_size=16,
+    )
+    cfg = model.cfg
+    assert cfg.cameras == ("agentview", "wrist")  # JSON lists become tuples
+    assert cfg.prefix_len == cfg.max_words + cfg.state_tokens + 2 * cfg.image_tokens
+    words, state, tokens = _inputs(model)
+    images = torch.randint(
+        0, 256, (2, 2, 16, 16, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(2)
+    )
+    positions = torch.arange(cfg.action_tokens)
+    with torch.no_grad():
+        full = model(tokens, positions, words, state, images=images).logits
+        other = model(tokens, positions, words, state, images=255 - images).logits
+        cache = model(words=words, state=state, images=images).kv
+        for start in range(0, cfg.action_tokens, step):
+            pos = torch.arange(start, start + step)
+            out = model(tokens[:, pos], pos, cache=cache)
+            assert (out.logits - full[:, pos]).abs().max() < TOL
+            cache = cache.extend(out.kv)
+    assert (full - other).abs().max() > 1e-3  # the images change what the model predicts
+    with pytest.raises(ValueError, match="reads camera images"):
+        model(tokens, positions, words, state)
+
+
+def test_image_config_is_validated():
+    with pytest.raises(ValueError, match="square number"):
+        _model("causal", cameras=["a"], image_size=32, image_tokens=3)
+    with pytest.raises(ValueError, match="at least 16 pixels"):
+        _model("causal", cameras=["a"], image_size=8)

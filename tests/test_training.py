@@ -182,3 +182,62 @@ def test_student_records_its_teacher_by_content(demos, tmp_path):
         load(tmp_path / "s.safetensors").meta["teacher_sha256"]
         == hashlib.sha256(teacher.read_bytes()).hexdigest()
     )
+
+
+def test_mixed_state_sizes_are_zero_padded_and_the_policy_accepts_exactly_those(tmp_path):
+    """LIBERO goal/10/90 tasks differ in state size: one model reads all of them."""
+    import gymnasium as gym
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from harness.collect import DEMO_COLUMNS
+    from policies.base import EpisodeContext
+    from policies.registry import get_policy, parse_params
+
+    rows: dict[str, list] = {name: [] for name in DEMO_COLUMNS.names}
+    rng = np.random.default_rng(0)
+    for episode, (task, dim) in enumerate([("wide", 5), ("narrow", 3), ("wide", 5), ("narrow", 3)]):
+        for step in range(12):
+            for name, value in (
+                ("episode_id", episode),
+                ("task", task),
+                ("instruction", f"do the {task} thing"),
+                ("episode_index", episode),
+                ("seed", 0),
+                ("init_state_id", 0),
+                ("step", step),
+                ("observation", rng.normal(size=dim).astype(np.float32).tolist()),
+                ("action", rng.uniform(-1, 1, 4).astype(np.float32).tolist()),
+            ):
+                rows[name].append(value)
+    demos = tmp_path / "demos"
+    demos.mkdir()
+    pq.write_table(pa.table(rows, schema=DEMO_COLUMNS), demos / "steps.parquet")
+    (demos / "manifest.json").write_text(json.dumps({"steps_sha256": "x"}))
+    out = tmp_path / "m.safetensors"
+    train(
+        TrainConfig(recipe="bidirectional", **{**TINY, "steps": 2, "batch_size": 8, "warmup": 1}), demos, out
+    )
+    ckpt = load(out)
+    assert ckpt.model.cfg.state_dim == 5 and ckpt.meta["state_dims"] == [3, 5]
+
+    spec = get_policy("bidirectional")
+    policy = spec.build(parse_params(spec, {"checkpoint": str(out), "steps": 2}))
+
+    def context(dim: int) -> EpisodeContext:
+        return EpisodeContext(
+            suite="fake/mixed",
+            task="narrow",
+            instruction="do the narrow thing",
+            action_space=gym.spaces.Box(-1, 1, (4,)),
+            observation_space=gym.spaces.Box(-np.inf, np.inf, (dim,)),
+            max_steps=10,
+            episode_index=0,
+        )
+
+    policy.reset([context(3)])
+    chunk = policy.act([np.ones(3, dtype=np.float32)])
+    assert chunk.actions.shape == (1, TINY["chunk_len"], 4)
+    with pytest.raises(ValueError, match="states of size 3 or 5"):
+        policy.reset([context(4)])
