@@ -15,7 +15,6 @@ raw pixels, which decides whether 50 demonstrations per task fit in memory.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import shutil
 from collections.abc import Callable, Mapping
@@ -34,6 +33,7 @@ from harness.errors import UsageError
 from harness.manifest import environment, now
 from harness.nfe import NFECounter
 from harness.runner import episode_context
+from policies.observations import cameras_of, png, unpng
 
 STEPS = "steps.parquet"
 MANIFEST = "manifest.json"
@@ -50,27 +50,6 @@ DEMO_COLUMNS = pa.schema(
         ("action", pa.list_(pa.float32())),
     ]
 )
-
-
-def png(pixels: np.ndarray) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(pixels, dtype=np.uint8)).save(buf, format="PNG", compress_level=1)
-    return buf.getvalue()
-
-
-def unpng(data: bytes) -> np.ndarray:
-    from PIL import Image
-
-    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
-
-
-def cameras_of(space: gym.Space) -> list[str]:
-    """The image keys of a dict observation space (everything but "state"), sorted."""
-    if isinstance(space, gym.spaces.Dict):
-        return sorted(k for k in space.spaces if k != "state")
-    return []
 
 
 class RecordingEnv(gym.Wrapper):

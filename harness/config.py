@@ -222,7 +222,12 @@ def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
         )
     checkpoint = str(getattr(params, "checkpoint", "") or "")
     if checkpoint and not Path(checkpoint).is_file():
-        raise UsageError(f"policy {spec.name!r}: checkpoint {checkpoint!r} does not exist")
+        from policies.dvla import shipped_sets
+
+        raise UsageError(
+            f"policy {spec.name!r}: checkpoint {checkpoint!r} does not exist; pass a path or a "
+            f"shipped set: {', '.join(shipped_sets())}"
+        )
     digest = sha256_file(checkpoint) if checkpoint else ""
     pjson = params_json(params)
     config_id = hashlib.sha256(f"{spec.name}|{pjson}|{digest}".encode()).hexdigest()[:12]

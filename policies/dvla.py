@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from policies.base import ChunkBatch, EpisodeContext, Observation
+from policies.observations import cameras_of
 from policies.registry import PolicySpec, param
 from policies.schedules import CONFIDENCES, SCHEDULES
 
@@ -30,8 +31,24 @@ BLOCK_SIZE_HELP = (
 )
 
 
-def shipped(recipe: str) -> str:
-    return str(SHIPPED / f"metaworld-mt10-{recipe}.safetensors")
+def shipped(recipe: str, suite: str = "metaworld-mt10") -> str:
+    return str(SHIPPED / f"{suite}-{recipe}.safetensors")
+
+
+def shipped_sets() -> list[str]:
+    """The names of the shipped checkpoint sets (`metaworld-mt10`, `libero-spatial`, ...)."""
+    return sorted({f.name.rsplit("-", 1)[0] for f in SHIPPED.glob("*-*.safetensors")})
+
+
+def resolve_checkpoint(params: Any, recipe: str) -> None:
+    """Let `checkpoint=libero-spatial` name a shipped set: it becomes that set's file for
+    this decoder's recipe at parse time, so manifests and rows record the real path."""
+    value = params.checkpoint
+    if value in shipped_sets() and not Path(value).exists():
+        object.__setattr__(params, "checkpoint", shipped(recipe, value))
+
+
+CHECKPOINT_HELP = "path, or a shipped set's name (e.g. libero-spatial), of a"
 
 
 def checkpoint_fields(path: str) -> dict[str, Any]:
@@ -78,7 +95,7 @@ def block_size_error(block_size: int, action_tokens: int, checkpoint_block: int 
 
 @dataclass(frozen=True)
 class BidirectionalParams:
-    checkpoint: str = param(shipped("bidirectional"), "checkpoint of a bidirectional model")
+    checkpoint: str = param(shipped("bidirectional"), f"{CHECKPOINT_HELP} bidirectional model")
     steps: int = param(12, "refinement steps T (= NFE per chunk)", low=1, high=1024)
     schedule: str = param("cosine", "how many tokens stay masked after each step", choices=SCHEDULES)
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
@@ -87,18 +104,24 @@ class BidirectionalParams:
         False, "reuse the prefix keys/values (exact only if the prefix does not see the actions)"
     )
 
+    def __post_init__(self) -> None:
+        resolve_checkpoint(self, "bidirectional")
+
 
 @dataclass(frozen=True)
 class FastDLLMParams:
-    checkpoint: str = param(shipped("bidirectional"), "checkpoint of a bidirectional model")
+    checkpoint: str = param(shipped("bidirectional"), f"{CHECKPOINT_HELP} bidirectional model")
     steps: int = param(12, "refinement steps T (= NFE per chunk)", low=1, high=1024)
     schedule: str = param("cosine", "how many tokens stay masked after each step", choices=SCHEDULES)
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
 
+    def __post_init__(self) -> None:
+        resolve_checkpoint(self, "bidirectional")
+
 
 @dataclass(frozen=True)
 class BlockDiffusionParams:
-    checkpoint: str = param(shipped("block_diffusion"), "checkpoint of a block-causal model")
+    checkpoint: str = param(shipped("block_diffusion"), f"{CHECKPOINT_HELP} block-causal model")
     steps_per_block: int = param(4, "denoising steps per block", low=1, high=1024)
     schedule: str = param(
         "linear", "how many tokens of a block stay masked after each step", choices=SCHEDULES
@@ -106,10 +129,13 @@ class BlockDiffusionParams:
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     block_size: int = param(0, BLOCK_SIZE_HELP, low=0, high=4096)
 
+    def __post_init__(self) -> None:
+        resolve_checkpoint(self, "block_diffusion")
+
 
 @dataclass(frozen=True)
 class FastDVLAParams:
-    checkpoint: str = param(shipped("fast_dvla"), "checkpoint of a block-causal model")
+    checkpoint: str = param(shipped("fast_dvla"), f"{CHECKPOINT_HELP} block-causal model")
     tau_conf: float = param(0.5, "confidence a token needs to be committed", low=0.0, high=1.0)
     tau_add: float = param(2 / 7, "decoded fraction of a block before the next is added", low=0.0, high=1.0)
     tau_act: float = param(
@@ -119,6 +145,9 @@ class FastDVLAParams:
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     block_size: int = param(0, BLOCK_SIZE_HELP, low=0, high=4096)
 
+    def __post_init__(self) -> None:
+        resolve_checkpoint(self, "fast_dvla")
+
     def validate(self) -> None:
         if self.tau_add > self.tau_act:
             raise ValueError(f"tau_add ({self.tau_add}) must be <= tau_act ({self.tau_act})")
@@ -126,9 +155,12 @@ class FastDVLAParams:
 
 @dataclass(frozen=True)
 class AutoregressiveParams:
-    checkpoint: str = param(shipped("autoregressive"), "checkpoint of a causal model")
+    checkpoint: str = param(shipped("autoregressive"), f"{CHECKPOINT_HELP} causal model")
     temperature: float = param(0.0, "sampling temperature (0 = greedy)", low=0.0, high=10.0)
     seed: int = param(0, "seed of the sampler", low=0)
+
+    def __post_init__(self) -> None:
+        resolve_checkpoint(self, "autoregressive")
 
 
 def check_observation_space(cfg: Any, space: Any, state_dims: Sequence[int] = ()) -> None:
@@ -145,12 +177,12 @@ def check_observation_space(cfg: Any, space: Any, state_dims: Sequence[int] = ()
         )
     if not cfg.cameras:
         return
-    given = set(space.spaces) - {"state"} if isinstance(space, gym.spaces.Dict) else set()
+    given = cameras_of(space)
     missing = [c for c in cfg.cameras if c not in given]
     if missing:
         raise ValueError(
             f"checkpoint reads camera images {list(cfg.cameras)}, the suite gives "
-            f"{sorted(given) or 'none'}; ask the suite for images (e.g. libero/spatial:obs=images,"
+            f"{given or 'none'}; ask the suite for images (e.g. libero/spatial:obs=images,"
             f"image_size={cfg.image_size})"
         )
     want = (cfg.image_size, cfg.image_size, 3)
@@ -170,8 +202,8 @@ class DVLAPolicy:
 
         if not Path(params.checkpoint).is_file():
             raise ValueError(
-                f"checkpoint {params.checkpoint!r} does not exist; pass checkpoint=PATH "
-                "(train one with `dvla-harness train`)"
+                f"checkpoint {params.checkpoint!r} does not exist; pass checkpoint=PATH or a "
+                f"shipped set ({', '.join(shipped_sets())}); train one with `dvla-harness train`"
             )
         try:
             self.ckpt = load(params.checkpoint)

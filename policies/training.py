@@ -61,7 +61,7 @@ class Demos:
         LIBERO suite are ~1 GB as pixels, a tenth of that compressed."""
         if not self.cameras:
             return None
-        from harness.collect import unpng
+        from policies.observations import unpng
 
         idx = rows.tolist()
         frames = [[unpng(column[i]) for column in self.images] for i in idx]

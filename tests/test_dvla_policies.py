@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -94,6 +96,17 @@ def test_bad_decoder_parameters_are_refused(cli, tmp_path):
         *MT1, "--policy", "bidirectional:checkpoint=nope.safetensors", "--out", str(tmp_path / "r")
     )
     assert code == 2 and "checkpoint 'nope.safetensors' does not exist" in err
+    code, _, err = cli(*MT1, "--policy", "fast_dvla:checkpoint=libero-nowhere", "--out", str(tmp_path / "r"))
+    assert code == 2 and "'libero-nowhere' does not exist" in err and "metaworld-mt10" in err
+
+
+def test_a_shipped_set_name_resolves_to_that_sets_file_for_the_decoders_recipe():
+    from policies.dvla import shipped
+    from policies.registry import get_policy, parse_params
+
+    for policy, recipe in [("fast_dllm", "bidirectional"), ("fast_dvla", "fast_dvla")]:
+        params = parse_params(get_policy(policy), {"checkpoint": "metaworld-mt10"})
+        assert params.checkpoint == shipped(recipe) and Path(params.checkpoint).is_file()
 
 
 def test_corrupt_and_foreign_checkpoints_get_clear_errors(tmp_path):

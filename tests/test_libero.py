@@ -183,9 +183,9 @@ def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
 def test_camera_images_are_collected_trained_on_and_read_by_the_policy(cli, tmp_path):
     """obs=images: PNG frames in the demonstrations, a model with an image encoder, and a
     decoder policy that acts on a real image observation (and refuses a state-only one)."""
-    from harness.collect import unpng
     from harness.runner import episode_context
     from policies.checkpoint import load
+    from policies.observations import unpng
     from policies.recipes import TrainConfig
     from policies.registry import get_policy, parse_params
     from policies.training import train
