@@ -15,6 +15,7 @@ from tests.fakes import TINY_TRAIN
 
 pytestmark = pytest.mark.libero
 needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+SOLVED_TASK = "2"  # an object task the shipped student solved in all 10 evaluation episodes
 
 
 def test_protocol_constants_match_the_published_protocol():
@@ -272,3 +273,20 @@ def test_missing_extra_names_the_fix(cli, tmp_path, monkeypatch):
     assert code == 2
     assert "pip install 'dvla-harness[libero]'" in err
     assert not (tmp_path / "run").exists()
+
+
+@needs_libero
+def test_the_shipped_libero_student_solves_an_object_episode_by_set_name(cli, tmp_path):
+    """`checkpoint=libero-spatial` picks the shipped student; it solves an episode its
+    evaluation solved every time (docs/libero.md, trained reference policies)."""
+    import pandas as pd
+
+    from results.store import RunDir
+
+    out = tmp_path / "run"
+    code, _, err = _run(cli, out, "libero/object", SOLVED_TASK, "fast_dvla:checkpoint=libero-object", "1")
+    assert code == 0, err
+    row = RunDir(out).read_episodes().iloc[0]
+    assert row["checkpoint"].endswith("policies/checkpoints/libero-object-fast_dvla.safetensors")
+    assert pd.isna(row["failure_reason"]) and row["nfe_per_chunk"] < 56
+    assert row["success"], row[["steps", "chunks"]].to_dict()

@@ -20,7 +20,8 @@ EXPECTED = {
 
 def test_shipped_checkpoints_load_with_their_provenance():
     files = {name: SHIPPED / f"metaworld-mt10-{name}.safetensors" for name in EXPECTED}
-    assert sum(f.stat().st_size for f in files.values()) < 40 * 2**20
+    # Everything shipped, every suite's set together, stays small enough to commit.
+    assert sum(f.stat().st_size for f in SHIPPED.glob("*.safetensors")) < 40 * 2**20
     for name, path in files.items():
         ckpt = load(path)
         assert ckpt.model.cfg.pattern == EXPECTED[name]
@@ -52,3 +53,21 @@ def test_shipped_policy_solves_easy_mt10_tasks_with_no_arguments(cli, tmp_path, 
     assert code == 0, err
     per_task = RunDir(tmp_path / "r").read_episodes().groupby("task")["success"].sum()
     assert (per_task >= 2).all(), per_task.to_dict()
+
+
+LIBERO_SETS = {"libero-spatial": "libero/spatial", "libero-object": "libero/object"}
+
+
+@pytest.mark.parametrize("name", sorted(LIBERO_SETS))
+def test_shipped_libero_sets_are_a_teacher_its_student_and_an_ar_baseline(name):
+    teacher = load(SHIPPED / f"{name}-bidirectional.safetensors")
+    student = load(SHIPPED / f"{name}-fast_dvla.safetensors")
+    ar = load(SHIPPED / f"{name}-autoregressive.safetensors")
+    assert (teacher.model.cfg.pattern, student.model.cfg.pattern, ar.model.cfg.pattern) == (
+        "bidirectional",
+        "block_causal",
+        "causal",
+    )
+    assert teacher.model.cfg.action_dim == 7 and teacher.meta["data_sha256"] == ar.meta["data_sha256"]
+    digest = hashlib.sha256((SHIPPED / f"{name}-bidirectional.safetensors").read_bytes()).hexdigest()
+    assert student.meta["teacher_sha256"] == digest
