@@ -44,8 +44,11 @@ def resolve_checkpoint(params: Any, recipe: str) -> None:
     """Let `checkpoint=libero-spatial` name a shipped set: it becomes that set's file for
     this decoder's recipe at parse time, so manifests and rows record the real path."""
     value = params.checkpoint
-    if value in shipped_sets() and not Path(value).exists():
-        object.__setattr__(params, "checkpoint", shipped(recipe, value))
+    if Path(value).exists() or "/" in value or "\\" in value:
+        return  # a path (the default is one): nothing to resolve
+    candidate = shipped(recipe, value)
+    if Path(candidate).is_file():
+        object.__setattr__(params, "checkpoint", candidate)
 
 
 CHECKPOINT_HELP = "path, or a shipped set's name (e.g. libero-spatial), of a"
