@@ -52,8 +52,6 @@ class TrainConfig:
             )
         if self.sampling not in SAMPLING:
             raise ValueError(f"sampling {self.sampling!r} is not one of {', '.join(SAMPLING)}")
-        if self.init and self.recipe == "distill":
-            raise ValueError("--init does not apply to 'distill' (the student starts from --teacher)")
         if self.recipe == "distill" and not self.teacher:
             raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
         for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn"):

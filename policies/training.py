@@ -142,6 +142,25 @@ def _lr(step: int, cfg: TrainConfig) -> float:
     return cfg.lr * 0.5 * (1 + math.cos(math.pi * progress))
 
 
+def _student_weights(cfg: TrainConfig, teacher: Checkpoint, student_cfg: ModelConfig) -> dict:
+    """The teacher's weights, or with --init those of a student of this very teacher:
+    continued distillation, which must not mix in another teacher's tokenizer or targets."""
+    if not cfg.init:
+        return teacher.model.state_dict()
+    student = load(cfg.init)
+    if student.model.cfg != student_cfg:
+        raise ValueError(
+            f"{cfg.init}: not a block-causal student of this teacher's shape "
+            f"(pattern {student.model.cfg.pattern!r}, block size {student.model.cfg.block})"
+        )
+    if student.meta.get("teacher_sha256") != _sha256(cfg.teacher):
+        raise ValueError(
+            f"{cfg.init}: was distilled from another teacher (its teacher_sha256 "
+            f"{str(student.meta.get('teacher_sha256'))[:12]!r} is not {cfg.teacher}'s)"
+        )
+    return student.model.state_dict()
+
+
 def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenModel | None]:
     """The checkpoint to train (model, tokenizer, vocab, normalisation) and the teacher."""
     if cfg.recipe == "distill":
@@ -161,7 +180,7 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
             }
         )
         student = ActionTokenModel(student_cfg)
-        student.load_state_dict(teacher.model.state_dict())
+        student.load_state_dict(_student_weights(cfg, teacher, student_cfg))
         for p in teacher.model.parameters():
             p.requires_grad_(False)
         ckpt = Checkpoint(student, teacher.tokenizer, teacher.vocab, teacher.state_mean, teacher.state_std)

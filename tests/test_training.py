@@ -184,6 +184,41 @@ def test_student_records_its_teacher_by_content(demos, tmp_path):
     )
 
 
+def test_distillation_continues_from_a_student_of_the_same_teacher_only(demos, tmp_path):
+    teacher, other = tmp_path / "t.safetensors", tmp_path / "other.safetensors"
+    train(TrainConfig(recipe="bidirectional", **{**TINY, "steps": 2}), demos, teacher)
+    train(TrainConfig(recipe="bidirectional", **{**TINY, "steps": 2, "seed": 1}), demos, other)
+    student = tmp_path / "s.safetensors"
+    first = train(
+        TrainConfig(recipe="distill", teacher=str(teacher), probe_every=10, **TINY), demos, student
+    )
+    more = train(
+        TrainConfig(
+            recipe="distill", teacher=str(teacher), init=str(student), probe_every=10, **{**TINY, "steps": 10}
+        ),
+        demos,
+        tmp_path / "more.safetensors",
+    )
+    # It starts from the student's weights (the probe is the same loss on the same rows),
+    # not again from the teacher's.
+    assert more.probes[0][1] == pytest.approx(first.probes[-1][1], rel=1e-5)
+    assert first.probes[-1][1] != pytest.approx(first.probes[0][1], rel=1e-3)
+
+    with pytest.raises(ValueError, match="distilled from another teacher"):
+        train(
+            TrainConfig(recipe="distill", teacher=str(other), init=str(student), **TINY),
+            demos,
+            tmp_path / "x.safetensors",
+        )
+    with pytest.raises(ValueError, match="not a block-causal student"):
+        train(
+            TrainConfig(recipe="distill", teacher=str(teacher), init=str(teacher), **TINY),
+            demos,
+            tmp_path / "y.safetensors",
+        )
+    assert not (tmp_path / "x.safetensors").exists() and not (tmp_path / "y.safetensors").exists()
+
+
 def test_mixed_state_sizes_are_zero_padded_and_the_policy_accepts_exactly_those(tmp_path):
     """LIBERO goal/10/90 tasks differ in state size: one model reads all of them."""
     import gymnasium as gym

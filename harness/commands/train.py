@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--init",
         metavar="FILE",
         help="continue training this checkpoint (its pattern must fit the recipe; tokenizer and "
-        "normalisation are kept)",
+        "normalisation are kept); with distill, a student of --teacher to distil further",
     )
     p.add_argument(
         "--sampling",
