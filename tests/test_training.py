@@ -189,9 +189,7 @@ def test_distillation_continues_from_a_student_of_the_same_teacher_only(demos, t
     train(TrainConfig(recipe="bidirectional", **{**TINY, "steps": 2}), demos, teacher)
     train(TrainConfig(recipe="bidirectional", **{**TINY, "steps": 2, "seed": 1}), demos, other)
     student = tmp_path / "s.safetensors"
-    first = train(
-        TrainConfig(recipe="distill", teacher=str(teacher), probe_every=10, **TINY), demos, student
-    )
+    first = train(TrainConfig(recipe="distill", teacher=str(teacher), probe_every=10, **TINY), demos, student)
     more = train(
         TrainConfig(
             recipe="distill", teacher=str(teacher), init=str(student), probe_every=10, **{**TINY, "steps": 10}
