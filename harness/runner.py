@@ -118,6 +118,32 @@ def check_output(out: Path, resume: bool, overwrite: bool) -> None:
             )
 
 
+def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob]) -> None:
+    """Let each policy that can (`check_spaces`) refuse the suite before anything is
+    written: a checkpoint trained on another suite's observations would otherwise fail
+    every episode alike. Uses the first task's env; an env that does not build is left to
+    the episodes, which record why."""
+    checks = [(p, getattr(p.policy, "check_spaces", None)) for p in resolved.policies]
+    checks = [(p, check) for p, check in checks if callable(check)]
+    if not checks or not jobs:
+        return
+    try:
+        env = resolved.suite.make_env(jobs[0].task)
+    except Exception:
+        return
+    try:
+        for p, check in checks:
+            try:
+                check(env.observation_space, env.action_space)
+            except ValueError as exc:
+                raise UsageError(
+                    f"policy {p.spec.name} cannot act in {resolved.suite.name} "
+                    f"(task {jobs[0].task.name}): {exc}"
+                ) from None
+    finally:
+        env.close()
+
+
 def _config_diff(old: dict[str, Any], new: dict[str, Any]) -> str:
     keys = sorted(set(old) | set(new))
     return "; ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k))
@@ -300,6 +326,8 @@ def run(
     (recording changes no decoded token), so it is kept in the manifest and a resumed
     run goes on recording if the run it resumes did.
     """
+    check_output(out, resume, overwrite)
+    preflight(resolved, plan(resolved))
     run_dir, run_id, recorded = open_run(resolved, out, resume, overwrite)
     manifest = run_dir.read_manifest()
     if traces and not manifest.get("traces"):

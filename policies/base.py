@@ -62,3 +62,9 @@ class Policy(Protocol):
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
         """Return the next action chunk for each batch slot."""
         ...
+
+
+# Optional, beside the contract: `check_spaces(observation_space, action_space)` raising
+# ValueError when the policy cannot act in a suite (a checkpoint trained on other
+# observations). The runner calls it once before it writes anything, so a mismatch is a
+# usage error (exit 2) instead of one failed row per episode.

@@ -238,14 +238,18 @@ class DVLAPolicy:
         device = next(self.ckpt.model.parameters()).device
         self.ckpt.model = model.to(device).eval()
 
-    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
+    def check_spaces(self, observation_space: Any, action_space: Any) -> None:
         cfg = self.model.cfg
+        if action_space.shape != (cfg.action_dim,):
+            raise ValueError(
+                f"{self.params.checkpoint}: acts in {cfg.action_dim}-D, the suite's actions are "
+                f"{action_space.shape}"
+            )
+        check_observation_space(cfg, observation_space, self.ckpt.meta.get("state_dims") or ())
+
+    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         for ep in episodes:
-            if ep.action_space.shape != (cfg.action_dim,):
-                raise ValueError(
-                    f"checkpoint acts in {cfg.action_dim}-D, the suite's actions are {ep.action_space.shape}"
-                )
-            check_observation_space(cfg, ep.observation_space, self.ckpt.meta.get("state_dims") or ())
+            self.check_spaces(ep.observation_space, ep.action_space)
         self._instructions = [ep.instruction for ep in episodes]
 
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:

@@ -80,6 +80,23 @@ def test_a_checkpoint_of_the_wrong_pattern_is_refused(cli, tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_checkpoint_trained_on_another_suite_is_refused_before_anything_is_written(cli, tmp_path):
+    # LIBERO object's student acts in 7-D; Meta-World takes 4-D actions. Refused once, up
+    # front, not as one failed row per episode.
+    code, _, err = cli(
+        *MT1,
+        "--policy",
+        "scripted",
+        "--policy",
+        "fast_dvla:checkpoint=libero-object",
+        "--out",
+        str(tmp_path / "run"),
+    )
+    assert code == 2 and "policy fast_dvla cannot act in metaworld/mt1/reach-v3" in err
+    assert "libero-object-fast_dvla.safetensors: acts in 7-D, the suite's actions are (4,)" in err
+    assert not (tmp_path / "run").exists()
+
+
 def test_bad_decoder_parameters_are_refused(cli, tmp_path):
     ckpt = make_checkpoint(tmp_path / "m.safetensors", "block_causal", 4)
     code, _, err = cli(
