@@ -4,8 +4,10 @@ LIBERO's human demonstrations are not reachable offline, so demonstrations come 
 these experts. They read object poses and goal-region positions from the state vector
 (adapters/libero.py documents its layout), the goal from the task's BDDL, and drive the
 OSC_POSE controller with proportional control on the end-effector position through
-waypoints: above the object, down, close, lift, over the target, down, open. Only
-pick-and-place goals (`On`, `In`) are scripted; other goals raise at reset.
+waypoints: above the object, down, close, lift, over the target, down, open. Two other
+goals have their own experts, picked by `expert_for`: a plate dragged into a table
+region (policies/libero_push.py) and a stove's knob turned on (policies/libero_knob.py).
+Other goals (`Open`, `Close`, two-step goals) raise at reset.
 
 Object geometry (where a body's origin sits relative to its bottom and top, where to
 grip) is a table per object category, measured once from each category's collision
@@ -300,13 +302,40 @@ def _hold_opening(finger: float, opening: float) -> float:
     return 0.0
 
 
-def plan_for(context: EpisodeContext) -> PickPlace:
-    """The pick-and-place plan of a task, from its BDDL goal and the state layout."""
+def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
+    """A task's BDDL problem and where each entity and goal site sits in the state."""
     from adapters import libero
 
     key = context.suite.partition(":")[0].removeprefix("libero/")
     problem = libero.task_problem(key, _task_index(key, context.task))
-    slices = {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
+    return problem, {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
+
+
+def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
+    """The expert for a task's goal: a drag for an object too wide to grip going to a
+    table region (policies/libero_push.py), a wrist turn for a stove's knob
+    (policies/libero_knob.py), else pick-and-place."""
+    from adapters import libero
+    from policies.libero_knob import KNOBS, Knob, KnobExpert
+    from policies.libero_push import PUSHED, PushExpert, push_plan
+
+    problem, slices = _problem(context)
+    goals = problem["goal_state"]
+    if len(goals) == 1 and goals[0][0] == "turnon" and category(goals[0][1]) in KNOBS:
+        return KnobExpert(Knob(body=slices[goals[0][1]]), params)
+    if len(goals) == 1 and goals[0][0] == "on" and category(goals[0][1]) in PUSHED:
+        _, obj, region = goals[0]
+        if region not in libero.entity_names(problem) and problem["regions"].get(region, {}).get("ranges"):
+            plan = push_plan(slices, obj, problem["regions"][region], PUSHED[category(obj)])
+            return PushExpert(plan, slices[region], params)
+    return PickPlaceExpert(plan_for(context), params, rng)
+
+
+def plan_for(context: EpisodeContext) -> PickPlace:
+    """The pick-and-place plan of a task, from its BDDL goal and the state layout."""
+    from adapters import libero
+
+    problem, slices = _problem(context)
     goals = problem["goal_state"]
     if len(goals) != 1 or goals[0][0] not in ("on", "in"):
         raise ValueError(f"libero_scripted has no script for the goal {goals} of {context.task!r}")
@@ -346,7 +375,7 @@ def _task_index(key: str, task: str) -> int:
 class LiberoScripted:
     def __init__(self, params: LiberoScriptedParams):
         self.params = params
-        self._experts: list[PickPlaceExpert] = []
+        self._experts: list = []  # PickPlaceExpert or PushExpert
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         from adapters.base import derive_seed
@@ -358,7 +387,7 @@ class LiberoScripted:
                 rng = np.random.default_rng(
                     derive_seed("libero_scripted", self.params.seed, ep.task, ep.episode_index)
                 )
-            self._experts.append(PickPlaceExpert(plan_for(ep), self.params, rng))
+            self._experts.append(expert_for(ep, self.params, rng))
 
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
         actions = [

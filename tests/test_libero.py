@@ -114,6 +114,39 @@ def test_scripted_expert_solves_an_object_task(cli, tmp_path):
 
 
 @needs_libero
+@pytest.mark.parametrize(
+    ("task", "expert", "name"),
+    [
+        # `On plate_1 main_table_stove_front_region`: a plate is too wide to grip, so it is
+        # dragged by its rim (policies/libero_push.py).
+        ("5", "PushExpert", "push_the_plate"),
+        # `TurnOn flat_stove_1`: the knob's bar is gripped and the wrist turned (libero_knob.py).
+        ("7", "KnobExpert", "turn_on_the_stove"),
+    ],
+)
+def test_scripted_expert_solves_a_goal_task_that_is_not_pick_and_place(cli, tmp_path, task, expert, name):
+    from adapters.registry import load_suite
+    from harness.runner import episode_context
+    from policies.libero_scripted import LiberoScripted, LiberoScriptedParams
+    from results.store import RunDir
+
+    code, _, err = _run(cli, tmp_path / "goal", "libero/goal", task)
+    assert code == 0, err
+    row = RunDir(tmp_path / "goal").read_episodes().iloc[0]
+    assert row["success"] and row["steps"] < 300 and row["task"].startswith(name)
+
+    suite = load_suite("libero/goal")
+    spec = suite.tasks[int(task)]
+    policy = LiberoScripted(LiberoScriptedParams())
+    env = suite.make_env(spec)
+    try:
+        policy.reset([episode_context("libero/goal", spec, spec.episodes[0], env)])
+    finally:
+        env.close()
+    assert type(policy._experts[0]).__name__ == expert
+
+
+@needs_libero
 def test_collect_writes_demonstrations_train_can_read(cli, tmp_path):
     out = tmp_path / "demos"
     code, _, err = cli(
