@@ -14,13 +14,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.libero_scripted import CLOSE, OPEN, LiberoScriptedParams, _yaw, quat_to_mat, rotation_error
+from policies.libero_scripted import (
+    CLOSE,
+    MAX_DELTA_RAD,
+    OPEN,
+    LiberoScriptedParams,
+    quat_to_mat,
+    rotation_error,
+    yaw_matrix,
+)
 
 GRIP_HEIGHT = 0.04  # the knob's bar, gripped this far above the stove's origin (m)
 KNOBS = ("flat_stove",)  # categories whose `TurnOn` is this knob
 TURN_TO = 1.0  # wrist turn (rad, counter-clockwise: the hinge's positive direction)
 TURN_RATE = 0.1  # rad per control step
-MAX_DELTA_RAD = 0.5
 
 
 @dataclass(frozen=True)
@@ -56,7 +63,7 @@ class KnobExpert:
                 self._next("turn")
         elif self.phase == "turn":
             grip = CLOSE
-            want = _yaw(min(TURN_TO, TURN_RATE * self.count)) @ self.home_rot
+            want = yaw_matrix(min(TURN_TO, TURN_RATE * self.count)) @ self.home_rot
         move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
         turn = np.clip(rotation_error(want, rot) / MAX_DELTA_RAD, -1.0, 1.0)
         return np.concatenate([move, turn, [grip]]).astype(np.float32)

@@ -1,10 +1,9 @@
-"""Scripted pushing for LIBERO goals `On OBJ REGION` whose object is too wide to grip.
+"""Scripted dragging for LIBERO goals `On OBJ REGION` whose object is too wide to grip.
 
 libero/goal's "push the plate to the front of the stove" puts a ~15 cm plate into a
-table region; the Panda's fingers open 8 cm, so the plate is pushed, not carried. The
-expert closes its fingers, lowers them to the plate's rim height on the far side of the
-plate from the goal, and pushes through the plate's centre towards the goal, re-aiming
-every step from where the plate is now (a round plate pushed at one point drifts
+table region; the Panda's fingers open 8 cm, so the plate is moved without a grasp: the
+closed fingers press on its inner rim (PushExpert says why from inside), re-aiming
+every step from where the plate is now (a round plate moved at one point drifts
 sideways). It aims at the point of the region nearest the plate, `MARGIN` inside its
 edge, so the plate travels as little as possible past the other objects. Reads only
 the state vector and the BDDL, like the pick-and-place expert (policies/libero_scripted.py).
@@ -16,17 +15,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.libero_scripted import CLOSE, LiberoScriptedParams, _yaw, quat_to_mat, rotation_error
+from policies.libero_scripted import (
+    CLOSE,
+    MAX_DELTA_RAD,
+    LiberoScriptedParams,
+    quat_to_mat,
+    rotation_error,
+    yaw_matrix,
+)
 
 PUSHED = {"plate": 0.048}  # categories dragged instead of gripped: inner radius of the rim (m)
 MARGIN = 0.02  # aim this far inside the goal region's edge (m)
-DRAG_HEIGHT = (
-    -0.005
-)  # set point for the fingertips below the plate's floor: they press down and cannot climb the low rim (m)
+# Set point for the fingertips below the plate's floor (m): they press down and cannot
+# climb the low rim.
+DRAG_HEIGHT = -0.005
 PRESS = 0.02  # the fingers' set point this far past the inner rim: they press while they move
 DONE_WITHIN = 0.006  # stop once the plate's centre is this close to the aim point (m)
 LOST = 0.025  # fingers this far outside the inner rim: the plate got away, go in again (m)
-MAX_DELTA_RAD = 0.5
 
 
 @dataclass(frozen=True)
@@ -73,7 +78,7 @@ class PushExpert:
         """The start orientation turned about z so the closing axis lies along `d`."""
         have, want = self.home_rot[:, 1], d
         angle = np.arctan2(have[0] * want[1] - have[1] * want[0], have[0] * want[0] + have[1] * want[1])
-        return _yaw((angle + np.pi / 2) % np.pi - np.pi / 2) @ self.home_rot
+        return yaw_matrix((angle + np.pi / 2) % np.pi - np.pi / 2) @ self.home_rot
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         eef, rot = obs[0:3], quat_to_mat(obs[3:7])

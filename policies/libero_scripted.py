@@ -172,7 +172,7 @@ class PickPlaceExpert:
         have = self.home_rot[:, 1]
         angle = np.arctan2(have[0] * want[1] - have[1] * want[0], have[0] * want[0] + have[1] * want[1])
         angle = (angle + np.pi / 2) % np.pi - np.pi / 2
-        return _yaw(angle) @ self.home_rot
+        return yaw_matrix(angle) @ self.home_rot
 
     def _grasp(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gripper orientation and grip point. A flat box may be gripped off-centre along
@@ -187,7 +187,7 @@ class PickPlaceExpert:
         obstacles = np.array([obs[s][:2] for s in self.plan.others])
         best, best_clearance = (rot, point), -np.inf
         for yaw, shift in GRASP_CANDIDATES:
-            turned = _yaw(yaw) @ rot
+            turned = yaw_matrix(yaw) @ rot
             close_axis = turned[:2, 1] / np.linalg.norm(turned[:2, 1])
             along = np.array([-close_axis[1], close_axis[0]])
             grip = point.copy()
@@ -285,7 +285,7 @@ class PickPlaceExpert:
         return np.concatenate([move, turn, [grip]]).astype(np.float32)
 
 
-def _yaw(angle: float) -> np.ndarray:
+def yaw_matrix(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -314,7 +314,8 @@ def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
 def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
     """The expert for a task's goal: a drag for an object too wide to grip going to a
     table region (policies/libero_push.py), a wrist turn for a stove's knob
-    (policies/libero_knob.py), else pick-and-place."""
+    (policies/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
+    pick-and-place, the experts whose demonstrations are trained on so far."""
     from adapters import libero
     from policies.libero_knob import KNOBS, Knob, KnobExpert
     from policies.libero_push import PUSHED, PushExpert, push_plan
@@ -375,7 +376,7 @@ def _task_index(key: str, task: str) -> int:
 class LiberoScripted:
     def __init__(self, params: LiberoScriptedParams):
         self.params = params
-        self._experts: list = []  # PickPlaceExpert or PushExpert
+        self._experts: list = []  # PickPlaceExpert, PushExpert or KnobExpert
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         from adapters.base import derive_seed
