@@ -327,7 +327,8 @@ def run(
     run goes on recording if the run it resumes did.
     """
     check_output(out, resume, overwrite)
-    preflight(resolved, plan(resolved))
+    planned = plan(resolved)
+    preflight(resolved, planned)
     run_dir, run_id, recorded = open_run(resolved, out, resume, overwrite)
     manifest = run_dir.read_manifest()
     if traces and not manifest.get("traces"):
@@ -336,8 +337,8 @@ def run(
     if retry_failed and len(recorded):
         recorded = recorded[recorded["failure_reason"].isna()]
     done = {_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")} if len(recorded) else set()
-    jobs = [job for job in plan(resolved) if job_key(resolved, job) not in done]
-    skipped = len(plan(resolved)) - len(jobs)
+    jobs = [job for job in planned if job_key(resolved, job) not in done]
+    skipped = len(planned) - len(jobs)
     report = RunReport(run_dir, run_id, executed=0, skipped=skipped, failed=0)
     tick = progress(len(jobs), skipped) if progress else None
 
