@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -224,61 +225,61 @@ def decode_fast_dvla(
 
 
 def _fast_dvla_row(model, words, state, images, tau_conf, tau_add, tau_act, n, confidence) -> Decoded:
+    # Bookkeeping (which block is where, what to commit) runs in numpy on one copy of
+    # each pass's choices and confidences: per-token tensor ops cost more than a small
+    # model's forward pass, and this loop runs once per pass.
     cfg = model.cfg
     total, k, dev = cfg.action_tokens, cfg.block, words.device
     blocks = total // k
-    tokens = torch.full((1, total), cfg.mask_id, dtype=torch.long, device=dev)
+    tokens = np.full(total, cfg.mask_id, dtype=np.int64)
+    done = np.zeros(blocks, dtype=np.int64)  # committed tokens per block
     status = ["full"] + ["inactive"] * (blocks - 1)
-    out = Decoded(tokens)
+    trace: list[list[int]] = []
     cache: KVCache | None = None
     cached = 0  # leading blocks whose keys/values are in the cache
-
-    def done(i: int) -> int:
-        return int((tokens[0, i * k : (i + 1) * k] != cfg.mask_id).sum())
-
-    while bool((tokens == cfg.mask_id).any()):
-        first_open = next(i for i in range(blocks) if done(i) < k)
-        active = [i for i in range(blocks) if status[i] != "inactive" and done(i) < k]
+    while done.sum() < total:
+        first_open = int(np.argmax(done < k))
+        active = [i for i in range(blocks) if status[i] != "inactive" and done[i] < k]
         run_blocks = sorted(set(range(cached, first_open)) | set(active))
-        run = torch.cat([torch.arange(i * k, (i + 1) * k, device=dev) for i in run_blocks])
+        run_np = np.concatenate([np.arange(i * k, (i + 1) * k) for i in run_blocks])
+        run = torch.from_numpy(run_np).to(dev)
+        inputs = torch.from_numpy(tokens[run_np]).to(dev)[None]
         if cache is None:
-            result = model(tokens[:, run], run, words, state, images=images)
+            result = model(inputs, run, words, state, images=images)
         else:
-            result = model(tokens[:, run], run, cache=cache)
-        new_done = result.kv.positions < cfg.prefix_len + first_open * k
+            result = model(inputs, run, cache=cache)
         if cache is None or first_open > cached:
-            finished = result.kv.select(new_done)
+            finished = result.kv.select(result.kv.positions < cfg.prefix_len + first_open * k)
             cache = finished if cache is None else cache.extend(finished)
             cached = first_open
-        choice, conf, _ = _scores(result.logits[0], confidence, 0.0, None)
+        choice_t, conf_t, _ = _scores(result.logits[0], confidence, 0.0, None)
+        choice, conf = choice_t.cpu().numpy(), conf_t.cpu().numpy()
         committed: list[int] = []
         for i in active:
-            sel = (run >= i * k) & (run < (i + 1) * k)
-            pos, c, ch = run[sel], conf[sel], choice[sel]
-            masked = tokens[0, pos] == cfg.mask_id
+            sel = (run_np >= i * k) & (run_np < (i + 1) * k)
+            pos, c = run_np[sel], conf[sel]
+            masked = tokens[pos] == cfg.mask_id
             if status[i] == "semi":
                 commit = masked & (c >= tau_conf)
             else:
-                remaining = int(masked.sum())
-                kth = remaining // n
+                kth = int(masked.sum()) // n
                 threshold = tau_conf
                 if kth >= 1:
-                    threshold = min(tau_conf, float(c[masked].topk(kth).values[-1]))
+                    threshold = min(tau_conf, float(np.sort(c[masked])[-kth]))
                 commit = masked & (c >= threshold)
-                if not bool(commit.any()):
-                    best = c.masked_fill(~masked, -math.inf).argmax()
-                    commit = torch.zeros_like(masked)
-                    commit[best] = True
-            tokens[0, pos[commit]] = ch[commit]
+                if not commit.any():
+                    commit = np.zeros_like(masked)
+                    commit[int(np.argmax(np.where(masked, c, -np.inf)))] = True
+            tokens[pos[commit]] = choice[sel][commit]
+            done[i] += int(commit.sum())
             committed += pos[commit].tolist()
-        out.trace.append(sorted(committed))
+        trace.append(sorted(committed))
         for i in range(blocks - 1):
             if status[i] == "inactive":
                 break
-            fraction, complete = done(i) / k, done(i) == k
+            fraction, complete = done[i] / k, done[i] == k
             if status[i + 1] == "inactive" and (fraction > tau_add or complete):
                 status[i + 1] = "semi"
             if status[i + 1] == "semi" and (fraction > tau_act or complete):
                 status[i + 1] = "full"
-    out.tokens = tokens
-    return out
+    return Decoded(torch.from_numpy(tokens).to(dev)[None], trace)
