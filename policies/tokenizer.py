@@ -2,7 +2,7 @@
 
 Bins are uniform between the 1st and 99th percentile of the training actions (as in
 DD-VLA), values outside are clipped. A dimension marked binary (a gripper) uses only
-the first and last bin, split at the midpoint. Fitted on demonstrations and stored
+the first and last bin, split at the midpoint. Zero round-trips exactly (`zero_token`). Fitted on demonstrations and stored
 inside the checkpoint as plain numbers (`to_dict`), never pickled.
 """
 
@@ -57,7 +57,7 @@ class ActionTokenizer:
         return tokens.reshape(*actions.shape[:-2], -1)
 
     def decode(self, tokens: np.ndarray) -> np.ndarray:
-        """(..., H*D) tokens -> (..., H, D) actions (bin centres)."""
+        """(..., H*D) tokens -> (..., H, D) actions (bin centres, and 0 exactly)."""
         tokens = np.asarray(tokens)
         if tokens.shape[-1] % self.action_dim:
             raise ValueError(
@@ -66,7 +66,19 @@ class ActionTokenizer:
         if tokens.min() < 0 or tokens.max() >= self.bins:
             raise ValueError(f"tokens outside [0, {self.bins})")
         steps = tokens.reshape(*tokens.shape[:-1], -1, self.action_dim).astype(np.float64)
-        return self.low + steps / (self.bins - 1) * (self.high - self.low)
+        values = self.low + steps / (self.bins - 1) * (self.high - self.low)
+        return np.where(steps == self.zero_token(), 0.0, values)
+
+    def zero_token(self) -> np.ndarray:
+        """Per dimension, the token that 0 encodes to (-1 where 0 is outside the range).
+
+        It decodes to exactly 0, not to its bin centre: robosuite's grippers act on the
+        sign of the command and hold still only at exactly 0, so with 256 bins over
+        [-1, 1] a demonstrated "hold" (token 128, centre +0.004) came back as "close"."""
+        unit = -self.low / (self.high - self.low)
+        token = np.where((self.low < 0) & (self.high > 0), np.rint(unit * (self.bins - 1)), -1.0)
+        token[list(self.binary_dims)] = -1.0
+        return token
 
     def round_trip_error(self, actions: np.ndarray) -> float:
         """Mean absolute error of decode(encode(a)) against the clipped actions."""

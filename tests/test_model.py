@@ -106,6 +106,21 @@ def test_tokenizer_round_trip_and_serialisation():
         ActionTokenizer.from_dict({"low": [0.0], "high": [0.0], "bins": 256, "binary_dims": []})
 
 
+def test_a_zero_action_round_trips_exactly_so_a_gripper_can_hold():
+    # robosuite's gripper acts on the sign of its command: +0.004 closes, only 0 holds.
+    actions = np.tile(np.array([[-1.0, 1.0, 0.3]]), (100, 1))
+    actions[:, 0] = np.linspace(-1, 1, 100)
+    actions[::2, 1] = -1.0
+    tok = ActionTokenizer.fit(actions, bins=256, percentiles=(0.0, 100.0))
+    hold = np.array([[[0.0, 0.0, 0.3]]])
+    decoded = tok.decode(tok.encode(hold))[0, 0]
+    assert decoded[0] == 0.0 and decoded[1] == 0.0  # not the bin centre 1/255
+    assert decoded[2] != 0.0  # a range without 0 has no zero token
+    assert tok.zero_token()[2] == -1
+    near = tok.decode(tok.encode(np.array([[[0.02, -0.02, 0.3]]])))[0, 0]
+    assert np.all(np.sign(near[:2]) == [1.0, -1.0])  # neighbouring bins keep their sign
+
+
 @pytest.mark.parametrize(("pattern", "step"), [("block_causal", 4), ("causal", 1)])
 def test_camera_images_join_the_prefix_and_the_cache_stays_exact(pattern, step):
     model = _model(
