@@ -26,7 +26,7 @@ from policies.registry import PolicySpec, param
 
 MAX_DELTA_M = 0.05  # OSC_POSE maps a position action of 1 to a 5 cm goal offset
 MAX_DELTA_RAD = 0.5  # and a rotation action of 1 to 0.5 rad
-OPEN, CLOSE = -1.0, 1.0
+OPEN, CLOSE, HOLD = -1.0, 1.0, 0.0
 RELEASE_ABOVE = 0.008  # open once the object is this close above its place point (m)
 # The Panda hand's footprint (half-lengths along the closing axis and across it, m), the
 # radius assumed for a neighbouring object, and the gap a grasp should leave between them.
@@ -40,7 +40,11 @@ GRASP_CANDIDATES = [(0.0, 0.0)] + [
     for yaw in (0.0, 0.3, -0.3, 0.5, -0.5)
     if (yaw, shift) != (0.0, 0.0)
 ]
-DRAWER_OPENING = 0.024  # finger joint position (m, 0.04 fully open) when reaching into a drawer
+# Gripper steps closed from fully open before reaching into a drawer, then held: about
+# 2.6 cm between the fingers' joints' 4 cm, narrow enough to pass the drawer's side walls.
+# A fixed count, not a feedback loop on the finger joint: a policy that executes a chunk
+# of actions open loop can copy a count, not a correction it cannot see coming.
+DRAWER_CLOSE_STEPS = 3
 
 
 @dataclass(frozen=True)
@@ -228,7 +232,8 @@ class PickPlaceExpert:
             above = self.grip_point + np.array([0.0, 0.0, 0.08])
             target = above if self.phase == "approach" else self.grip_point
             if self.plan.holder is not None:  # narrow the fingers to pass the drawer's side wall
-                grip = _hold_opening(float(obs[7]), DRAWER_OPENING)
+                narrowing = self.phase == "approach" and self.count <= DRAWER_CLOSE_STEPS
+                grip = CLOSE if narrowing else HOLD
             err = target - eef
             if self.phase == "approach" and np.linalg.norm(err[:2]) < 0.01 and abs(err[2]) < 0.02:
                 self._next("descend")
@@ -288,18 +293,6 @@ class PickPlaceExpert:
 def yaw_matrix(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _hold_opening(finger: float, opening: float) -> float:
-    """Gripper action that keeps one finger's joint position near `opening` (m).
-
-    Panda's gripper action moves its command by a fixed step per control step (only the
-    action's sign counts), so 0 holds the command and the fingers stop where they are."""
-    if finger > opening + 0.003:
-        return CLOSE
-    if finger < opening - 0.003:
-        return OPEN
-    return 0.0
 
 
 def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:

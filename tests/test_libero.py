@@ -171,6 +171,25 @@ def test_collect_writes_demonstrations_train_can_read(cli, tmp_path):
 
 
 @needs_libero
+def test_the_drawer_expert_narrows_its_fingers_with_a_fixed_count_then_holds(cli, tmp_path):
+    # Spatial task 4 (bowl in the top drawer): a fixed count is what a policy that runs a
+    # chunk open loop can learn; a feedback loop on the finger joint was not.
+    from policies.libero_scripted import CLOSE, DRAWER_CLOSE_STEPS, HOLD, OPEN
+
+    out = tmp_path / "drawer"
+    code, _, err = cli(
+        "collect", "--suite", "libero/spatial", "--tasks", "4", "--policy", "libero_scripted",
+        "--episodes-per-task", "1", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    assert list(json.loads((out / "manifest.json").read_text())["episodes_kept"].values()) == [1]
+    grip = [a[6] for a in pq.read_table(out / "steps.parquet")["action"].to_pylist()]
+    reach = grip[: grip.index(CLOSE, DRAWER_CLOSE_STEPS)]  # up to the grasp
+    assert reach == [CLOSE] * DRAWER_CLOSE_STEPS + [HOLD] * (len(reach) - DRAWER_CLOSE_STEPS)
+    assert OPEN not in grip[: len(reach) + 10]
+
+
+@needs_libero
 def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
     """Expert demonstrations -> tiny bidirectional checkpoint -> two episodes through the CLI."""
     from policies.recipes import TrainConfig
