@@ -118,30 +118,29 @@ def check_output(out: Path, resume: bool, overwrite: bool) -> None:
             )
 
 
-def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob]) -> None:
+def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob]) -> dict[str, gym.Env]:
     """Let each policy that can (`check_spaces`) refuse the suite before anything is
     written: a checkpoint trained on another suite's observations would otherwise fail
-    every episode alike. Uses the first task's env; an env that does not build is left to
-    the episodes, which record why."""
+    every episode alike. Uses the first task's env and returns it, by task name, for the
+    episodes to reuse (a LIBERO env takes seconds to build); an env that does not build
+    is left to the episodes, which record why."""
     checks = [(p, getattr(p.policy, "check_spaces", None)) for p in resolved.policies]
     checks = [(p, check) for p, check in checks if callable(check)]
     if not checks or not jobs:
-        return
+        return {}
     try:
         env = resolved.suite.make_env(jobs[0].task)
     except Exception:
-        return
-    try:
-        for p, check in checks:
-            try:
-                check(env.observation_space, env.action_space)
-            except ValueError as exc:
-                raise UsageError(
-                    f"policy {p.spec.name} cannot act in {resolved.suite.name} "
-                    f"(task {jobs[0].task.name}): {exc}"
-                ) from None
-    finally:
-        env.close()
+        return {}
+    for p, check in checks:
+        try:
+            check(env.observation_space, env.action_space)
+        except ValueError as exc:
+            env.close()
+            raise UsageError(
+                f"policy {p.spec.name} cannot act in {resolved.suite.name} (task {jobs[0].task.name}): {exc}"
+            ) from None
+    return {jobs[0].task.name: env}
 
 
 def _config_diff(old: dict[str, Any], new: dict[str, Any]) -> str:
@@ -271,13 +270,15 @@ def execute_local(
     jobs: list[EpisodeJob],
     on_done: Callable[[EpisodeJob, EpisodeOutcome], None],
     traces: bool = False,
+    envs: dict[str, gym.Env] | None = None,
 ) -> None:
     """The laptop backend: one process, episodes one after another, envs reused per task.
 
     Jobs come task by task, so a task's env is closed when the next task starts: a
-    LIBERO env holds ~0.5 GB, and ninety of them open at once would not fit.
+    LIBERO env holds ~0.5 GB, and ninety of them open at once would not fit. `envs`
+    (already built, by task name) are used and closed like the ones built here.
     """
-    envs: dict[str, gym.Env] = {}
+    envs = {} if envs is None else envs
     counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
     try:
         for job in jobs:
@@ -304,8 +305,8 @@ def execute_local(
                 envs.pop(job.task.name).close()  # its state is suspect: rebuild next time
             on_done(job, outcome)
     finally:
-        for env in envs.values():
-            env.close()
+        while envs:
+            envs.popitem()[1].close()
         for counter in counters.values():
             counter.close()
 
@@ -328,7 +329,25 @@ def run(
     """
     check_output(out, resume, overwrite)
     planned = plan(resolved)
-    preflight(resolved, planned)
+    envs = preflight(resolved, planned)
+    try:
+        return _run_planned(resolved, out, planned, envs, resume, overwrite, retry_failed, progress, traces)
+    finally:
+        while envs:  # the run stopped before its episodes took them over
+            envs.popitem()[1].close()
+
+
+def _run_planned(
+    resolved: ResolvedRun,
+    out: Path,
+    planned: list[EpisodeJob],
+    envs: dict[str, gym.Env],
+    resume: bool,
+    overwrite: bool,
+    retry_failed: bool,
+    progress: Callable[[int, int], Any] | None,
+    traces: bool,
+) -> RunReport:
     run_dir, run_id, recorded = open_run(resolved, out, resume, overwrite)
     manifest = run_dir.read_manifest()
     if traces and not manifest.get("traces"):
@@ -362,7 +381,7 @@ def run(
 
     status = "finished"
     try:
-        execute_local(resolved, jobs, on_done, traces)
+        execute_local(resolved, jobs, on_done, traces, envs)
     except KeyboardInterrupt:
         status, report.interrupted = "interrupted", True
     finally:

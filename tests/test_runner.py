@@ -100,3 +100,37 @@ def test_a_tasks_env_is_closed_when_the_next_task_starts(tmp_path):
     assert [env.open_when_made for env in envs] == [0, 0, 0]  # the previous task's was closed first
     assert all(env.closed for env in envs)
     assert [len(env.actions) for env in envs] == [6, 6, 6]
+
+
+def test_the_env_built_for_the_pre_flight_check_is_the_one_the_episodes_use(tmp_path):
+    checked: list[object] = []
+
+    class Checking(ChunkPolicy):
+        def check_spaces(self, observation_space, action_space):
+            checked.append(action_space)
+
+    resolved = fake_resolved(Checking(chunk=2), episodes=2, tasks=2)
+    run(resolved, tmp_path / "run")
+    assert len(checked) == 1
+    assert len(resolved.made_envs) == 2  # one per task: the checked env was not rebuilt
+    assert all(env.closed for env in resolved.made_envs)
+
+
+def test_a_run_that_stops_before_its_episodes_closes_the_pre_flight_env(tmp_path, monkeypatch):
+    import pytest
+
+    import harness.runner
+    from harness.errors import UsageError
+
+    class Checking(ChunkPolicy):
+        def check_spaces(self, observation_space, action_space):
+            pass
+
+    def refuse(*_args):
+        raise UsageError("the recorded run has another configuration")
+
+    monkeypatch.setattr(harness.runner, "open_run", refuse)
+    resolved = fake_resolved(Checking(chunk=2), episodes=1)
+    with pytest.raises(UsageError):
+        run(resolved, tmp_path / "run")
+    assert len(resolved.made_envs) == 1 and resolved.made_envs[0].closed
