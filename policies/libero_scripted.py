@@ -45,6 +45,15 @@ GRASP_CANDIDATES = [(0.0, 0.0)] + [
 # A fixed count, not a feedback loop on the finger joint: a policy that executes a chunk
 # of actions open loop can copy a count, not a correction it cannot see coming.
 DRAWER_CLOSE_STEPS = 3
+DRAWER_OPENING = 0.024  # revision 1: finger joint position (m) held by feedback in a drawer
+# Revision 2 lifts once the fingers have settled on the object (the finger joint moved
+# less than SETTLE in a step, after at least MIN_CLOSE steps), and in that very step.
+# Revision 1 waited a fixed 12 steps: up to 7 identical observations in a row that
+# demonstrate "stay", then one "lift", which a policy decoding its chunk left to right
+# resolves as "stay" for ever (the libero-object student on the tomato sauce).
+SETTLE = 2e-4
+MIN_CLOSE = 3
+REVISIONS = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -124,6 +133,12 @@ class LiberoScriptedParams:
         0.0, "std of Gaussian noise on position actions (degrades the expert)", low=0.0
     )
     seed: int = param(0, "seed of the action noise", low=0)
+    revision: int = param(
+        2,
+        "expert revision: 2 = fixed-count finger narrowing for drawers and a lift once the "
+        "grip has settled; 1 = the expert that collected the shipped LIBERO demonstrations",
+        choices=REVISIONS,
+    )
 
 
 @dataclass
@@ -150,6 +165,7 @@ class PickPlaceExpert:
         self.grip_point: np.ndarray | None = None
         self.lift_z = 0.0
         self.last_z: float | None = None
+        self.last_finger: float | None = None
         self.stalled = 0
 
     def _grip_point(self, obs: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
@@ -232,8 +248,7 @@ class PickPlaceExpert:
             above = self.grip_point + np.array([0.0, 0.0, 0.08])
             target = above if self.phase == "approach" else self.grip_point
             if self.plan.holder is not None:  # narrow the fingers to pass the drawer's side wall
-                narrowing = self.phase == "approach" and self.count <= DRAWER_CLOSE_STEPS
-                grip = CLOSE if narrowing else HOLD
+                grip = self._narrowed_grip(float(obs[7]))
             err = target - eef
             if self.phase == "approach" and np.linalg.norm(err[:2]) < 0.01 and abs(err[2]) < 0.02:
                 self._next("descend")
@@ -241,11 +256,13 @@ class PickPlaceExpert:
                 self._next("close")
         elif self.phase == "close":
             target, grip = self.grip_point, CLOSE
-            if self.count >= 12:
+            if self.count >= 12 or (p.revision >= 2 and self._grip_settled(float(obs[7]))):
                 self.lift_z = max(self._place_point(obs)[2], obj[2]) + self.plan.obj_geom.bottom + p.lift
                 self.lift_z += self.grip_point[2] - obj[2]
                 self.obj_z0 = obj[2]
                 self._next("lift")
+                if p.revision >= 2:
+                    target = np.array([self.grip_point[0], self.grip_point[1], self.lift_z])
         elif self.phase == "lift":
             grip = CLOSE
             target = np.array([self.grip_point[0], self.grip_point[1], self.lift_z])
@@ -279,8 +296,18 @@ class PickPlaceExpert:
         self.last_z = float(eef[2])
         return self._action(target, eef, rot, grip)
 
+    def _narrowed_grip(self, finger: float) -> float:
+        if self.params.revision == 1:
+            return _hold_opening(finger, DRAWER_OPENING)
+        return CLOSE if self.phase == "approach" and self.count <= DRAWER_CLOSE_STEPS else HOLD
+
+    def _grip_settled(self, finger: float) -> bool:
+        settled = self.last_finger is not None and abs(finger - self.last_finger) < SETTLE
+        self.last_finger = finger
+        return settled and self.count >= MIN_CLOSE
+
     def _next(self, phase: str) -> None:
-        self.phase, self.count, self.stalled = phase, 0, 0
+        self.phase, self.count, self.stalled, self.last_finger = phase, 0, 0, None
 
     def _action(self, target: np.ndarray, eef: np.ndarray, rot: np.ndarray, grip: float) -> np.ndarray:
         move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
@@ -293,6 +320,18 @@ class PickPlaceExpert:
 def yaw_matrix(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _hold_opening(finger: float, opening: float) -> float:
+    """Revision 1's gripper action that keeps one finger's joint near `opening` (m).
+
+    Panda's gripper action moves its command by a fixed step per control step (only the
+    action's sign counts), so 0 holds the command and the fingers stop where they are."""
+    if finger > opening + 0.003:
+        return CLOSE
+    if finger < opening - 0.003:
+        return OPEN
+    return HOLD
 
 
 def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:

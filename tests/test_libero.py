@@ -190,6 +190,28 @@ def test_the_drawer_expert_narrows_its_fingers_with_a_fixed_count_then_holds(cli
 
 
 @needs_libero
+@pytest.mark.parametrize(("revision", "waits"), [("2", False), ("1", True)])
+def test_the_expert_lifts_in_the_step_its_grip_settles(cli, tmp_path, revision, waits):
+    # Observations that repeat while the demonstrated action is "stay" teach a policy that
+    # decodes its chunk left to right to stay for ever (revision 1 waited 12 steps).
+    from policies.libero_scripted import CLOSE, MIN_CLOSE, SETTLE
+
+    out = tmp_path / "demo"
+    code, _, err = cli(
+        "collect", "--suite", "libero/object", "--tasks", "5", "--policy",
+        f"libero_scripted:revision={revision}", "--episodes-per-task", "1", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    table = pq.read_table(out / "steps.parquet").to_pydict()
+    fingers = [obs[7] for obs in table["observation"]]
+    actions = table["action"]
+    close = next(t for t, a in enumerate(actions) if a[6] == CLOSE)
+    lift = next(t for t in range(close, len(actions)) if actions[t][2] > 0.5)
+    idle = [t for t in range(close + MIN_CLOSE, lift) if abs(fingers[t] - fingers[t - 1]) < SETTLE]
+    assert bool(idle) == waits, (close, lift, idle)
+
+
+@needs_libero
 def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
     """Expert demonstrations -> tiny bidirectional checkpoint -> two episodes through the CLI."""
     from policies.recipes import TrainConfig
