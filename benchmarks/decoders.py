@@ -166,6 +166,7 @@ def compare(rounds: int, chunks: int, checkpoint_dir: str = "", device: str = "a
                 "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
                 "peak_gpu_mb": max((r["peak_gpu_mb"] or 0) for r in runs) or None,
                 "device": runs[0]["device"],
+                "threads": runs[0]["threads"],
             }
         )
     base = next(r for r in rows if r["decoder"] == "bidirectional")["tokens_per_s"]
@@ -175,7 +176,8 @@ def compare(rounds: int, chunks: int, checkpoint_dir: str = "", device: str = "a
 
 
 def report(title: str, rows: list[dict]) -> bool:
-    print(f"{title} [device: {rows[0]['device']}]")
+    threads = rows[0]["threads"]
+    print(f"{title} [device: {rows[0]['device']}, {threads} CPU thread{'s' * (threads != 1)}]")
     print(f"{'decoder':18}{'tokens/s':>10}{'ms/chunk':>10}{'NFE/chunk':>11}{'speedup':>9}{'peak RSS MB':>13}")
     for r in rows:
         print(
@@ -231,7 +233,7 @@ def main() -> None:
     else:
         print(f"(a) skipped: {args.checkpoints} lacks {', '.join(sorted(needed - have))}\n")
     rows = compare(args.rounds, args.chunks, device=args.device)
-    result["machine"]["device"] = rows[0]["device"]
+    result["machine"] |= {"device": rows[0]["device"], "threads": rows[0]["threads"]}
     faster = report(
         "(b) paper-like shapes, RANDOM weights (speed only): 256 prefix + 56 action tokens, "
         "8 layers, width 512",
