@@ -40,8 +40,8 @@ GRASP_CANDIDATES = [(0.0, 0.0)] + [
     for yaw in (0.0, 0.3, -0.3, 0.5, -0.5)
     if (yaw, shift) != (0.0, 0.0)
 ]
-# Gripper steps closed from fully open before reaching into a drawer, then held: about
-# 2.6 cm between the fingers' joints' 4 cm, narrow enough to pass the drawer's side walls.
+# Gripper steps closed from fully open before reaching into a drawer, then held: each
+# finger joint ends near 0.026 m of its 0.04 m, narrow enough to pass the side walls.
 # A fixed count, not a feedback loop on the finger joint: a policy that executes a chunk
 # of actions open loop can copy a count, not a correction it cannot see coming.
 DRAWER_CLOSE_STEPS = 3
