@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 
 import pyarrow.parquet as pq
+import pytest
 
+import harness.runner
+from harness.errors import UsageError
 from harness.runner import run
 from results.schema import COLUMN_NAMES
 from results.store import RunDir
@@ -117,11 +120,6 @@ def test_the_env_built_for_the_pre_flight_check_is_the_one_the_episodes_use(tmp_
 
 
 def test_a_run_that_stops_before_its_episodes_closes_the_pre_flight_env(tmp_path, monkeypatch):
-    import pytest
-
-    import harness.runner
-    from harness.errors import UsageError
-
     class Checking(ChunkPolicy):
         def check_spaces(self, observation_space, action_space):
             pass
