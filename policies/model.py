@@ -23,7 +23,7 @@ call.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -101,27 +101,94 @@ class ModelConfig:
 
 @dataclass
 class KVCache:
-    """Keys/values of some absolute positions, one (B, heads, n, head_dim) pair per layer."""
+    """Keys/values of some absolute positions, one (B, heads, n, head_dim) pair per layer.
+
+    They sit at the front of per-layer stores with room to grow: extending a cache, and
+    running a pass against it, write only the new positions, where concatenating copied
+    the whole cache in every layer of every pass (~4% of a Fast-dVLA pass at paper-like
+    shapes). Caches extended from one another share stores; `filled` (shared with them)
+    counts the stores' committed entries, and a cache writes past its end only when that
+    is the stores' end, so extending never changes a cache another was extended from
+    (it copies instead). A pass's own keys/values come back without room (`capacity` 0);
+    the model gives them the capacity copies should get (all of its positions).
+    """
 
     positions: Tensor  # (n,) long
-    keys: list[Tensor]
-    values: list[Tensor]
+    key_stores: list[Tensor]  # (B, heads, >= n, head_dim): entries [:n] are this cache's
+    value_stores: list[Tensor]
+    capacity: int = 0  # positions to allocate when this cache is copied into new stores
+    filled: list[int] = field(default_factory=list)  # one int, shared by the stores' caches
+
+    def __post_init__(self) -> None:
+        if not self.filled:
+            self.filled.append(len(self))
 
     def __len__(self) -> int:
         return int(self.positions.numel())
 
+    @property
+    def keys(self) -> list[Tensor]:
+        return [s[:, :, : len(self)] for s in self.key_stores]
+
+    @property
+    def values(self) -> list[Tensor]:
+        return [s[:, :, : len(self)] for s in self.value_stores]
+
+    def _has_room(self, extra: int) -> bool:
+        return self.filled[0] == len(self) and len(self) + extra <= self.key_stores[0].shape[2]
+
+    def joined(self, layer: int, k: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        """This cache's keys/values of `layer` followed by a pass's own (k, v), to attend
+        to: written into the room after the cache when there is some (scratch, part of no
+        cache until `extend` commits it), concatenated otherwise."""
+        n, m = len(self), k.shape[2]
+        ks, vs = self.key_stores[layer], self.value_stores[layer]
+        if not self._has_room(m):
+            return torch.cat([ks[:, :, :n], k], dim=2), torch.cat([vs[:, :, :n], v], dim=2)
+        ks[:, :, n : n + m] = k
+        vs[:, :, n : n + m] = v
+        return ks[:, :, : n + m], vs[:, :, : n + m]
+
     def extend(self, other: KVCache) -> KVCache:
-        return KVCache(
-            torch.cat([self.positions, other.positions]),
-            [torch.cat([a, b], dim=2) for a, b in zip(self.keys, other.keys, strict=True)],
-            [torch.cat([a, b], dim=2) for a, b in zip(self.values, other.values, strict=True)],
-        )
+        n, m = len(self), len(other)
+        positions = torch.cat([self.positions, other.positions])
+        if not self._has_room(m):
+            return _stored(positions, [self.keys, other.keys], [self.values, other.values], self.capacity)
+        for store, new in zip(self.key_stores + self.value_stores, other.keys + other.values, strict=True):
+            store[:, :, n : n + m] = new
+        self.filled[0] = n + m
+        return KVCache(positions, self.key_stores, self.value_stores, self.capacity, self.filled)
 
     def select(self, keep: Tensor) -> KVCache:
-        """The entries whose positions are in `keep` (a bool mask over this cache)."""
-        return KVCache(
-            self.positions[keep], [k[:, :, keep] for k in self.keys], [v[:, :, keep] for v in self.values]
-        )
+        """The entries whose positions are in `keep` (a bool mask over this cache), in
+        stores of their own."""
+        keys = [k[:, :, keep] for k in self.keys]
+        values = [v[:, :, keep] for v in self.values]
+        return _stored(self.positions[keep], [keys], [values], self.capacity)
+
+
+def _stored(
+    positions: Tensor, keys: list[list[Tensor]], values: list[list[Tensor]], capacity: int
+) -> KVCache:
+    """A cache in fresh stores of max(capacity, n) positions; keys/values are given as
+    pieces (each a per-layer list) laid end to end."""
+    size = max(capacity, int(positions.numel()))
+
+    def store(pieces: tuple[Tensor, ...]) -> Tensor:
+        first = pieces[0]
+        out = first.new_empty(first.shape[0], first.shape[1], size, first.shape[3])
+        at = 0
+        for piece in pieces:
+            out[:, :, at : at + piece.shape[2]] = piece
+            at += piece.shape[2]
+        return out
+
+    return KVCache(
+        positions,
+        [store(p) for p in zip(*keys, strict=True)],
+        [store(p) for p in zip(*values, strict=True)],
+        capacity,
+    )
 
 
 @dataclass
@@ -141,12 +208,11 @@ class Block(nn.Module):
         self.ffn = nn.Sequential(nn.Linear(cfg.width, cfg.ffn), nn.GELU(), nn.Linear(cfg.ffn, cfg.width))
 
     def forward(
-        self, x: Tensor, allowed: Tensor, past_k: Tensor | None, past_v: Tensor | None
+        self, x: Tensor, allowed: Tensor, cache: KVCache | None, layer: int
     ) -> tuple[Tensor, Tensor, Tensor]:
         b, n, d = x.shape
         q, k, v = self.qkv(self.norm1(x)).view(b, n, 3, self.heads, d // self.heads).permute(2, 0, 3, 1, 4)
-        keys = k if past_k is None else torch.cat([past_k, k], dim=2)
-        values = v if past_v is None else torch.cat([past_v, v], dim=2)
+        keys, values = (k, v) if cache is None else cache.joined(layer, k, v)
         attn = F.scaled_dot_product_attention(q, keys, values, attn_mask=allowed)
         x = x + self.proj(attn.transpose(1, 2).reshape(b, n, d))
         x = x + self.ffn(self.norm2(x))
@@ -245,10 +311,8 @@ class ActionTokenModel(nn.Module):
         allowed = self.attention_mask(pos, key_pos)
         keys, values = [], []
         for i, block in enumerate(self.blocks):
-            past_k = None if cache is None else cache.keys[i]
-            past_v = None if cache is None else cache.values[i]
-            x, k, v = block(x, allowed, past_k, past_v)
+            x, k, v = block(x, allowed, cache, i)
             keys.append(k)
             values.append(v)
         logits = self.head(self.norm(x[:, x.shape[1] - n_actions :]))
-        return StepOutput(logits=logits, kv=KVCache(pos, keys, values))
+        return StepOutput(logits, KVCache(pos, keys, values, cfg.prefix_len + cfg.action_tokens))

@@ -46,6 +46,28 @@ def test_cached_decoding_matches_full_forward(pattern, step):
     assert len(cache) == model.cfg.prefix_len + model.cfg.action_tokens
 
 
+def test_caches_extended_from_one_parent_stay_independent():
+    """The cache grows in place in shared stores; a second extension of the same parent
+    (or a pass run against the parent) must not change what the first one holds."""
+    model = _model("block_causal", block_size=4)
+    words, state, tokens = _inputs(model)
+    full = _full(model, words, state, tokens)
+    first, second = torch.arange(0, 4), torch.arange(4, 8)
+    with torch.no_grad():
+        parent = model(words=words, state=state).kv.select(torch.ones(model.cfg.prefix_len, dtype=torch.bool))
+        a = parent.extend(model(tokens[:, first], first, cache=parent).kv)
+        a_keys = [k.clone() for k in a.keys]
+        other = tokens.roll(3, dims=1)
+        b = parent.extend(model(other[:, first], first, cache=parent).kv)  # a branch
+        model(other[:, second], second, cache=a)  # a pass against a, never committed
+        b_full = _full(model, words, state, other)
+        assert all(torch.equal(k, kept) for k, kept in zip(a.keys, a_keys, strict=True))
+        assert (model(tokens[:, second], second, cache=a).logits - full[:, second]).abs().max() < TOL
+        assert (model(other[:, second], second, cache=b).logits - b_full[:, second]).abs().max() < TOL
+    assert a.key_stores[0].data_ptr() == parent.key_stores[0].data_ptr()  # grew in place
+    assert b.key_stores[0].data_ptr() != parent.key_stores[0].data_ptr()  # copied
+
+
 def test_bidirectional_with_isolated_prefix_caches_the_prefix_exactly():
     model = _model("bidirectional", prefix_sees_actions=False)
     words, state, tokens = _inputs(model)
