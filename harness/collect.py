@@ -7,6 +7,11 @@ once, at the end, atomically (docs/demonstrations.md describes the format):
     DEMOS/steps.parquet   one row per executed step of a successful episode
     DEMOS/manifest.json   suite, split, policy, counts per task, shapes, data hash
 
+`action_noise` > 0 collects DART-style: the env executes the demonstrator's action plus
+Gaussian noise (every dimension but the last, the gripper), while the recorded action
+stays the demonstrator's own. A closed-loop expert then shows how it gets back from the
+states a learned policy drifts into; clean demonstrations only cover the path it takes.
+
 Camera images (suites asked for them, e.g. `libero/spatial:obs=images`) are kept as one
 PNG per camera and step in `image_<camera>` columns: lossless, and ~10x smaller than
 raw pixels, which decides whether 50 demonstrations per task fit in memory.
@@ -17,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import zlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,6 +93,34 @@ class RecordingEnv(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
+class NoisyActions(gym.Wrapper):
+    """Adds Gaussian noise (std `sigma` times the action range's half-width) to every
+    action dimension but the last before the env executes it, clipped to the action
+    space. Seeded per episode from the task and the episode's index, so a collection is
+    reproducible; the gripper is left alone because noise on it flips grasps."""
+
+    def __init__(self, env: gym.Env, sigma: float, task: str):
+        super().__init__(env)
+        space = env.action_space
+        if not isinstance(space, gym.spaces.Box):
+            raise UsageError("--action-noise needs continuous (Box) actions")
+        self.sigma, self.task = sigma, zlib.crc32(task.encode())
+        self.scale = sigma * (space.high - space.low) / 2
+        self.scale[-1] = 0.0
+        self.rng = np.random.default_rng()
+
+    def reset(self, **kwargs):
+        spec = (kwargs.get("options") or {}).get("episode")
+        index = getattr(spec, "index", 0)
+        self.rng = np.random.default_rng([self.task, index, kwargs.get("seed") or 0])
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        space = self.env.action_space
+        noisy = np.asarray(action, dtype=np.float64) + self.rng.normal(size=space.shape) * self.scale
+        return self.env.step(np.clip(noisy, space.low, space.high).astype(space.dtype))
+
+
 @dataclass
 class CollectReport:
     attempted: dict[str, int] = field(default_factory=dict)
@@ -107,9 +141,17 @@ def check_demos_out(out: Path, overwrite: bool) -> None:
 
 
 def collect(
-    resolved: ResolvedRun, out: Path, overwrite: bool = False, tick: Callable[[bool], None] | None = None
+    resolved: ResolvedRun,
+    out: Path,
+    overwrite: bool = False,
+    tick: Callable[[bool], None] | None = None,
+    action_noise: float = 0.0,
 ) -> CollectReport:
     check_demos_out(out, overwrite)
+    if not 0.0 <= action_noise <= 1.0:
+        raise UsageError(
+            f"--action-noise must be in [0, 1] (a fraction of the action range), got {action_noise}"
+        )
     policy_run = resolved.policies[0]
     counter = NFECounter(policy_run.policy)
     rows: dict[str, list[Any]] = {name: [] for name in DEMO_COLUMNS.names}
@@ -117,7 +159,10 @@ def collect(
     episode_id = 0
     cameras: list[str] | None = None
     for task in resolved.tasks:
-        env = RecordingEnv(resolved.suite.make_env(task))
+        env = resolved.suite.make_env(task)
+        if action_noise > 0:
+            env = NoisyActions(env, action_noise, task.name)
+        env = RecordingEnv(env)
         if cameras is None:
             cameras = env.cameras
             rows.update({f"image_{cam}": [] for cam in cameras})
@@ -157,12 +202,17 @@ def collect(
     schema = DEMO_COLUMNS
     for cam in cameras or []:
         schema = schema.append(pa.field(f"image_{cam}", pa.binary()))
-    _write(resolved, out, pa.table(rows, schema=schema), report, cameras or [])
+    _write(resolved, out, pa.table(rows, schema=schema), report, cameras or [], action_noise)
     return report
 
 
 def _write(
-    resolved: ResolvedRun, out: Path, table: pa.Table, report: CollectReport, cameras: list[str]
+    resolved: ResolvedRun,
+    out: Path,
+    table: pa.Table,
+    report: CollectReport,
+    cameras: list[str],
+    action_noise: float,
 ) -> None:
     staging = out.with_name(out.name + ".tmp")
     shutil.rmtree(staging, ignore_errors=True)
@@ -177,6 +227,7 @@ def _write(
         "split": resolved.config.split,
         "policy": p.spec.name,
         "policy_params": json.loads(p.params_json),
+        "action_noise": action_noise,
         "episodes_attempted": report.attempted,
         "episodes_kept": report.kept,
         "steps": report.steps,

@@ -29,11 +29,12 @@ import hashlib
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pyarrow.parquet as pq
 import torch
 import torch.nn.functional as F
@@ -68,13 +69,34 @@ class Demos:
         return torch.from_numpy(np.asarray(frames, dtype=np.uint8))
 
 
-def load_demos(folder: str | Path, chunk_len: int) -> Demos:
-    folder = Path(folder)
-    manifest_path = folder / "manifest.json"
-    if not manifest_path.is_file() or not (folder / "steps.parquet").is_file():
-        raise ValueError(f"{folder}: not a demonstrations folder (needs manifest.json and steps.parquet)")
-    manifest = json.loads(manifest_path.read_text())
-    df = pq.read_table(folder / "steps.parquet").to_pandas()
+def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> Demos:
+    """One demonstrations folder, or several trained on as one (e.g. clean and DART-noisy
+    collections of a suite): their episodes are concatenated, and the data hash is the
+    folder's own, or for several the hash of their hashes in the order given."""
+    paths = [Path(folders)] if isinstance(folders, str | Path) else [Path(f) for f in folders]
+    manifests, frames = [], []
+    for folder in paths:
+        if not (folder / "manifest.json").is_file() or not (folder / "steps.parquet").is_file():
+            raise ValueError(f"{folder}: not a demonstrations folder (needs manifest.json and steps.parquet)")
+        manifests.append(json.loads((folder / "manifest.json").read_text()))
+        frames.append(pq.read_table(folder / "steps.parquet").to_pandas())
+    folder, manifest = paths[0], manifests[0]
+    for other, m in zip(paths[1:], manifests[1:], strict=True):
+        for key in ("cameras", "image_size", "action_dim"):
+            if m.get(key) != manifest.get(key):
+                raise ValueError(
+                    f"{other}: {key} {m.get(key)!r} differs from {folder}'s {manifest.get(key)!r}; "
+                    "demonstrations trained on together must match"
+                )
+    offset = 0
+    for df in frames:  # episode ids unique across folders: chunks never cross episodes
+        df["episode_id"] += offset
+        offset = int(df["episode_id"].max()) + 1
+    df = frames[0] if len(frames) == 1 else pd.concat(frames, ignore_index=True)
+    sha256 = manifest.get("steps_sha256", "")
+    if len(paths) > 1:
+        joined = "+".join(m.get("steps_sha256", "") for m in manifests)
+        sha256 = hashlib.sha256(joined.encode()).hexdigest()
     obs, state_dims = _padded(df["observation"].to_numpy())
     actions = np.stack(df["action"].to_numpy()).astype(np.float64)
     # Target chunk of step t: actions t..t+H-1 of the same episode, the last one repeated.
@@ -95,7 +117,7 @@ def load_demos(folder: str | Path, chunk_len: int) -> Demos:
         actions,
         idx,
         df["instruction"].tolist(),
-        manifest.get("steps_sha256", ""),
+        sha256,
         cameras,
         int(manifest.get("image_size") or 0),
         [df[f"image_{c}"].to_numpy() for c in cameras],
@@ -270,7 +292,7 @@ def probe_loss(model: ActionTokenModel, clean, words, state, positions, images=N
 
 def train(
     cfg: TrainConfig,
-    demos_dir: str | Path,
+    demos_dir: str | Path | Sequence[str | Path],
     out: str | Path,
     on_step: Callable[[int, float], None] | None = None,
 ) -> TrainReport:

@@ -6,8 +6,12 @@ import json
 
 import numpy as np
 import pyarrow.parquet as pq
+import pytest
 
 from adapters.registry import load_suite
+from harness.collect import collect
+from harness.errors import UsageError
+from tests.fakes import ChunkPolicy, fake_resolved
 
 
 def test_collect_keeps_successful_episodes_from_the_train_split(cli, tmp_path):
@@ -70,3 +74,42 @@ def test_collect_refuses_to_overwrite_and_saves_nothing_without_successes(cli, t
         "--quiet",
     )
     assert code == 2 and "no episode succeeded" in err and not empty.exists()
+
+
+class SlowPolicy(ChunkPolicy):
+    """Actions 0, 0.1, 0.2 ...: inside the action space, so noise is not clipped away."""
+
+    def act(self, observations):
+        batch = super().act(observations)
+        batch.actions = batch.actions / 10
+        return batch
+
+
+def _noisy_collection(tmp_path, name, sigma):
+    resolved = fake_resolved(SlowPolicy(chunk=4), episodes=2, succeed_at=6)
+    collect(resolved, tmp_path / name, action_noise=sigma)
+    executed = [np.stack(env.actions) for env in resolved.made_envs]  # type: ignore[attr-defined]
+    df = pq.read_table(tmp_path / name / "steps.parquet").to_pandas()
+    manifest = json.loads((tmp_path / name / "manifest.json").read_text())
+    return np.concatenate(executed), np.stack(df["action"].to_numpy()), manifest
+
+
+def test_dart_collection_records_the_demonstrators_action_and_executes_a_noisy_one(tmp_path):
+    executed, recorded, manifest = _noisy_collection(tmp_path, "a", 0.2)
+    assert manifest["action_noise"] == 0.2
+    clean = np.tile(np.arange(6.0), 2) / 10
+    assert np.allclose(recorded, clean[:, None])
+    assert np.allclose(executed[:, 1], clean, rtol=0, atol=1e-6)  # the gripper (last dimension) is left alone
+    noise = executed[:, 0] - clean
+    assert (noise != 0).all() and np.abs(executed).max() <= 1.0
+    assert not np.allclose(noise[:6], noise[6:])  # each episode draws its own noise
+    again, _, _ = _noisy_collection(tmp_path, "b", 0.2)
+    assert np.array_equal(again, executed)  # reproducible
+    quiet, _, manifest = _noisy_collection(tmp_path, "c", 0.0)
+    assert np.array_equal(quiet[:, 0], clean) and manifest["action_noise"] == 0.0
+
+
+def test_action_noise_outside_zero_one_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(UsageError, match=r"--action-noise must be in \[0, 1\]"):
+        collect(fake_resolved(ChunkPolicy()), tmp_path / "d", action_noise=1.5)
+    assert not (tmp_path / "d").exists() and not (tmp_path / "d.tmp").exists()

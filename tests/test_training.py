@@ -274,3 +274,43 @@ def test_mixed_state_sizes_are_zero_padded_and_the_policy_accepts_exactly_those(
     assert chunk.actions.shape == (1, TINY["chunk_len"], 4)
     with pytest.raises(ValueError, match="states of size 3 or 5"):
         policy.reset([context(4)])
+
+
+def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
+    import hashlib
+    import shutil
+
+    import numpy as np
+
+    from policies.training import load_demos
+
+    one = load_demos(demos, chunk_len=4)
+    two = load_demos([demos, demos], chunk_len=4)
+    n = len(one.actions)
+    assert len(two.actions) == 2 * n and np.array_equal(two.actions[n:], one.actions)
+    assert np.array_equal(two.chunk_index[n:], one.chunk_index + n)  # chunks stay inside episodes
+    assert two.sha256 == hashlib.sha256(f"{one.sha256}+{one.sha256}".encode()).hexdigest() != one.sha256
+
+    other = tmp_path / "other"
+    shutil.copytree(demos, other)
+    manifest = json.loads((other / "manifest.json").read_text())
+    (other / "manifest.json").write_text(json.dumps({**manifest, "action_dim": 7}))
+    with pytest.raises(ValueError, match="action_dim 7 differs"):
+        load_demos([demos, other], chunk_len=4)
+
+    out = tmp_path / "both.safetensors"
+    args = [
+        "--recipe",
+        "bidirectional",
+        "--steps",
+        "2",
+        "--batch-size",
+        "8",
+        "--width",
+        "32",
+        "--layers",
+        "1",
+    ]
+    code, _, err = cli("train", "--demos", str(demos), str(demos), *args, "--out", str(out), "--quiet")
+    assert code == 0, err
+    assert load(out).meta["data_sha256"] == two.sha256

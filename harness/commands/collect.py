@@ -41,6 +41,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--replan-every", type=int, metavar="K", help="actions executed per chunk; 0 = whole chunk"
     )
+    p.add_argument(
+        "--action-noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="DART-style collection: the env executes the demonstrator's action plus Gaussian "
+        "noise of std SIGMA x half the action range (all dimensions but the gripper, the last); "
+        "the demonstrator's own action is recorded, so the demonstrations show recoveries "
+        "(default 0: none; try 0.1)",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="demonstrations folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing demonstrations folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -67,7 +77,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
     progress, start = episode_progress(args.quiet)
     total = sum(len(resolved.episodes(t)) for t in resolved.tasks)
     with progress:
-        report = collect(resolved, out, args.overwrite, start(total, 0))
+        report = collect(resolved, out, args.overwrite, start(total, 0), args.action_noise)
     table = Table("task", "kept / attempted", title=f"demonstrations in {out}")
     for task, attempted in report.attempted.items():
         table.add_row(task, f"{report.kept[task]} / {attempted}")

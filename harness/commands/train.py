@@ -41,7 +41,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--demos", required=True, metavar="DIR", help="demonstrations folder")
+    p.add_argument(
+        "--demos",
+        required=True,
+        nargs="+",
+        metavar="DIR",
+        help="demonstrations folder(s); several are trained on as one (e.g. clean and "
+        "`collect --action-noise` ones)",
+    )
     p.add_argument("--recipe", required=True, choices=RECIPES)
     p.add_argument("--out", required=True, metavar="FILE.safetensors", help="checkpoint to write")
     p.add_argument("--teacher", metavar="FILE", help="distill: the bidirectional teacher checkpoint")
@@ -99,8 +106,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out!r}: a checkpoint file name must end in .safetensors")
     if out.exists() and not args.overwrite:
         raise UsageError(f"checkpoint {args.out!r} exists; pass --overwrite to replace it")
-    if not Path(args.demos).is_dir():
-        raise UsageError(f"--demos {args.demos!r} is not a folder (make one with `dvla-harness collect`)")
+    for folder in args.demos:
+        if not Path(folder).is_dir():
+            raise UsageError(f"--demos {folder!r} is not a folder (make one with `dvla-harness collect`)")
     cfg = TrainConfig(
         recipe=args.recipe,
         steps=args.steps,
