@@ -109,8 +109,8 @@ class KVCache:
     shapes). Caches extended from one another share stores; `filled` (shared with them)
     counts the stores' committed entries, and a cache writes past its end only when that
     is the stores' end, so extending never changes a cache another was extended from
-    (it copies instead). A pass's own keys/values come back without room (`capacity` 0);
-    the model gives them the capacity copies should get (all of its positions).
+    (it copies instead). A pass's own keys/values come back in stores without room;
+    their `capacity` (all of the model's positions) is what a copy of them gets.
     """
 
     positions: Tensor  # (n,) long
