@@ -281,6 +281,8 @@ def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
     import shutil
 
     import numpy as np
+    import pyarrow as pa
+    import pyarrow.parquet as pq
 
     from policies.training import load_demos
 
@@ -290,6 +292,16 @@ def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
     assert len(two.actions) == 2 * n and np.array_equal(two.actions[n:], one.actions)
     assert np.array_equal(two.chunk_index[n:], one.chunk_index + n)  # chunks stay inside episodes
     assert two.sha256 == hashlib.sha256(f"{one.sha256}+{one.sha256}".encode()).hexdigest() != one.sha256
+
+    # A second folder whose first episode id is the first folder's last one: still two
+    # episodes, so the first folder's last chunk must not run into the second folder.
+    shifted = tmp_path / "shifted"
+    shutil.copytree(demos, shifted)
+    table = pq.read_table(shifted / "steps.parquet").to_pandas()
+    table["episode_id"] += int(table["episode_id"].max())
+    pq.write_table(pa.Table.from_pandas(table, preserve_index=False), shifted / "steps.parquet")
+    joined = load_demos([demos, shifted], chunk_len=4)
+    assert joined.chunk_index[:n].max() < n
 
     other = tmp_path / "other"
     shutil.copytree(demos, other)
