@@ -104,7 +104,7 @@ class NoisyActions(gym.Wrapper):
         space = env.action_space
         if not isinstance(space, gym.spaces.Box):
             raise UsageError("--action-noise needs continuous (Box) actions")
-        self.sigma, self.task = sigma, zlib.crc32(task.encode())
+        self.task = zlib.crc32(task.encode())
         self.scale = sigma * (space.high - space.low) / 2
         self.scale[-1] = 0.0
         self.rng = np.random.default_rng()
