@@ -65,8 +65,8 @@ def test_shipped_libero_sets_are_a_teacher_its_student_and_an_ar_baseline(name):
         "block_causal",
         "causal",
     )
-    # One suite's observations and instructions (the object set's baseline was trained on
-    # revision 1 of the expert, its teacher's last stage on revision 2: the data differ).
+    # One suite's observations and instructions. Not the same data hash: a set may mix
+    # collections of the suite (revisions of the expert; today both sets happen to match).
     assert teacher.model.cfg.action_dim == ar.model.cfg.action_dim == 7
     assert teacher.vocab == ar.vocab and teacher.meta["state_dims"] == ar.meta["state_dims"]
     digest = hashlib.sha256((SHIPPED / f"{name}-bidirectional.safetensors").read_bytes()).hexdigest()
