@@ -175,9 +175,13 @@ def start_calibration() -> dict[str, Any]:
     torch = sys.modules.get("torch")
     if torch is None:
         return {"skipped": "no policy of this run uses torch, so none of its timings depend on torch's speed"}
+    from policies.kernels import describe
+
     return {
         "workload": CALIBRATION_WORKLOAD,
         "torch_threads": torch.get_num_threads(),
+        # what the policies' CPU forward passes run on (policies/kernels.py)
+        "linear_kernels": describe(),
         "start": measure_calibration(),
         "end": None,
     }
