@@ -11,6 +11,7 @@ from dataclasses import dataclass
 RECIPES = ("bidirectional", "autoregressive", "block_diffusion", "distill")
 NOISE_SCHEDULES = ("frontier", "linear", "sorted_uniform")
 SAMPLING = ("task", "step")
+NOISY_TARGETS = ("first_action", "chunk")
 PATTERN = {
     "bidirectional": "bidirectional",
     "autoregressive": "causal",
@@ -42,6 +43,10 @@ class TrainConfig:
     sampling: str = "task"  # "task": every instruction equally often; "step": every step equally
     probe_every: int = 0  # every N steps, the probe loss (see training.probe_loss); 0 = off
     warmup_steps: int | None = None  # None = `warmup`; a short one suits continued training
+    # Rows of `collect --action-noise` folders: score only the first action of their chunk
+    # (the rest answers noise the row's state cannot predict; see training._first_action_only)
+    # or the whole chunk, like clean rows.
+    noisy_targets: str = "first_action"
 
     def validate(self) -> None:
         if self.recipe not in RECIPES:
@@ -52,6 +57,8 @@ class TrainConfig:
             )
         if self.sampling not in SAMPLING:
             raise ValueError(f"sampling {self.sampling!r} is not one of {', '.join(SAMPLING)}")
+        if self.noisy_targets not in NOISY_TARGETS:
+            raise ValueError(f"noisy_targets {self.noisy_targets!r} is not one of {', '.join(NOISY_TARGETS)}")
         if self.recipe == "distill" and not self.teacher:
             raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
         for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn"):

@@ -56,6 +56,7 @@ class Demos:
     image_size: int = 0
     images: list[np.ndarray] = field(default_factory=list)  # per camera: (N,) PNG bytes
     state_dims: tuple[int, ...] = ()  # observation sizes before padding (one unless mixed)
+    noisy: np.ndarray | None = None  # (N,) bool: row from a `collect --action-noise` folder
 
     def image_batch(self, rows: torch.Tensor) -> torch.Tensor | None:
         """(B, cameras, H, W, 3) uint8 for some rows, decoded on demand: the PNGs of a
@@ -89,9 +90,10 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
                     "demonstrations trained on together must match"
                 )
     offset = 0
-    for df in frames:  # episode ids unique across folders: chunks never cross episodes
-        df["episode_id"] += offset
+    for df, m in zip(frames, manifests, strict=True):
+        df["episode_id"] += offset  # episode ids unique across folders: chunks never cross
         offset = int(df["episode_id"].max()) + 1
+        df["_noisy"] = float(m.get("action_noise") or 0.0) > 0
     df = frames[0] if len(frames) == 1 else pd.concat(frames, ignore_index=True)
     sha256 = manifest.get("steps_sha256", "")
     if len(paths) > 1:
@@ -122,6 +124,7 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
         int(manifest.get("image_size") or 0),
         [df[f"image_{c}"].to_numpy() for c in cameras],
         state_dims,
+        df["_noisy"].to_numpy(dtype=bool),
     )
 
 
@@ -310,6 +313,9 @@ def train(
         [p for p in model.parameters() if p.requires_grad], lr=cfg.lr, weight_decay=cfg.weight_decay
     )
     task_weights = _task_weights(demos.instructions) if cfg.sampling == "task" else None
+    first_only_all = None
+    if cfg.noisy_targets == "first_action" and demos.noisy is not None and demos.noisy.any():
+        first_only_all = torch.from_numpy(demos.noisy.copy())
     report = TrainReport(Path(out))
     probe_rows = torch.randint(
         0, len(tokens_all), (PROBE_SAMPLES,), generator=torch.Generator().manual_seed(PROBE_SEED)
@@ -333,8 +339,19 @@ def train(
         clean, words = tokens_all[batch], words_all[batch]
         state = states_all[batch] + cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
         images = demos.image_batch(batch)
+        first_only = None if first_only_all is None else first_only_all[batch]
         loss = _loss(
-            cfg.recipe, cfg.noise_schedule, model, teacher, clean, words, state, positions, g, images
+            cfg.recipe,
+            cfg.noise_schedule,
+            model,
+            teacher,
+            clean,
+            words,
+            state,
+            positions,
+            g,
+            images,
+            first_only,
         )
         for group in opt.param_groups:
             group["lr"] = _lr(step, cfg)
@@ -386,12 +403,19 @@ def _sha256(path: str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g, images=None) -> torch.Tensor:
+def _loss(
+    recipe, schedule, model, teacher, clean, words, state, positions, g, images=None, first_only=None
+) -> torch.Tensor:
+    """The recipe's loss on one batch. `first_only` (B,) marks rows whose chunk target is
+    only its first action (see `_first_action_only`); None leaves every row whole."""
     cfg = model.cfg
     b, n = clean.shape
+    later = None if first_only is None else first_only[:, None] & (positions >= cfg.action_dim)[None, :]
     if recipe == "autoregressive":
         inputs = torch.cat([torch.full((b, 1), cfg.mask_id), clean[:, :-1]], dim=1)
         logits = model(inputs, positions, words, state, images=images).logits
+        if later is not None:
+            return F.cross_entropy(logits[~later], clean[~later])
         return F.cross_entropy(logits.reshape(-1, cfg.bins), clean.reshape(-1))
     if recipe == "bidirectional":
         ratio = torch.rand(b, 1, generator=g).expand(b, n)
@@ -400,6 +424,9 @@ def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g, i
     mask = torch.rand(b, n, generator=g) < ratio
     none = ~mask.any(dim=1)
     mask[none, torch.randint(0, n, (int(none.sum()),), generator=g)] = True  # at least one per sample
+    scored = mask
+    if later is not None and recipe != "distill":
+        mask, scored = _first_action_only(mask, later, cfg.action_dim, g)
     noisy = torch.where(mask, torch.full_like(clean, cfg.mask_id), clean)
     logits = model(noisy, positions, words, state, images=images).logits
     if recipe == "distill":
@@ -407,7 +434,29 @@ def _loss(recipe, schedule, model, teacher, clean, words, state, positions, g, i
             target = torch.log_softmax(teacher(noisy, positions, words, state, images=images).logits, dim=-1)
         kl = F.kl_div(torch.log_softmax(logits, dim=-1), target, log_target=True, reduction="none").sum(-1)
         return kl[mask].mean()
-    return F.cross_entropy(logits[mask], clean[mask])
+    return F.cross_entropy(logits[scored], clean[scored])
+
+
+def _first_action_only(
+    mask: torch.Tensor, later: torch.Tensor, action_dim: int, g: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(input mask, loss mask) for rows of DART-noisy demonstrations.
+
+    Such a row's chunk is the demonstrator's next H actions, but actions 2..H answer noise
+    executed after the row's state, which that state cannot predict: trained on whole, the
+    model learns their blur (a spatial teacher fell from 64 to 22 of 100 that way). Only
+    the first action is the demonstrator's answer to this state, so only it is scored, and
+    the later positions are always [MASK] so the model never reads the blur either.
+    Distillation needs none of this: its target is the teacher, a function of the state.
+    """
+    mask = mask | later
+    scored = mask & ~later
+    rows = ~scored.any(dim=1)
+    if rows.any():  # a row whose first action drew no mask: mask one of its tokens
+        pick = torch.randint(0, action_dim, (int(rows.sum()),), generator=g)
+        mask[rows.nonzero().squeeze(1), pick] = True
+        scored[rows.nonzero().squeeze(1), pick] = True
+    return mask, scored
 
 
 def _write_curve(report: TrainReport, ckpt_path: Path) -> None:

@@ -326,3 +326,62 @@ def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
     code, _, err = cli("train", "--demos", str(demos), str(demos), *args, "--out", str(out), "--quiet")
     assert code == 0, err
     assert load(out).meta["data_sha256"] == two.sha256
+
+
+@pytest.mark.parametrize("recipe", ["bidirectional", "block_diffusion", "autoregressive"])
+def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(recipe):
+    """What actions 2..H of a DART row say (they answer noise its state cannot predict)
+    must change nothing: not the loss, and not what the model reads."""
+    from policies.training import _loss
+    from tests.fakes import tiny_model
+
+    pattern = {"bidirectional": "bidirectional", "autoregressive": "causal"}.get(recipe, "block_causal")
+    model = tiny_model(pattern)
+    d, n = model.cfg.action_dim, model.cfg.action_tokens
+    g = torch.Generator().manual_seed(0)
+    clean = torch.randint(0, model.cfg.bins, (16, n), generator=g)
+    words, state = torch.randint(1, 20, (16, 5), generator=g), torch.randn(16, 6, generator=g)
+    blurred = clean.clone()
+    blurred[:, d:] = torch.randint(0, model.cfg.bins, (16, n - d), generator=g)
+    positions = torch.arange(n)
+
+    def loss(tokens, first_only):
+        seed = torch.Generator().manual_seed(1)
+        return _loss(recipe, "frontier", model, None, tokens, words, state, positions, seed, None, first_only)
+
+    noisy = torch.ones(16, dtype=torch.bool)
+    if recipe != "autoregressive":  # later tokens are its inputs, but they score nothing
+        assert torch.equal(loss(clean, noisy), loss(blurred, noisy))
+    assert not torch.equal(loss(clean, None), loss(blurred, None))
+    half = torch.arange(16) < 8  # clean rows stay whole
+    assert not torch.equal(loss(clean, half), loss(blurred, half))
+
+
+def test_noisy_targets_follow_the_folders_manifest(demos, tmp_path, cli):
+    import shutil
+
+    from policies.training import load_demos
+
+    noisy = tmp_path / "noisy"
+    shutil.copytree(demos, noisy)
+    manifest = json.loads((noisy / "manifest.json").read_text())
+    (noisy / "manifest.json").write_text(json.dumps({**manifest, "action_noise": 0.1}))
+    both = load_demos([demos, noisy], chunk_len=4)
+    n = len(both.actions) // 2
+    assert not both.noisy[:n].any() and both.noisy[n:].all()
+
+    weights = {}
+    for mode in ("first_action", "chunk"):
+        out = tmp_path / f"{mode}.safetensors"
+        argv = ["train", "--demos", str(demos), str(noisy), "--recipe", "bidirectional"]
+        argv += ["--steps", "3", "--batch-size", "8", "--width", "32", "--layers", "1"]
+        assert cli(*argv, "--noisy-targets", mode, "--out", str(out), "--quiet")[0] == 0
+        ckpt = load(out)
+        assert ckpt.meta["train_config"]["noisy_targets"] == mode
+        weights[mode] = ckpt.model.state_dict()
+    assert any(not torch.equal(weights["first_action"][k], weights["chunk"][k]) for k in weights["chunk"])
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--noisy-targets", "all",
+        "--out", str(tmp_path / "x.safetensors"),
+    )  # fmt: skip
+    assert code == 2 and "first_action" in err and not (tmp_path / "x.safetensors").exists()

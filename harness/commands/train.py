@@ -20,7 +20,7 @@ from harness.errors import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from policies.recipes import NOISE_SCHEDULES, RECIPES, SAMPLING, TrainConfig
+    from policies.recipes import NOISE_SCHEDULES, NOISY_TARGETS, RECIPES, SAMPLING, TrainConfig
 
     d = TrainConfig(recipe="bidirectional")
     p = sub.add_parser(
@@ -66,6 +66,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--warmup-steps", type=int, metavar="N", help=f"learning-rate warm-up (default {d.warmup})"
+    )
+    p.add_argument(
+        "--noisy-targets",
+        choices=NOISY_TARGETS,
+        default=d.noisy_targets,
+        help="rows of `collect --action-noise` folders: first_action scores only the first "
+        "action of their chunk, since the later ones answer noise (default); chunk scores all",
     )
     p.add_argument(
         "--noise-schedule",
@@ -126,6 +133,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         init=args.init or "",
         warmup_steps=args.warmup_steps,
         sampling=args.sampling,
+        noisy_targets=args.noisy_targets,
     )
     try:
         cfg.validate()
