@@ -160,42 +160,44 @@ def collect(
     cameras: list[str] | None = None
     for task in resolved.tasks:
         env = resolved.suite.make_env(task)
-        if action_noise > 0:
-            env = NoisyActions(env, action_noise, task.name)
-        env = RecordingEnv(env)
-        if cameras is None:
-            cameras = env.cameras
-            rows.update({f"image_{cam}": [] for cam in cameras})
-        report.attempted[task.name] = report.kept[task.name] = 0
-        for spec in resolved.episodes(task):
-            context = episode_context(resolved.suite.name, task, spec, env)
-            outcome = run_episode(
-                env, policy_run.policy, counter, context, spec, resolved.config.replan_every
-            )
-            report.attempted[task.name] += 1
-            if outcome.success:
-                report.kept[task.name] += 1
-                for step, (obs, action) in enumerate(zip(env.observations, env.actions, strict=True)):
-                    for name, value in (
-                        ("episode_id", episode_id),
-                        ("task", task.name),
-                        ("instruction", task.instruction),
-                        ("episode_index", spec.index),
-                        ("seed", spec.seed),
-                        ("init_state_id", spec.init_state_id),
-                        ("step", step),
-                        ("observation", obs.tolist()),
-                        ("action", action.tolist()),
-                    ):
-                        rows[name].append(value)
-                for frames in env.images:
-                    for cam, data in zip(cameras or [], frames, strict=True):
-                        rows[f"image_{cam}"].append(data)
-                report.steps += len(env.actions)
-                episode_id += 1
-            if tick:
-                tick(outcome.success)
-        env.close()
+        try:  # closed whatever happens, a refused --action-noise included
+            if action_noise > 0:
+                env = NoisyActions(env, action_noise, task.name)
+            env = RecordingEnv(env)
+            if cameras is None:
+                cameras = env.cameras
+                rows.update({f"image_{cam}": [] for cam in cameras})
+            report.attempted[task.name] = report.kept[task.name] = 0
+            for spec in resolved.episodes(task):
+                context = episode_context(resolved.suite.name, task, spec, env)
+                outcome = run_episode(
+                    env, policy_run.policy, counter, context, spec, resolved.config.replan_every
+                )
+                report.attempted[task.name] += 1
+                if outcome.success:
+                    report.kept[task.name] += 1
+                    for step, (obs, action) in enumerate(zip(env.observations, env.actions, strict=True)):
+                        for name, value in (
+                            ("episode_id", episode_id),
+                            ("task", task.name),
+                            ("instruction", task.instruction),
+                            ("episode_index", spec.index),
+                            ("seed", spec.seed),
+                            ("init_state_id", spec.init_state_id),
+                            ("step", step),
+                            ("observation", obs.tolist()),
+                            ("action", action.tolist()),
+                        ):
+                            rows[name].append(value)
+                    for frames in env.images:
+                        for cam, data in zip(cameras or [], frames, strict=True):
+                            rows[f"image_{cam}"].append(data)
+                    report.steps += len(env.actions)
+                    episode_id += 1
+                if tick:
+                    tick(outcome.success)
+        finally:
+            env.close()
     counter.close()
     if episode_id == 0:
         raise UsageError("no episode succeeded, so there is nothing to save; nothing was written")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -112,4 +113,22 @@ def test_dart_collection_records_the_demonstrators_action_and_executes_a_noisy_o
 def test_action_noise_outside_zero_one_is_refused_before_anything_is_written(tmp_path):
     with pytest.raises(UsageError, match=r"--action-noise must be in \[0, 1\]"):
         collect(fake_resolved(ChunkPolicy()), tmp_path / "d", action_noise=1.5)
+    assert not (tmp_path / "d").exists() and not (tmp_path / "d.tmp").exists()
+
+
+def test_action_noise_on_discrete_actions_is_refused_and_the_env_closed(tmp_path):
+    import gymnasium as gym
+
+    resolved = fake_resolved(ChunkPolicy())
+    make = resolved.suite.make_env
+
+    def discrete(task):
+        env = make(task)
+        env.action_space = gym.spaces.Discrete(3)
+        return env
+
+    resolved.suite = dataclasses.replace(resolved.suite, make_env=discrete)
+    with pytest.raises(UsageError, match=r"needs continuous \(Box\) actions"):
+        collect(resolved, tmp_path / "d", action_noise=0.1)
+    assert resolved.made_envs and all(env.closed for env in resolved.made_envs)
     assert not (tmp_path / "d").exists() and not (tmp_path / "d.tmp").exists()
