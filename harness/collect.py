@@ -33,6 +33,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from adapters.base import EpisodeSpec, TaskSpec
 from harness.config import ResolvedRun
 from harness.episode import run_episode
 from harness.errors import UsageError
@@ -176,23 +177,7 @@ def collect(
                 report.attempted[task.name] += 1
                 if outcome.success:
                     report.kept[task.name] += 1
-                    for step, (obs, action) in enumerate(zip(env.observations, env.actions, strict=True)):
-                        for name, value in (
-                            ("episode_id", episode_id),
-                            ("task", task.name),
-                            ("instruction", task.instruction),
-                            ("episode_index", spec.index),
-                            ("seed", spec.seed),
-                            ("init_state_id", spec.init_state_id),
-                            ("step", step),
-                            ("observation", obs.tolist()),
-                            ("action", action.tolist()),
-                        ):
-                            rows[name].append(value)
-                    for frames in env.images:
-                        for cam, data in zip(cameras or [], frames, strict=True):
-                            rows[f"image_{cam}"].append(data)
-                    report.steps += len(env.actions)
+                    report.steps += _append_episode(rows, env, task, spec, episode_id, cameras or [])
                     episode_id += 1
                 if tick:
                     tick(outcome.success)
@@ -206,6 +191,34 @@ def collect(
         schema = schema.append(pa.field(f"image_{cam}", pa.binary()))
     _write(resolved, out, pa.table(rows, schema=schema), report, cameras or [], action_noise)
     return report
+
+
+def _append_episode(
+    rows: dict[str, list[Any]],
+    env: RecordingEnv,
+    task: TaskSpec,
+    spec: EpisodeSpec,
+    episode_id: int,
+    cameras: list[str],
+) -> int:
+    """One kept episode's steps onto the column lists; returns how many steps."""
+    for step, (obs, action) in enumerate(zip(env.observations, env.actions, strict=True)):
+        for name, value in (
+            ("episode_id", episode_id),
+            ("task", task.name),
+            ("instruction", task.instruction),
+            ("episode_index", spec.index),
+            ("seed", spec.seed),
+            ("init_state_id", spec.init_state_id),
+            ("step", step),
+            ("observation", obs.tolist()),
+            ("action", action.tolist()),
+        ):
+            rows[name].append(value)
+    for frames in env.images:
+        for cam, data in zip(cameras, frames, strict=True):
+            rows[f"image_{cam}"].append(data)
+    return len(env.actions)
 
 
 def _write(
