@@ -16,6 +16,7 @@ geoms in the simulator (docs/libero.md, "Scripted experts").
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -25,6 +26,7 @@ from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.registry import PolicySpec, param
 
 MAX_DELTA_M = 0.05  # OSC_POSE maps a position action of 1 to a 5 cm goal offset
+WRIST = 15  # the Panda's 7th joint (the wrist's turn about the fingers) in the state vector
 MAX_DELTA_RAD = 0.5  # and a rotation action of 1 to 0.5 rad
 OPEN, CLOSE, HOLD = -1.0, 1.0, 0.0
 RELEASE_ABOVE = 0.008  # open once the object is this close above its place point (m)
@@ -119,6 +121,10 @@ def rotation_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
     angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))
     if angle < 1e-6:
         return np.zeros(3)
+    if angle > np.pi - 1e-3:  # a half turn: the antisymmetric part vanishes, r = 2aa' - I
+        outer = (r + np.eye(3)) / 2
+        axis = outer[:, int(np.argmax(np.diag(outer)))]
+        return axis / np.linalg.norm(axis) * angle
     axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2 * np.sin(angle))
     return axis * angle
 
@@ -151,6 +157,9 @@ class PickPlace:
     target_geom: Geometry | None  # None for a region site (its point is the place point)
     into: bool  # `In` (drop inside the region) rather than `On`
     holder: slice | None = None  # pose of the cabinet whose drawer holds `obj` at the start
+    # Pose of a cabinet to grip a bowl across (its x axis) though it starts on the table:
+    # one going into that cabinet's drawer, where the hand's length along y would hit it.
+    across: slice | None = None
     others: tuple[slice, ...] = ()  # poses of the other objects (obstacles for the hand)
 
 
@@ -167,13 +176,17 @@ class PickPlaceExpert:
         self.last_z: float | None = None
         self.last_finger: float | None = None
         self.stalled = 0
+        self.unwind: float | None = None  # with `across`: the sign of the quarter turn
 
     def _grip_point(self, obs: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
         pos = obs[self.plan.obj][:3]
         g = self.plan.obj_geom
         point = pos + np.array([0.0, 0.0, g.grip_z])
         if g.rim > 0:  # grip the wall on the side of the closing axis farther from the robot base
-            axis = closing_axis * np.sign(closing_axis[1] or 1.0)
+            # (the robot stands at -x: a bowl gripped across a cabinet, along x, is gripped
+            # on its +x side; otherwise the +y side, as the shipped demonstrations were)
+            toward = 0 if self.plan.across is not None else 1
+            axis = closing_axis * np.sign(closing_axis[toward] or 1.0)
             point[:2] += g.rim * axis[:2] / max(np.linalg.norm(axis[:2]), 1e-6)
         return point
 
@@ -181,10 +194,11 @@ class PickPlaceExpert:
         """The start orientation turned about z so the fingers close along the object's
         `align` axis (the closing axis is the gripper's y axis; its sign does not matter)."""
         g = self.plan.obj_geom
-        if g.rim > 0 and self.plan.holder is not None:
+        cabinet = self.plan.holder if self.plan.holder is not None else self.plan.across
+        if g.rim > 0 and cabinet is not None:
             # In a drawer: the front and back walls are too close to the rim for a finger,
             # the side walls are not, so close along the cabinet's x axis (across the drawer).
-            want = quat_to_mat(obs[self.plan.holder][3:7])[:, 0]
+            want = quat_to_mat(obs[cabinet][3:7])[:, 0]
         elif g.align >= 0:
             want = quat_to_mat(obs[self.plan.obj][3:7])[:, g.align]
         else:
@@ -192,6 +206,14 @@ class PickPlaceExpert:
         have = self.home_rot[:, 1]
         angle = np.arctan2(have[0] * want[1] - have[1] * want[0], have[0] * want[0] + have[1] * want[1])
         angle = (angle + np.pi / 2) % np.pi - np.pi / 2
+        if self.plan.across is not None:
+            # A quarter turn either way grips the same: turn the way that unwinds the wrist
+            # joint (a world yaw of +a turns it by -a), decided once. Wound further, the arm
+            # swung into the open drawer instead of turning.
+            if self.unwind is None:
+                self.unwind = float(np.sign(obs[WRIST]) or 1.0)
+            if np.sign(angle) != self.unwind:
+                angle += np.pi * self.unwind
         return yaw_matrix(angle) @ self.home_rot
 
     def _grasp(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -344,21 +366,30 @@ def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
 
 
 def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
-    """The expert for a task's goal: a drag for an object too wide to grip going to a
-    table region (policies/libero_push.py), a wrist turn for a stove's knob
-    (policies/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
+    """The expert for a task's goal: a drawer pull for `Open` a drawer, and before
+    putting something `In` one (policies/libero_drawer.py), a drag for an object too wide
+    to grip going to a table region (policies/libero_push.py), a wrist turn for a stove's
+    knob (policies/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
     pick-and-place, the experts whose demonstrations are trained on so far."""
     from adapters import libero
+    from policies.libero_drawer import AJAR, DrawerExpert, OpenThenExpert, drawer_plan
     from policies.libero_knob import KNOBS, Knob, KnobExpert
     from policies.libero_push import PUSHED, PushExpert, push_plan
 
     problem, slices = _problem(context)
     goals = problem["goal_state"]
+    entities = libero.entity_names(problem)
+    drawer = drawer_plan(slices, entities, goals[0][-1]) if len(goals) == 1 else None
+    if drawer is not None and goals[0][0] == "open":
+        return DrawerExpert(drawer, params)
+    if drawer is not None and goals[0][0] == "in":
+        plan = dataclasses.replace(plan_for(context), across=drawer.cabinet)
+        return OpenThenExpert(DrawerExpert(drawer, params, AJAR), PickPlaceExpert(plan, params, rng))
     if len(goals) == 1 and goals[0][0] == "turnon" and category(goals[0][1]) in KNOBS:
         return KnobExpert(Knob(body=slices[goals[0][1]]), params)
     if len(goals) == 1 and goals[0][0] == "on" and category(goals[0][1]) in PUSHED:
         _, obj, region = goals[0]
-        if region not in libero.entity_names(problem) and problem["regions"].get(region, {}).get("ranges"):
+        if region not in entities and problem["regions"].get(region, {}).get("ranges"):
             plan = push_plan(slices, obj, problem["regions"][region], PUSHED[category(obj)])
             return PushExpert(plan, slices[region], params)
     return PickPlaceExpert(plan_for(context), params, rng)
@@ -408,7 +439,7 @@ def _task_index(key: str, task: str) -> int:
 class LiberoScripted:
     def __init__(self, params: LiberoScriptedParams):
         self.params = params
-        self._experts: list = []  # PickPlaceExpert, PushExpert or KnobExpert
+        self._experts: list = []  # one of the experts `expert_for` picks, per episode
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         from adapters.base import derive_seed

@@ -122,6 +122,12 @@ def test_scripted_expert_solves_an_object_task(cli, tmp_path):
         ("5", "PushExpert", "push_the_plate"),
         # `TurnOn flat_stove_1`: the knob's bar is gripped and the wrist turned (libero_knob.py).
         ("7", "KnobExpert", "turn_on_the_stove"),
+        # `Open wooden_cabinet_1_middle_region`: the handle is pinched with the hand pitched
+        # and pulled (policies/libero_drawer.py).
+        ("0", "DrawerExpert", "open_the_middle_drawer"),
+        # `In akita_black_bowl_1 wooden_cabinet_1_top_region`, the drawer shut: opened part
+        # of the way first, then the bowl is picked and put in.
+        ("3", "OpenThenExpert", "open_the_top_drawer_and_put_the_bowl_inside"),
     ],
 )
 def test_scripted_expert_solves_a_goal_task_that_is_not_pick_and_place(cli, tmp_path, task, expert, name):
