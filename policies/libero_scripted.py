@@ -463,7 +463,7 @@ class LiberoScripted:
 
 LIBERO_SCRIPTED = PolicySpec(
     name="libero_scripted",
-    summary="scripted pick-and-place expert for LIBERO from privileged state (no model, NFE 0)",
+    summary="scripted LIBERO expert from privileged state: pick-and-place, drag, knob, drawer (no model, NFE 0)",
     params=LiberoScriptedParams,
     build=LiberoScripted,
     suites=("libero/",),
