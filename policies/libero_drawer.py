@@ -6,9 +6,10 @@ open past -0.14 m of its 0.16 m travel (`WoodenCabinet.is_open`). From above, a 
 cannot reach behind a handle: the cabinet's top plate ends 1.6 cm behind the handle bar,
 less than a fingertip, and a lower drawer's handle sits under the one above it. So the
 hand pitches 90 degrees, fingers pointing into the cabinet and closing vertically, comes
-in level with the handle from the front, pinches the bar, pulls the drawer out to its
-stop, lets go and backs off turning upright again. It reads the cabinet's pose and the
-drawer's joint from the state vector and the goal from the BDDL, like the other experts.
+in level with the handle from the front, pinches the bar, pulls the drawer out past
+LIBERO's mark, lets go, backs off and turns upright again. It reads the cabinet's pose
+and the drawer's region site from the state vector and the goal from the BDDL, like the
+other experts.
 """
 
 from __future__ import annotations
@@ -82,9 +83,8 @@ class DrawerExpert:
             self.pitched = pitched_rotation(rot, pull)
         site = obs[self.plan.region][:3]
         handle = site + cabinet @ np.asarray(self.plan.handle)
-        q = (
-            float((cabinet.T @ (site - obs[self.plan.cabinet][:3]))[1]) - SHUT_Y[self.plan.category]
-        )  # joint position
+        out = float((cabinet.T @ (site - obs[self.plan.cabinet][:3]))[1])
+        q = out - SHUT_Y[self.plan.category]  # the drawer's joint position (0 shut, < 0 out)
         self.count += 1
         target, grip, want = eef.copy(), OPEN, self.pitched
         if self.phase == "line_up" and self.count == 1 and q < self.open_to:
@@ -132,7 +132,7 @@ class DrawerExpert:
 
 class OpenThenExpert:
     """Open a drawer part of the way, then hand over to the expert that puts the object
-    inside it, told to put it down just behind the drawer's front.
+    inside it, told to put it down just in front of the cabinet top's edge.
 
     Fully out, the top drawer overhangs the spot where libero/goal's bowl stands, and the
     hand gripping the bowl (21 cm along its closing axis) would hit the drawer's front:

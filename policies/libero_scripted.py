@@ -26,8 +26,8 @@ from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.registry import PolicySpec, param
 
 MAX_DELTA_M = 0.05  # OSC_POSE maps a position action of 1 to a 5 cm goal offset
-WRIST = 15  # the Panda's 7th joint (the wrist's turn about the fingers) in the state vector
 MAX_DELTA_RAD = 0.5  # and a rotation action of 1 to 0.5 rad
+WRIST = 15  # the Panda's 7th joint (the wrist's turn about the fingers) in the state vector
 OPEN, CLOSE, HOLD = -1.0, 1.0, 0.0
 RELEASE_ABOVE = 0.008  # open once the object is this close above its place point (m)
 # The Panda hand's footprint (half-lengths along the closing axis and across it, m), the
