@@ -23,6 +23,7 @@ from policies.libero_scripted import (
     MAX_DELTA_RAD,
     OPEN,
     LiberoScriptedParams,
+    category,
     quat_to_mat,
     rotation_error,
 )
@@ -176,8 +177,6 @@ def pitched_rotation(home: np.ndarray, pull: np.ndarray) -> np.ndarray:
 def drawer_plan(slices: dict[str, slice], entities: list[str], region: str) -> Drawer | None:
     """The drawer behind a region name such as `wooden_cabinet_1_top_region`, or None when
     the region is not a drawer of a cabinet this module has handles for."""
-    from policies.libero_scripted import category
-
     for name in entities:
         handles = HANDLES.get(category(name), {})
         level = region.removeprefix(name + "_").removesuffix("_region")
