@@ -11,6 +11,11 @@ The environment contract is Gymnasium's (`reset`/`step`) plus two conventions:
 - `info["success"]` is a bool on every step. Chains of instructions (CALVIN-like)
   also report `info["subtasks_completed"]` and the instruction now in force in
   `info["instruction"]`.
+
+An env may also say where world-frame 3-D positions sit in its state vector:
+`state_positions`, a tuple of start indices, the end effector's first. `collect` records
+it, and `train --state-features relative` gives the model each position's offset from
+the end effector (policies/observations.py).
 """
 
 from __future__ import annotations

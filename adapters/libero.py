@@ -258,6 +258,14 @@ def state_layout(problem: dict[str, Any], joints: tuple[str, ...] = ()) -> list[
     return layout
 
 
+def state_positions(layout: list[tuple[str, int, int]]) -> tuple[int, ...]:
+    """Where the state holds world positions: the end effector's, then each entity's and
+    goal region's (adapters/base.py); a policy may read their offsets from the hand."""
+    proprio = dict(PROPRIO)
+    entities = (start for name, start, stop in layout if name not in proprio and stop - start > 1)
+    return (0, *entities)
+
+
 class LiberoEpisodeEnv(gym.Env):
     """One LIBERO task behind the harness's env contract (adapters/base.py).
 
@@ -304,6 +312,7 @@ class LiberoEpisodeEnv(gym.Env):
             and not model.joint_id2name(j).startswith(("robot0_", "gripper0_"))
         )
         self.layout = state_layout(self.problem, joints)
+        self.state_positions = state_positions(self.layout)
         self._bodies = [inner.obj_body_id[name] for name in entity_names(self.problem)]
         self._sites = [model.site_name2id(name) for name in goal_sites(self.problem)]
         self._qpos = [model.get_joint_qpos_addr(name) for name in joints]

@@ -116,6 +116,11 @@ def _require_metaworld() -> None:
 class MetaWorldEpisodeEnv(gym.Wrapper):
     """One Meta-World task whose `reset` honours the episode spec (seed + layout id)."""
 
+    # Meta-World v3's 39-D observation: hand position (0:3), gripper opening (3), two
+    # objects' position + quaternion (4:11, 11:18; zeros where a task has one), the
+    # previous frame's 18 (18:36), the goal position (36:39). World frame throughout.
+    state_positions = (0, 4, 11, 36)
+
     def __init__(self, task_name: str):
         import metaworld.env_dict
 

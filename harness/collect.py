@@ -127,6 +127,9 @@ class CollectReport:
     attempted: dict[str, int] = field(default_factory=dict)
     kept: dict[str, int] = field(default_factory=dict)
     steps: int = 0
+    # Per task, where the env's state vector holds world positions (adapters/base.py);
+    # training reads them for --state-features relative.
+    state_positions: dict[str, list[int]] = field(default_factory=dict)
 
 
 def check_demos_out(out: Path, overwrite: bool) -> None:
@@ -169,6 +172,9 @@ def collect(
                 cameras = env.cameras
                 rows.update({f"image_{cam}": [] for cam in cameras})
             report.attempted[task.name] = report.kept[task.name] = 0
+            positions = _state_positions(env)
+            if positions:
+                report.state_positions[task.name] = positions
             for spec in resolved.episodes(task):
                 context = episode_context(resolved.suite.name, task, spec, env)
                 outcome = run_episode(
@@ -191,6 +197,13 @@ def collect(
         schema = schema.append(pa.field(f"image_{cam}", pa.binary()))
     _write(resolved, out, pa.table(rows, schema=schema), report, cameras or [], action_noise)
     return report
+
+
+def _state_positions(env: gym.Env) -> list[int]:
+    try:
+        return [int(p) for p in env.get_wrapper_attr("state_positions")]
+    except AttributeError:
+        return []
 
 
 def _append_episode(
@@ -248,6 +261,7 @@ def _write(
         "steps": report.steps,
         "observation_dim": len(table["observation"][0]),
         "action_dim": len(table["action"][0]),
+        "state_positions": report.state_positions,
         "cameras": cameras,
         "image_size": unpng(table[f"image_{cameras[0]}"][0].as_py()).shape[0] if cameras else 0,
         "steps_sha256": digest,

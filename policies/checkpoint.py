@@ -40,6 +40,23 @@ class Checkpoint:
     state_mean: np.ndarray
     state_std: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)  # recipe, data hash, steps, losses
+    # Start indices of 3-D world positions in the raw state, the end effector's first: the
+    # model reads each one's offset from the end effector too (observations.relative_positions).
+    # Empty: the raw state only (every checkpoint before this field).
+    state_positions: tuple[int, ...] = ()
+
+    @property
+    def raw_state_dim(self) -> int:
+        """The length of the state the env gives, before the offsets are appended."""
+        extra = 3 * (len(self.state_positions) - 1) if self.state_positions else 0
+        return self.model.cfg.state_dim - extra
+
+    def features(self, states: np.ndarray) -> np.ndarray:
+        """What the model reads of raw states, before normalisation; training and the
+        policies both go through here, so the two cannot drift apart."""
+        from policies.observations import relative_positions
+
+        return relative_positions(states, self.state_positions)
 
     def encode_instruction(self, text: str) -> list[int]:
         ids = [self.vocab.get(w, UNK) for w in words_of(text)][: self.model.cfg.max_words]
@@ -53,6 +70,7 @@ class Checkpoint:
             "vocab": self.vocab,
             "state_mean": self.state_mean.tolist(),
             "state_std": self.state_std.tolist(),
+            "state_positions": list(self.state_positions),
             "meta": self.meta,
         }
 
@@ -105,6 +123,13 @@ def load(path: str | Path) -> Checkpoint:
         raise CheckpointError(
             f"{path}: tokenizer ({tokenizer.action_dim}-D, {tokenizer.bins} bins) does not fit the model"
         )
+    positions = tuple(int(p) for p in header.get("state_positions") or ())
+    raw_dim = cfg.state_dim - (3 * (len(positions) - 1) if positions else 0)
+    if positions and (len(positions) < 2 or min(positions) < 0 or max(positions) + 3 > raw_dim):
+        raise CheckpointError(
+            f"{path}: state_positions {list(positions)} do not fit a {raw_dim}-D state "
+            "(need the end effector and at least one more position, each 3 entries inside it)"
+        )
     return Checkpoint(
         model=model.eval(),
         tokenizer=tokenizer,
@@ -112,13 +137,15 @@ def load(path: str | Path) -> Checkpoint:
         state_mean=np.asarray(header["state_mean"], dtype=np.float32),
         state_std=np.asarray(header["state_std"], dtype=np.float32),
         meta=header.get("meta", {}),
+        state_positions=positions,
     )
 
 
 def to_tensors(
     ckpt: Checkpoint, instructions: list[str], states: np.ndarray
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Model inputs for a batch: instruction word ids and normalised states."""
+    """Model inputs for a batch: instruction word ids and normalised states (raw states
+    in, of the checkpoint's `raw_state_dim`)."""
     words = torch.tensor([ckpt.encode_instruction(t) for t in instructions], dtype=torch.long)
-    norm = (np.asarray(states, dtype=np.float32) - ckpt.state_mean) / ckpt.state_std
+    norm = (ckpt.features(states) - ckpt.state_mean) / ckpt.state_std
     return words, torch.from_numpy(norm.astype(np.float32))

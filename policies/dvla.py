@@ -169,7 +169,8 @@ class AutoregressiveParams:
 def check_observation_space(cfg: Any, space: Any, state_dims: Sequence[int] = ()) -> None:
     """Refuse a suite whose observations the checkpoint cannot read, before any episode:
     a wrong state size, or camera images it was trained on and the suite does not give
-    (ask for them with the suite's options, e.g. `libero/spatial:obs=images`)."""
+    (ask for them with the suite's options, e.g. `libero/spatial:obs=images`). `state_dims`
+    are the raw state sizes it was trained on (`cfg.state_dim` when not recorded)."""
     import gymnasium as gym
 
     state = space["state"] if isinstance(space, gym.spaces.Dict) else space
@@ -248,7 +249,9 @@ class DVLAPolicy:
                 f"{self.params.checkpoint}: acts in {cfg.action_dim}-D, the suite's actions are "
                 f"{action_space.shape}"
             )
-        check_observation_space(cfg, observation_space, self.ckpt.meta.get("state_dims") or ())
+        check_observation_space(
+            cfg, observation_space, self.ckpt.meta.get("state_dims") or (self.ckpt.raw_state_dim,)
+        )
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         for ep in episodes:
@@ -260,7 +263,7 @@ class DVLAPolicy:
 
         from policies.checkpoint import to_tensors
 
-        states = np.zeros((len(observations), self.model.cfg.state_dim), dtype=np.float32)
+        states = np.zeros((len(observations), self.ckpt.raw_state_dim), dtype=np.float32)
         for row, o in zip(states, observations, strict=True):
             state = np.asarray(o["state"] if isinstance(o, Mapping) else o)
             row[: len(state)] = state  # zero-padded like training (mixed state layouts)

@@ -30,3 +30,19 @@ def unpng(data: bytes) -> np.ndarray:
     from PIL import Image
 
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+
+def relative_positions(states: np.ndarray, positions: tuple[int, ...]) -> np.ndarray:
+    """States with each world position minus the end effector's appended.
+
+    `positions` are start indices of 3-D world positions in the state vector, the end
+    effector's first (the env's `state_positions`, adapters/base.py). A small model reads
+    absolute coordinates through one MLP and has to learn their differences itself; on
+    LIBERO that is where its reach lost centimetres. Empty `positions`: states unchanged.
+    """
+    states = np.asarray(states, dtype=np.float32)
+    if not positions:
+        return states
+    anchor = states[..., positions[0] : positions[0] + 3]
+    offsets = [states[..., p : p + 3] - anchor for p in positions[1:]]
+    return np.concatenate([states, *offsets], axis=-1)

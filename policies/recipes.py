@@ -12,6 +12,7 @@ RECIPES = ("bidirectional", "autoregressive", "block_diffusion", "distill")
 NOISE_SCHEDULES = ("frontier", "linear", "sorted_uniform")
 SAMPLING = ("task", "step")
 NOISY_TARGETS = ("first_action", "chunk")
+STATE_FEATURES = ("raw", "relative")
 PATTERN = {
     "bidirectional": "bidirectional",
     "autoregressive": "causal",
@@ -47,6 +48,11 @@ class TrainConfig:
     # (the rest answers noise the row's state cannot predict; see training._first_action_only)
     # or the whole chunk, like clean rows.
     noisy_targets: str = "first_action"
+    # What the model reads of the state: "raw", or "relative" (the raw state plus each
+    # world position's offset from the end effector, where the demonstrations say where
+    # positions are; policies/observations.py). "" = the --init or --teacher checkpoint's
+    # choice, else raw.
+    state_features: str = ""
 
     def validate(self) -> None:
         if self.recipe not in RECIPES:
@@ -59,6 +65,10 @@ class TrainConfig:
             raise ValueError(f"sampling {self.sampling!r} is not one of {', '.join(SAMPLING)}")
         if self.noisy_targets not in NOISY_TARGETS:
             raise ValueError(f"noisy_targets {self.noisy_targets!r} is not one of {', '.join(NOISY_TARGETS)}")
+        if self.state_features and self.state_features not in STATE_FEATURES:
+            raise ValueError(
+                f"state_features {self.state_features!r} is not one of {', '.join(STATE_FEATURES)}"
+            )
         if self.recipe == "distill" and not self.teacher:
             raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
         for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn"):

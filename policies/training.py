@@ -41,6 +41,7 @@ import torch.nn.functional as F
 
 from policies.checkpoint import Checkpoint, load, save, words_of
 from policies.model import ActionTokenModel, ModelConfig
+from policies.observations import relative_positions
 from policies.recipes import PATTERN, TrainConfig
 from policies.tokenizer import ActionTokenizer
 
@@ -57,6 +58,29 @@ class Demos:
     images: list[np.ndarray] = field(default_factory=list)  # per camera: (N,) PNG bytes
     state_dims: tuple[int, ...] = ()  # observation sizes before padding (one unless mixed)
     noisy: np.ndarray | None = None  # (N,) bool: row from a `collect --action-noise` folder
+    # Where world positions sit in the state (the envs' `state_positions`), one tuple per
+    # task the manifests recorded them for; `positions()` says whether they are usable.
+    state_positions: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    tasks: frozenset[str] = frozenset()
+
+    def positions(self) -> tuple[int, ...]:
+        """The one set of state positions every task shares; raises saying why not."""
+        missing = sorted(self.tasks - set(self.state_positions))
+        if missing:
+            raise ValueError(
+                f"--state-features relative: the demonstrations do not record where positions sit "
+                f"in the state of task {missing[0]!r} (collected before `state_positions` was "
+                "recorded, or the suite's env does not declare them); collect them again or use "
+                "--state-features raw"
+            )
+        found = {self.state_positions[t] for t in self.tasks}
+        if len(found) > 1:
+            raise ValueError(
+                "--state-features relative: the tasks keep positions at different places in their "
+                f"states ({len(found)} layouts, e.g. LIBERO goal/10/90); train one suite of one "
+                "layout, or use --state-features raw"
+            )
+        return found.pop()
 
     def image_batch(self, rows: torch.Tensor) -> torch.Tensor | None:
         """(B, cameras, H, W, 3) uint8 for some rows, decoded on demand: the PNGs of a
@@ -89,6 +113,11 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
                     f"{other}: {key} {m.get(key)!r} differs from {folder}'s {manifest.get(key)!r}; "
                     "demonstrations trained on together must match"
                 )
+    positions: dict[str, tuple[int, ...]] = {}
+    for folder_, m in zip(paths, manifests, strict=True):
+        for task, found in (m.get("state_positions") or {}).items():
+            if positions.setdefault(task, tuple(found)) != tuple(found):
+                raise ValueError(f"{folder_}: task {task!r} records other state positions than before")
     offset = 0
     for df, m in zip(frames, manifests, strict=True):
         df["episode_id"] += offset  # episode ids unique across folders: chunks never cross
@@ -125,6 +154,8 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
         [df[f"image_{c}"].to_numpy() for c in cameras],
         state_dims,
         df["_noisy"].to_numpy(dtype=bool),
+        positions,
+        frozenset(df["task"].unique()),
     )
 
 
@@ -204,11 +235,19 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
                 "block_size": cfg.block_size or teacher.model.cfg.block_size,
             }
         )
+        _check_features(cfg, cfg.teacher, teacher, demos)
         student = ActionTokenModel(student_cfg)
         student.load_state_dict(_student_weights(cfg, teacher, student_cfg))
         for p in teacher.model.parameters():
             p.requires_grad_(False)
-        ckpt = Checkpoint(student, teacher.tokenizer, teacher.vocab, teacher.state_mean, teacher.state_std)
+        ckpt = Checkpoint(
+            student,
+            teacher.tokenizer,
+            teacher.vocab,
+            teacher.state_mean,
+            teacher.state_std,
+            state_positions=teacher.state_positions,
+        )
         return ckpt, teacher.model.eval()
     if cfg.init:
         # Continued training: same tokenizer, vocabulary and normalisation, or the
@@ -220,10 +259,11 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
                 f"{PATTERN[cfg.recipe]} model"
             )
         if (
-            ckpt.model.cfg.state_dim != demos.observations.shape[1]
+            ckpt.raw_state_dim != demos.observations.shape[1]
             or ckpt.model.cfg.action_dim != demos.actions.shape[1]
         ):
             raise ValueError(f"{cfg.init}: its state/action sizes do not match the demonstrations")
+        _check_features(cfg, cfg.init, ckpt, demos)
         if (ckpt.model.cfg.cameras, ckpt.model.cfg.image_size) != (demos.cameras, demos.image_size):
             raise ValueError(
                 f"{cfg.init}: reads cameras {list(ckpt.model.cfg.cameras)} at "
@@ -240,12 +280,14 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
     words = sorted({w for text in set(demos.instructions) for w in words_of(text)})
     vocab = {w: i + 2 for i, w in enumerate(words)}
     max_words = max(1, max(len(words_of(t)) for t in set(demos.instructions)))
-    mean = demos.observations.mean(0)
-    std = np.maximum(demos.observations.std(0), 1e-2)
+    positions = demos.positions() if cfg.state_features == "relative" else ()
+    states = relative_positions(demos.observations, positions)
+    mean = states.mean(0)
+    std = np.maximum(states.std(0), 1e-2)
     model_cfg = ModelConfig(
         action_dim=demos.actions.shape[1],
         chunk_len=cfg.chunk_len,
-        state_dim=demos.observations.shape[1],
+        state_dim=states.shape[1],
         bins=cfg.bins,
         vocab_words=len(vocab) + 2,
         max_words=max_words,
@@ -258,7 +300,24 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         cameras=demos.cameras,
         image_size=demos.image_size,
     )
-    return Checkpoint(ActionTokenModel(model_cfg), tokenizer, vocab, mean, std), None
+    model = ActionTokenModel(model_cfg)
+    return Checkpoint(model, tokenizer, vocab, mean, std, state_positions=positions), None
+
+
+def _check_features(cfg: TrainConfig, path: str, ckpt: Checkpoint, demos: Demos) -> None:
+    """A continued model or a student reads states exactly as the checkpoint it grows
+    from: asking for other features is an error, not a silent switch."""
+    has = "relative" if ckpt.state_positions else "raw"
+    if cfg.state_features and cfg.state_features != has:
+        raise ValueError(
+            f"--state-features {cfg.state_features}: {path} reads {has} states, and a continued "
+            "model or a distilled student reads what it grows from; leave --state-features out"
+        )
+    if ckpt.state_positions and demos.state_positions and demos.positions() != ckpt.state_positions:
+        raise ValueError(
+            f"{path}: reads positions at {list(ckpt.state_positions)} of the state, the demonstrations "
+            f"keep them at {list(demos.positions())}"
+        )
 
 
 @dataclass
@@ -307,7 +366,9 @@ def train(
     model, mcfg = ckpt.model.train(), ckpt.model.cfg
     tokens_all = torch.from_numpy(ckpt.tokenizer.encode(demos.actions[demos.chunk_index]))
     words_all = torch.tensor([ckpt.encode_instruction(t) for t in demos.instructions], dtype=torch.long)
-    states_all = torch.from_numpy((demos.observations - ckpt.state_mean) / ckpt.state_std).float()
+    states_all = torch.from_numpy(
+        (ckpt.features(demos.observations) - ckpt.state_mean) / ckpt.state_std
+    ).float()
     positions = torch.arange(mcfg.action_tokens)
     opt = torch.optim.AdamW(
         [p for p in model.parameters() if p.requires_grad], lr=cfg.lr, weight_decay=cfg.weight_decay

@@ -68,6 +68,20 @@ def test_same_initial_state_gives_the_same_first_observation():
     names = [name for name, _, _ in env.layout]
     assert names[:4] == ["eef_pos", "eef_quat", "gripper_qpos", "joint_pos"]
     assert "akita_black_bowl_1" in names and "plate_1" in names
+    # World positions for relative state features: the hand, then the 7 entities (the
+    # bowl to pick first); the drawers' and the knob's joints are not positions.
+    assert env.state_positions == (0, 16, 23, 30, 37, 44, 51, 58)
+    assert names[4] == "akita_black_bowl_1" and names[-1] == "flat_stove_1_button"
+
+
+@needs_libero
+def test_state_positions_include_goal_regions():
+    """An object task's goal region (the basket's) is a position too, after the entities."""
+    layout = lb.state_layout(lb.task_problem("object", 0))
+    positions = lb.state_positions(layout)
+    by_start = {start: name for name, start, _ in layout}
+    assert positions[0] == 0 and by_start[positions[-1]] == "basket_1_contain_region"
+    assert [by_start[p] for p in positions[1:3]] == ["alphabet_soup_1", "basket_1"]
 
 
 def _run(cli, out, suite, tasks="0", policy="libero_scripted", episodes="1", *extra):

@@ -385,3 +385,82 @@ def test_noisy_targets_follow_the_folders_manifest(demos, tmp_path, cli):
         "--out", str(tmp_path / "x.safetensors"),
     )  # fmt: skip
     assert code == 2 and "first_action" in err and not (tmp_path / "x.safetensors").exists()
+
+
+def test_relative_positions_append_each_offset_from_the_end_effector():
+    import numpy as np
+
+    from policies.observations import relative_positions
+
+    states = np.arange(2 * 10, dtype=np.float32).reshape(2, 10) ** 1.5
+    out = relative_positions(states, (1, 4, 7))
+    assert out.shape == (2, 16) and np.array_equal(out[:, :10], states)
+    assert np.allclose(out[:, 10:13], states[:, 4:7] - states[:, 1:4])
+    assert np.allclose(out[:, 13:16], states[:, 7:10] - states[:, 1:4])
+    assert np.array_equal(relative_positions(states, ()), states)
+
+
+def test_relative_state_features_reach_the_checkpoint_and_the_policy(demos, tmp_path, cli):
+    """Meta-World's env says where its positions are; collect records it, training with
+    --state-features relative appends their offsets from the hand, the policy reads raw
+    states, and a continued model or a student keeps the choice."""
+    import numpy as np
+
+    from policies.training import load_demos
+
+    manifest = json.loads((demos / "manifest.json").read_text())
+    assert manifest["state_positions"] == {"reach-v3": [0, 4, 11, 36], "drawer-close-v3": [0, 4, 11, 36]}
+    teacher = tmp_path / "rel.safetensors"
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--state-features", "relative",
+        "--steps", "6", "--batch-size", "16", "--width", "32", "--layers", "1", "--ffn", "64",
+        "--chunk-len", "4", "--out", str(teacher), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    ckpt = load(teacher)
+    assert ckpt.state_positions == (0, 4, 11, 36)
+    assert ckpt.model.cfg.state_dim == 39 + 9 and ckpt.raw_state_dim == 39
+    obs = load_demos(demos, chunk_len=4).observations
+    feats = ckpt.features(obs)
+    assert np.allclose(feats[:, 39:42], obs[:, 4:7] - obs[:, 0:3])
+    assert np.allclose(feats[:, 45:48], obs[:, 36:39] - obs[:, 0:3])
+    assert np.allclose(ckpt.state_mean, feats.mean(0), atol=1e-5)  # normalised as the model reads
+
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--quiet",
+        "--policy", f"bidirectional:checkpoint={teacher},steps=2", "--out", str(tmp_path / "r"),
+    )  # fmt: skip
+    assert code == 0, err
+    row = RunDir(tmp_path / "r").read_episodes().iloc[0]
+    assert row["chunks"] > 0 and not isinstance(row["failure_reason"], str)  # ran, raised nothing
+
+    student = tmp_path / "s.safetensors"
+    train(TrainConfig(recipe="distill", teacher=str(teacher), **{**TINY, "steps": 2}), demos, student)
+    assert load(student).state_positions == (0, 4, 11, 36)
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--init", str(teacher),
+        "--state-features", "raw", "--steps", "2", "--out", str(tmp_path / "c.safetensors"),
+    )  # fmt: skip
+    assert code == 2 and "reads relative states" in err
+    assert not (tmp_path / "c.safetensors").exists()
+
+
+def test_relative_state_features_need_recorded_positions(demos, tmp_path, cli):
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(demos, old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    del manifest["state_positions"]  # a folder collected before positions were recorded
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    code, _, err = cli(
+        "train", "--demos", str(old), "--recipe", "bidirectional", "--state-features", "relative",
+        "--out", str(tmp_path / "x.safetensors"),
+    )  # fmt: skip
+    assert code == 2 and "do not record where positions sit" in err and "--state-features raw" in err
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--state-features", "nearby",
+        "--out", str(tmp_path / "x.safetensors"),
+    )  # fmt: skip
+    assert code == 2 and "relative" in err
+    assert list(tmp_path.glob("*.safetensors")) == []

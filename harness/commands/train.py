@@ -20,7 +20,14 @@ from harness.errors import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from policies.recipes import NOISE_SCHEDULES, NOISY_TARGETS, RECIPES, SAMPLING, TrainConfig
+    from policies.recipes import (
+        NOISE_SCHEDULES,
+        NOISY_TARGETS,
+        RECIPES,
+        SAMPLING,
+        STATE_FEATURES,
+        TrainConfig,
+    )
 
     d = TrainConfig(recipe="bidirectional")
     p = sub.add_parser(
@@ -73,6 +80,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=d.noisy_targets,
         help="rows of `collect --action-noise` folders: first_action scores only the first "
         "action of their chunk, since the later ones answer noise (default); chunk scores all",
+    )
+    p.add_argument(
+        "--state-features",
+        choices=STATE_FEATURES,
+        help="what the model reads of the state: raw, or relative (also each object's and goal "
+        "region's offset from the end effector, where the demonstrations record where positions "
+        "sit: LIBERO, Meta-World). Default: what --init/--teacher reads, else raw",
     )
     p.add_argument(
         "--noise-schedule",
@@ -134,6 +148,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         warmup_steps=args.warmup_steps,
         sampling=args.sampling,
         noisy_targets=args.noisy_targets,
+        state_features=args.state_features or "",
     )
     try:
         cfg.validate()
