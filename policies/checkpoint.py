@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from policies.model import ActionTokenModel, ModelConfig
+from policies.observations import relative_positions
 from policies.tokenizer import ActionTokenizer
 
 FORMAT = "dvla-harness-checkpoint/1"
@@ -54,8 +55,6 @@ class Checkpoint:
     def features(self, states: np.ndarray) -> np.ndarray:
         """What the model reads of raw states, before normalisation; training and the
         policies both go through here, so the two cannot drift apart."""
-        from policies.observations import relative_positions
-
         return relative_positions(states, self.state_positions)
 
     def encode_instruction(self, text: str) -> list[int]:
@@ -123,22 +122,22 @@ def load(path: str | Path) -> Checkpoint:
         raise CheckpointError(
             f"{path}: tokenizer ({tokenizer.action_dim}-D, {tokenizer.bins} bins) does not fit the model"
         )
-    positions = tuple(int(p) for p in header.get("state_positions") or ())
-    raw_dim = cfg.state_dim - (3 * (len(positions) - 1) if positions else 0)
-    if positions and (len(positions) < 2 or min(positions) < 0 or max(positions) + 3 > raw_dim):
-        raise CheckpointError(
-            f"{path}: state_positions {list(positions)} do not fit a {raw_dim}-D state "
-            "(need the end effector and at least one more position, each 3 entries inside it)"
-        )
-    return Checkpoint(
+    ckpt = Checkpoint(
         model=model.eval(),
         tokenizer=tokenizer,
         vocab={str(k): int(v) for k, v in header["vocab"].items()},
         state_mean=np.asarray(header["state_mean"], dtype=np.float32),
         state_std=np.asarray(header["state_std"], dtype=np.float32),
         meta=header.get("meta", {}),
-        state_positions=positions,
+        state_positions=tuple(int(p) for p in header.get("state_positions") or ()),
     )
+    positions = ckpt.state_positions
+    if positions and (len(positions) < 2 or min(positions) < 0 or max(positions) + 3 > ckpt.raw_state_dim):
+        raise CheckpointError(
+            f"{path}: state_positions {list(positions)} do not fit a {ckpt.raw_state_dim}-D state "
+            "(need the end effector and at least one more position, each 3 entries inside it)"
+        )
+    return ckpt
 
 
 def to_tensors(

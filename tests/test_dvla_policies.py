@@ -138,3 +138,14 @@ def test_corrupt_and_foreign_checkpoints_get_clear_errors(tmp_path):
     save_file({"x": torch.zeros(2)}, str(tmp_path / "foreign.safetensors"))
     with pytest.raises(CheckpointError, match="without a dvla-harness header"):
         load(tmp_path / "foreign.safetensors")
+
+
+def test_state_positions_that_do_not_fit_the_state_are_refused(tmp_path):
+    good = load(make_checkpoint(tmp_path / "m.safetensors", "causal"))
+    assert good.state_positions == () and good.raw_state_dim == 39
+    # 39 model inputs = a 36-D raw state + one offset: a position at 34 runs past its end.
+    good.state_positions = (0, 34)
+    with pytest.raises(CheckpointError, match=r"state_positions \[0, 34\] do not fit a 36-D state"):
+        load(save(good, tmp_path / "bad.safetensors"))
+    good.state_positions = (0, 33)
+    assert load(save(good, tmp_path / "ok.safetensors")).raw_state_dim == 36
