@@ -55,7 +55,15 @@ DRAWER_OPENING = 0.024  # revision 1: finger joint position (m) held by feedback
 # resolves as "stay" for ever (the libero-object student on the tomato sauce).
 SETTLE = 2e-4
 MIN_CLOSE = 3
-REVISIONS = (1, 2)
+# Revision 3 closes once the descending hand has stopped (moved less than STOP_Z in height
+# for STOPPED_STEPS steps in a row) within REACHED of the grip point. Revisions 1-2 closed
+# within 8 mm or after 40 steps: where the hand came to rest short of 8 mm (a finger on the
+# rim; spatial tasks 6 and 8 every episode) they sat 10-20 steps on one observation, then
+# closed, and a policy trained on that sat there for ever, open (spatial task 9).
+STOP_Z = 5e-4
+STOPPED_STEPS = 2
+REACHED = 0.03
+REVISIONS = (1, 2, 3)
 
 
 @dataclass(frozen=True)
@@ -140,9 +148,10 @@ class LiberoScriptedParams:
     )
     seed: int = param(0, "seed of the action noise", low=0)
     revision: int = param(
-        2,
-        "expert revision: 2 = fixed-count finger narrowing for drawers and a lift once the "
-        "grip has settled; 1 = the expert that collected the shipped LIBERO demonstrations",
+        3,
+        "expert revision: 3 = closes as soon as the descending hand stops near the grip; "
+        "2 = fixed-count finger narrowing for drawers and a lift once the grip has settled; "
+        "1 = the first expert (policies/checkpoints/README.md says which each set saw)",
         choices=REVISIONS,
     )
 
@@ -274,7 +283,9 @@ class PickPlaceExpert:
             err = target - eef
             if self.phase == "approach" and np.linalg.norm(err[:2]) < 0.01 and abs(err[2]) < 0.02:
                 self._next("descend")
-            elif self.phase == "descend" and (np.linalg.norm(err) < 0.008 or self.count > 40):
+            elif self.phase == "descend" and (
+                np.linalg.norm(err) < 0.008 or self.count > 40 or self._stopped_near(eef, err)
+            ):
                 self._next("close")
         elif self.phase == "close":
             target, grip = self.grip_point, CLOSE
@@ -308,8 +319,7 @@ class PickPlaceExpert:
             grip = CLOSE
             place = self._place_point(obs)
             target = eef + (place - obj)
-            stuck = self.last_z is not None and abs(self.last_z - eef[2]) < 0.0005
-            self.stalled = self.stalled + 1 if stuck else 0
+            self._count_stalled(eef)
             centred = np.linalg.norm(place[:2] - obj[:2]) < 0.01
             if (centred and (obj[2] - place[2] < RELEASE_ABOVE or self.stalled >= 4)) or self.count > 60:
                 self._next("release")
@@ -322,6 +332,17 @@ class PickPlaceExpert:
         if self.params.revision == 1:
             return _hold_opening(finger, DRAWER_OPENING)
         return CLOSE if self.phase == "approach" and self.count <= DRAWER_CLOSE_STEPS else HOLD
+
+    def _count_stalled(self, eef: np.ndarray) -> None:
+        """Steps in a row the hand's height has not changed (by STOP_Z)."""
+        stuck = self.last_z is not None and abs(self.last_z - eef[2]) < STOP_Z
+        self.stalled = self.stalled + 1 if stuck else 0
+
+    def _stopped_near(self, eef: np.ndarray, err: np.ndarray) -> bool:
+        if self.params.revision < 3:
+            return False
+        self._count_stalled(eef)
+        return self.stalled >= STOPPED_STEPS and float(np.linalg.norm(err)) < REACHED
 
     def _grip_settled(self, finger: float) -> bool:
         settled = self.last_finger is not None and abs(finger - self.last_finger) < SETTLE

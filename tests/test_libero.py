@@ -232,6 +232,29 @@ def test_the_expert_lifts_in_the_step_its_grip_settles(cli, tmp_path, revision, 
 
 
 @needs_libero
+@pytest.mark.parametrize(("revision", "waits"), [("3", False), ("2", True)])
+def test_the_expert_closes_once_its_hand_has_stopped_by_the_grip(cli, tmp_path, revision, waits):
+    # Spatial task 6: the hand comes to rest ~1.5 cm from the grip point. Revision 2 sat
+    # there on one observation until its 40-step timer ran out, which a policy cannot see
+    # coming; revision 3 closes after STOPPED_STEPS still steps.
+    from policies.libero_scripted import CLOSE, STOP_Z, STOPPED_STEPS
+
+    out = tmp_path / "demo"
+    code, _, err = cli(
+        "collect", "--suite", "libero/spatial", "--tasks", "6", "--policy",
+        f"libero_scripted:revision={revision}", "--episodes-per-task", "1", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    table = pq.read_table(out / "steps.parquet").to_pydict()
+    heights = [obs[2] for obs in table["observation"]]
+    close = next(t for t, a in enumerate(table["action"]) if a[6] == CLOSE)
+    still = 0
+    while abs(heights[close - still] - heights[close - still - 1]) < STOP_Z:
+        still += 1
+    assert (still > 2 * STOPPED_STEPS) == waits, (close, still)
+
+
+@needs_libero
 def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
     """Expert demonstrations -> tiny bidirectional checkpoint -> two episodes through the CLI."""
     from policies.recipes import TrainConfig
