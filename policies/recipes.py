@@ -13,6 +13,8 @@ NOISE_SCHEDULES = ("frontier", "linear", "sorted_uniform")
 SAMPLING = ("task", "step")
 NOISY_TARGETS = ("first_action", "chunk")
 STATE_FEATURES = ("raw", "relative")
+# Which training actions the tokenizer's bins span, as percentiles per dimension.
+ACTION_RANGES = {"percentile": (1.0, 99.0), "full": (0.0, 100.0)}
 PATTERN = {
     "bidirectional": "bidirectional",
     "autoregressive": "causal",
@@ -53,6 +55,9 @@ class TrainConfig:
     # positions are; policies/observations.py). "" = the --init or --teacher checkpoint's
     # choice, else raw.
     state_features: str = ""
+    # "percentile": bins span the 1st-99th percentile of each action dimension (DD-VLA;
+    # outliers clipped); "full": every training action (nothing clipped).
+    action_range: str = "percentile"
 
     def validate(self) -> None:
         if self.recipe not in RECIPES:
@@ -69,6 +74,8 @@ class TrainConfig:
             raise ValueError(
                 f"state_features {self.state_features!r} is not one of {', '.join(STATE_FEATURES)}"
             )
+        if self.action_range not in ACTION_RANGES:
+            raise ValueError(f"action_range {self.action_range!r} is not one of {', '.join(ACTION_RANGES)}")
         if self.recipe == "distill" and not self.teacher:
             raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
         for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn"):

@@ -42,7 +42,7 @@ import torch.nn.functional as F
 from policies.checkpoint import Checkpoint, load, save, words_of
 from policies.model import ActionTokenModel, ModelConfig
 from policies.observations import relative_positions
-from policies.recipes import PATTERN, TrainConfig
+from policies.recipes import ACTION_RANGES, PATTERN, TrainConfig
 from policies.tokenizer import ActionTokenizer
 
 
@@ -276,7 +276,7 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
                 f"{cfg.init}: the demonstrations use words it has never seen: {sorted(unknown)[:5]}"
             )
         return ckpt, None
-    tokenizer = ActionTokenizer.fit(demos.actions, bins=cfg.bins)
+    tokenizer = ActionTokenizer.fit(demos.actions, bins=cfg.bins, percentiles=ACTION_RANGES[cfg.action_range])
     words = sorted({w for text in set(demos.instructions) for w in words_of(text)})
     vocab = {w: i + 2 for i, w in enumerate(words)}
     max_words = max(1, max(len(words_of(t)) for t in set(demos.instructions)))
@@ -437,6 +437,8 @@ def train(
         # Mean |action - detokenize(tokenize(action))| over the training actions (clipped to
         # the bins' range): the precision floor no amount of training can beat.
         "tokenizer_round_trip_error": ckpt.tokenizer.round_trip_error(demos.actions),
+        # Per dimension, the largest error on the actions as demonstrated, clipping included.
+        "tokenizer_worst_error": ckpt.tokenizer.worst_error(demos.actions).tolist(),
         # Which weights it grew from, by content: a path alone says nothing once the file changes.
         "teacher_sha256": _sha256(cfg.teacher) if cfg.teacher else "",
         "init_sha256": _sha256(cfg.init) if cfg.init else "",

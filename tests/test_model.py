@@ -143,6 +143,21 @@ def test_a_zero_action_round_trips_exactly_so_a_gripper_can_hold():
     assert np.all(np.sign(near[:2]) == [1.0, -1.0])  # neighbouring bins keep their sign
 
 
+def test_worst_error_shows_a_rare_action_the_percentile_bins_clip():
+    # LIBERO spatial's drawer grasp turns the wrist at 1.0 in under 1% of the steps; the
+    # 99th percentile is far below, so 1.0 decodes as that while the mean error stays tiny.
+    actions = np.zeros((1000, 2))
+    actions[:, 0] = np.linspace(-0.05, 0.05, 1000)
+    actions[:5, 1] = 1.0  # 0.5% of the steps
+    actions[5:, 1] = np.linspace(-0.05, 0.05, 995)
+    clipped = ActionTokenizer.fit(actions)
+    assert clipped.round_trip_error(actions) < 0.001
+    worst = clipped.worst_error(actions)
+    assert worst[0] < 0.01 and worst[1] > 0.9
+    full = ActionTokenizer.fit(actions, percentiles=(0.0, 100.0))
+    assert full.high[1] == 1.0 and full.worst_error(actions).max() < 0.01
+
+
 @pytest.mark.parametrize(("pattern", "step"), [("block_causal", 4), ("causal", 1)])
 def test_camera_images_join_the_prefix_and_the_cache_stays_exact(pattern, step):
     model = _model(

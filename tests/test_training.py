@@ -217,21 +217,17 @@ def test_distillation_continues_from_a_student_of_the_same_teacher_only(demos, t
     assert not (tmp_path / "x.safetensors").exists() and not (tmp_path / "y.safetensors").exists()
 
 
-def test_mixed_state_sizes_are_zero_padded_and_the_policy_accepts_exactly_those(tmp_path):
-    """LIBERO goal/10/90 tasks differ in state size: one model reads all of them."""
-    import gymnasium as gym
+def _synthetic_demos(folder, episodes):
+    """A demonstrations folder of (task, observations, actions) episodes."""
     import numpy as np
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     from harness.collect import DEMO_COLUMNS
-    from policies.base import EpisodeContext
-    from policies.registry import get_policy, parse_params
 
     rows: dict[str, list] = {name: [] for name in DEMO_COLUMNS.names}
-    rng = np.random.default_rng(0)
-    for episode, (task, dim) in enumerate([("wide", 5), ("narrow", 3), ("wide", 5), ("narrow", 3)]):
-        for step in range(12):
+    for episode, (task, observations, actions) in enumerate(episodes):
+        for step, (obs, action) in enumerate(zip(observations, actions, strict=True)):
             for name, value in (
                 ("episode_id", episode),
                 ("task", task),
@@ -240,14 +236,32 @@ def test_mixed_state_sizes_are_zero_padded_and_the_policy_accepts_exactly_those(
                 ("seed", 0),
                 ("init_state_id", 0),
                 ("step", step),
-                ("observation", rng.normal(size=dim).astype(np.float32).tolist()),
-                ("action", rng.uniform(-1, 1, 4).astype(np.float32).tolist()),
+                ("observation", np.asarray(obs, np.float32).tolist()),
+                ("action", np.asarray(action, np.float32).tolist()),
             ):
                 rows[name].append(value)
-    demos = tmp_path / "demos"
-    demos.mkdir()
-    pq.write_table(pa.table(rows, schema=DEMO_COLUMNS), demos / "steps.parquet")
-    (demos / "manifest.json").write_text(json.dumps({"steps_sha256": "x"}))
+    folder.mkdir()
+    pq.write_table(pa.table(rows, schema=DEMO_COLUMNS), folder / "steps.parquet")
+    (folder / "manifest.json").write_text(json.dumps({"steps_sha256": "x"}))
+    return folder
+
+
+def test_mixed_state_sizes_are_zero_padded_and_the_policy_accepts_exactly_those(tmp_path):
+    """LIBERO goal/10/90 tasks differ in state size: one model reads all of them."""
+    import gymnasium as gym
+    import numpy as np
+
+    from policies.base import EpisodeContext
+    from policies.registry import get_policy, parse_params
+
+    rng = np.random.default_rng(0)
+    demos = _synthetic_demos(
+        tmp_path / "demos",
+        [
+            (task, rng.normal(size=(12, dim)), rng.uniform(-1, 1, (12, 4)))
+            for task, dim in [("wide", 5), ("narrow", 3)] * 2
+        ],
+    )
     out = tmp_path / "m.safetensors"
     train(
         TrainConfig(recipe="bidirectional", **{**TINY, "steps": 2, "batch_size": 8, "warmup": 1}), demos, out
@@ -464,3 +478,34 @@ def test_relative_state_features_need_recorded_positions(demos, tmp_path, cli):
     )  # fmt: skip
     assert code == 2 and "relative" in err
     assert list(tmp_path.glob("*.safetensors")) == []
+
+
+def test_action_range_full_keeps_a_rare_action_the_percentile_bins_clip(tmp_path, cli):
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    episodes = []
+    for i in range(10):
+        actions = rng.uniform(-0.1, 0.1, (40, 4))
+        actions[:2, 2] = 1.0 if i < 2 else actions[:2, 2]  # a wrist turn in 4 of 400 steps
+        episodes.append(("turn", rng.normal(size=(40, 3)), actions))
+    demos = _synthetic_demos(tmp_path / "demos", episodes)
+    small = ["--steps", "2", "--batch-size", "8", "--width", "32", "--layers", "1", "--ffn", "64", "--quiet"]
+    code, _, err = cli("train", "--demos", str(demos), "--recipe", "bidirectional", "--out", str(tmp_path / "p.safetensors"), *small)  # fmt: skip
+    assert code == 0, err
+    assert "clips some training actions" in err and "dimension 2: up to 0.8" in err
+    assert load(tmp_path / "p.safetensors").meta["tokenizer_worst_error"][2] > 0.8
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--action-range", "full",
+        "--out", str(tmp_path / "f.safetensors"), *small,
+    )  # fmt: skip
+    assert code == 0, err
+    assert "clips" not in err
+    full = load(tmp_path / "f.safetensors")
+    assert full.tokenizer.high[2] == 1.0 and max(full.meta["tokenizer_worst_error"]) < 0.01
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--init", str(tmp_path / "f.safetensors"),
+        "--action-range", "full", "--out", str(tmp_path / "c.safetensors"), *small,
+    )  # fmt: skip
+    assert code == 2 and "comes from the --init or --teacher checkpoint" in err
+    assert not (tmp_path / "c.safetensors").exists()

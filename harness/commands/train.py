@@ -18,9 +18,12 @@ from rich.progress import (
 from harness.console import console, err_console
 from harness.errors import UsageError
 
+CLIPPED = 0.1  # warn above this tokenizer error on a training action (a tenth of a half-range)
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     from policies.recipes import (
+        ACTION_RANGES,
         NOISE_SCHEDULES,
         NOISY_TARGETS,
         RECIPES,
@@ -89,6 +92,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "sit: LIBERO, Meta-World). Default: what --init/--teacher reads, else raw",
     )
     p.add_argument(
+        "--action-range",
+        choices=ACTION_RANGES,
+        help="what the action tokenizer's bins span per dimension: percentile (the 1st-99th "
+        "percentile of the training actions, outliers clipped, as DD-VLA; default) or full "
+        "(every training action: no rare action is clipped). --init and --teacher bring theirs",
+    )
+    p.add_argument(
         "--noise-schedule",
         choices=NOISE_SCHEDULES,
         default=d.noise_schedule,
@@ -149,7 +159,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         sampling=args.sampling,
         noisy_targets=args.noisy_targets,
         state_features=args.state_features or "",
+        action_range=args.action_range or "percentile",
     )
+    if args.action_range and (cfg.init or cfg.recipe == "distill"):
+        raise UsageError(
+            "--action-range: the tokenizer comes from the --init or --teacher checkpoint; leave it out"
+        )
     try:
         cfg.validate()
     except ValueError as exc:
@@ -191,6 +206,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     from policies.checkpoint import load
 
-    error = load(out).meta.get("tokenizer_round_trip_error")
+    meta = load(out).meta
+    error = meta.get("tokenizer_round_trip_error")
     console.print(f"action tokenizer round-trip error on the training actions: {error:.5f} (mean |a - a'|)")
+    worst = meta.get("tokenizer_worst_error") or []
+    lost = [f"dimension {d}: up to {w:.2f}" for d, w in enumerate(worst) if w > CLIPPED]
+    if lost:
+        err_console.print(
+            "[yellow]warning:[/] the action tokenizer clips some training actions by more than "
+            f"{CLIPPED} ({'; '.join(lost)}): rare large actions decode smaller than demonstrated. "
+            "If they matter, train with --action-range full."
+        )
     return 0
