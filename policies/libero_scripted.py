@@ -56,10 +56,12 @@ DRAWER_OPENING = 0.024  # revision 1: finger joint position (m) held by feedback
 SETTLE = 2e-4
 MIN_CLOSE = 3
 # Revision 3 closes once the descending hand has stopped (moved less than STOP_Z in height
-# for STOPPED_STEPS steps in a row) within REACHED of the grip point. Revisions 1-2 closed
-# within 8 mm or after 40 steps: where the hand came to rest short of 8 mm (a finger on the
-# rim; spatial tasks 6 and 8 every episode) they sat 10-20 steps on one observation, then
-# closed, and a policy trained on that sat there for ever, open (spatial task 9).
+# for STOPPED_STEPS steps in a row) within REACHED of the grip point, and lets go once the
+# lowered object has stopped within REACHED of its place point. Revisions 1-2 closed within
+# 8 mm or after 40 steps, and let go only centred within 1 cm or after 60: where the hand
+# came to rest short of that (a finger on the rim, a bowl on the plate's rim) they sat
+# 10-40 steps on one observation, then acted, and a policy trained on that sat there for
+# ever (spatial task 9: open above the bowl, then pressing the bowl down beside the plate).
 STOP_Z = 5e-4
 STOPPED_STEPS = 2
 REACHED = 0.03
@@ -320,8 +322,14 @@ class PickPlaceExpert:
             place = self._place_point(obs)
             target = eef + (place - obj)
             self._count_stalled(eef)
-            centred = np.linalg.norm(place[:2] - obj[:2]) < 0.01
-            if (centred and (obj[2] - place[2] < RELEASE_ABOVE or self.stalled >= 4)) or self.count > 60:
+            off = float(np.linalg.norm(place[:2] - obj[:2]))
+            centred = off < 0.01
+            resting = p.revision >= 3 and self.stalled >= STOPPED_STEPS and off < REACHED
+            if (
+                (centred and (obj[2] - place[2] < RELEASE_ABOVE or self.stalled >= 4))
+                or resting
+                or self.count > 60
+            ):
                 self._next("release")
         elif self.phase == "release":
             target = eef.copy() if self.count < 10 else eef + np.array([0.0, 0.0, 0.05])

@@ -233,25 +233,36 @@ def test_the_expert_lifts_in_the_step_its_grip_settles(cli, tmp_path, revision, 
 
 @needs_libero
 @pytest.mark.parametrize(("revision", "waits"), [("3", False), ("2", True)])
-def test_the_expert_closes_once_its_hand_has_stopped_by_the_grip(cli, tmp_path, revision, waits):
-    # Spatial task 6: the hand comes to rest ~1.5 cm from the grip point. Revision 2 sat
-    # there on one observation until its 40-step timer ran out, which a policy cannot see
-    # coming; revision 3 closes after STOPPED_STEPS still steps.
-    from policies.libero_scripted import CLOSE, STOP_Z, STOPPED_STEPS
+def test_the_expert_grasps_and_lets_go_once_its_hand_has_stopped(cli, tmp_path, revision, waits):
+    # Spatial task 6: in episode 0 the hand comes to rest ~1.5 cm from the grip point, in
+    # episode 1 the bowl comes to rest on the plate's rim ~2 cm from its centre. Revision 2
+    # sat on one observation each time until a timer ran out (40 and 60 steps), which a
+    # policy cannot see coming; revision 3 acts after STOPPED_STEPS still steps.
+    from policies.libero_scripted import CLOSE, OPEN, STOP_Z, STOPPED_STEPS
 
     out = tmp_path / "demo"
     code, _, err = cli(
         "collect", "--suite", "libero/spatial", "--tasks", "6", "--policy",
-        f"libero_scripted:revision={revision}", "--episodes-per-task", "1", "--out", str(out), "--quiet",
+        f"libero_scripted:revision={revision}", "--episodes-per-task", "2", "--out", str(out), "--quiet",
     )  # fmt: skip
     assert code == 0, err
-    table = pq.read_table(out / "steps.parquet").to_pydict()
-    heights = [obs[2] for obs in table["observation"]]
-    close = next(t for t, a in enumerate(table["action"]) if a[6] == CLOSE)
-    still = 0
-    while abs(heights[close - still] - heights[close - still - 1]) < STOP_Z:
-        still += 1
-    assert (still > 2 * STOPPED_STEPS) == waits, (close, still)
+    table = pq.read_table(out / "steps.parquet").to_pandas()
+
+    def still_before(episode: int, release: bool) -> int:
+        """Steps the hand's height stood still before the grasp (or the release)."""
+        rows = table[table["episode_index"] == episode]
+        heights = [obs[2] for obs in rows["observation"]]
+        grips = [a[6] for a in rows["action"]]
+        t = grips.index(CLOSE)
+        t = grips.index(OPEN, t) if release else t
+        n = 0
+        while abs(heights[t - n] - heights[t - n - 1]) < STOP_Z:
+            n += 1
+        return n
+
+    stills = (still_before(0, release=False), still_before(1, release=True))
+    assert all(n > 2 * STOPPED_STEPS for n in stills) == waits, stills
+    assert waits or all(n <= STOPPED_STEPS + 1 for n in stills), stills
 
 
 @needs_libero
