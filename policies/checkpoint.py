@@ -109,6 +109,7 @@ def load(path: str | Path) -> Checkpoint:
         cfg = ModelConfig(**header["model"])
         model = ActionTokenModel(cfg)
         tokenizer = ActionTokenizer.from_dict(header["tokenizer"])
+        positions = tuple(int(p) for p in header.get("state_positions") or ())
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, CheckpointError):
             raise
@@ -129,9 +130,8 @@ def load(path: str | Path) -> Checkpoint:
         state_mean=np.asarray(header["state_mean"], dtype=np.float32),
         state_std=np.asarray(header["state_std"], dtype=np.float32),
         meta=header.get("meta", {}),
-        state_positions=tuple(int(p) for p in header.get("state_positions") or ()),
+        state_positions=positions,
     )
-    positions = ckpt.state_positions
     if positions and (len(positions) < 2 or min(positions) < 0 or max(positions) + 3 > ckpt.raw_state_dim):
         raise CheckpointError(
             f"{path}: state_positions {list(positions)} do not fit a {ckpt.raw_state_dim}-D state "

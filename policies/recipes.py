@@ -56,7 +56,8 @@ class TrainConfig:
     # choice, else raw.
     state_features: str = ""
     # "percentile": bins span the 1st-99th percentile of each action dimension (DD-VLA;
-    # outliers clipped); "full": every training action (nothing clipped).
+    # outliers clipped); "full": every training action (nothing clipped). A fresh model's
+    # only: --init and --teacher bring their tokenizer.
     action_range: str = "percentile"
 
     def validate(self) -> None:

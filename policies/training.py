@@ -114,10 +114,10 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
                     "demonstrations trained on together must match"
                 )
     positions: dict[str, tuple[int, ...]] = {}
-    for folder_, m in zip(paths, manifests, strict=True):
+    for path, m in zip(paths, manifests, strict=True):
         for task, found in (m.get("state_positions") or {}).items():
             if positions.setdefault(task, tuple(found)) != tuple(found):
-                raise ValueError(f"{folder_}: task {task!r} records other state positions than before")
+                raise ValueError(f"{path}: task {task!r} records other state positions than before")
     offset = 0
     for df, m in zip(frames, manifests, strict=True):
         df["episode_id"] += offset  # episode ids unique across folders: chunks never cross
@@ -300,8 +300,9 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         cameras=demos.cameras,
         image_size=demos.image_size,
     )
-    model = ActionTokenModel(model_cfg)
-    return Checkpoint(model, tokenizer, vocab, mean, std, state_positions=positions), None
+    return Checkpoint(
+        ActionTokenModel(model_cfg), tokenizer, vocab, mean, std, state_positions=positions
+    ), None
 
 
 def _check_features(cfg: TrainConfig, path: str, ckpt: Checkpoint, demos: Demos) -> None:

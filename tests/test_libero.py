@@ -406,7 +406,7 @@ def test_missing_extra_names_the_fix(cli, tmp_path, monkeypatch):
 @needs_libero
 def test_the_shipped_libero_student_solves_an_object_episode_by_set_name(cli, tmp_path):
     """`checkpoint=libero-spatial` picks the shipped student; it solves an episode its
-    evaluation solved every time (docs/libero.md, trained reference policies)."""
+    evaluation solved every time (docs/libero-policies.md)."""
     import pandas as pd
 
     from results.store import RunDir
