@@ -408,7 +408,7 @@ def test_missing_extra_names_the_fix(cli, tmp_path, monkeypatch):
 @needs_libero
 @pytest.mark.parametrize("suite", sorted(SOLVED_TASKS))
 def test_the_shipped_libero_student_solves_an_episode_by_set_name(cli, tmp_path, suite):
-    """`checkpoint=libero-object` picks the shipped student (spatial: relative state
+    """`checkpoint=libero-<suite>` picks the shipped student (spatial: relative state
     features, read through the checkpoint); it solves an episode its evaluation solved."""
     import pandas as pd
 
