@@ -19,7 +19,7 @@ import numpy as np
 from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.observations import cameras_of
 from policies.registry import PolicySpec, param
-from policies.schedules import CONFIDENCES, SCHEDULES
+from policies.schedules import CACHE_MODES, CONFIDENCES, SCHEDULES
 
 SHIPPED = Path(__file__).resolve().parent / "checkpoints"
 
@@ -52,6 +52,8 @@ def resolve_checkpoint(params: Any, recipe: str) -> None:
 
 
 CHECKPOINT_HELP = "path, or a shipped set's name (e.g. libero-spatial), of a"
+TEMPERATURE_HELP = "sample each token from softmax(logits / temperature) (0 = greedy arg-max)"
+SEED_HELP = "seed of the sampler (temperature, confidence=random); re-seeded every chunk"
 
 
 def checkpoint_fields(path: str) -> dict[str, Any]:
@@ -104,8 +106,12 @@ class BidirectionalParams:
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     remask: float = param(0.0, "secondary remasking: max confidence threshold (0 = off)", low=0.0, high=1.0)
     cache_prefix: bool = param(
-        False, "reuse the prefix keys/values (exact only if the prefix does not see the actions)"
+        False,
+        "reuse the prefix keys/values, never refreshed (exact only if the prefix does not see "
+        "the actions; stale otherwise: the pre-Fast-dLLM ablation)",
     )
+    temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
+    seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
 
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "bidirectional")
@@ -114,9 +120,26 @@ class BidirectionalParams:
 @dataclass(frozen=True)
 class FastDLLMParams:
     checkpoint: str = param(shipped("bidirectional"), f"{CHECKPOINT_HELP} bidirectional model")
-    steps: int = param(12, "refinement steps T (= NFE per chunk)", low=1, high=1024)
-    schedule: str = param("cosine", "how many tokens stay masked after each step", choices=SCHEDULES)
+    cache: str = param(
+        "dual",
+        "dual: steps run the block against cached keys of all else; prefix: the block and what "
+        "follows against keys before it; none: full passes (refreshed at every block start)",
+        choices=CACHE_MODES,
+    )
+    threshold: float = param(
+        0.9,
+        "commit every token at this confidence, at least one per step (0 = fixed steps)",
+        low=0.0,
+        high=1.0,
+    )
+    block_size: int = param(
+        0, "action tokens per block (0 = one action step); must divide the chunk", low=0, high=4096
+    )
+    steps_per_block: int = param(4, "steps per block when threshold=0", low=1, high=1024)
+    schedule: str = param("linear", "with threshold=0: tokens left masked after each step", choices=SCHEDULES)
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
+    temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
+    seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
 
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "bidirectional")
@@ -131,6 +154,8 @@ class BlockDiffusionParams:
     )
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     block_size: int = param(0, BLOCK_SIZE_HELP, low=0, high=4096)
+    temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
+    seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
 
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "block_diffusion")
@@ -147,6 +172,8 @@ class FastDVLAParams:
     n: int = param(2, "a fully activated block commits at least 1/n of its masked tokens", low=1, high=64)
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     block_size: int = param(0, BLOCK_SIZE_HELP, low=0, high=4096)
+    temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
+    seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
 
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "fast_dvla")
@@ -159,8 +186,8 @@ class FastDVLAParams:
 @dataclass(frozen=True)
 class AutoregressiveParams:
     checkpoint: str = param(shipped("autoregressive"), f"{CHECKPOINT_HELP} causal model")
-    temperature: float = param(0.0, "sampling temperature (0 = greedy)", low=0.0, high=10.0)
-    seed: int = param(0, "seed of the sampler", low=0)
+    temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
+    seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
 
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "autoregressive")
@@ -277,7 +304,9 @@ class DVLAPolicy:
             decoded = self._decode(self.model, words, state, self.params, images)
         actions = self.ckpt.tokenizer.decode(decoded.tokens.numpy())
         return ChunkBatch(
-            actions=actions, action_tokens=int(decoded.tokens.numel()), trace=[{"committed": decoded.trace}]
+            actions=actions,
+            action_tokens=int(decoded.tokens.numel()),
+            trace=[decoded.row_trace(row) for row in range(len(observations))],
         )
 
 
@@ -287,39 +316,59 @@ def _spec(name: str, summary: str, params: type, pattern: str, decode: Callable[
     )
 
 
+def _generator(p: Any) -> Any:
+    import torch
+
+    return torch.Generator().manual_seed(p.seed)
+
+
 def _bidirectional(m, w, s, p, i=None):
     from policies.decoders import decode_bidirectional
 
     return decode_bidirectional(
-        m, w, s, p.steps, p.schedule, p.confidence, p.remask, p.cache_prefix, images=i
+        m, w, s, p.steps, p.schedule, p.confidence, p.remask, p.cache_prefix, i, p.temperature, _generator(p)
     )
 
 
 def _fast_dllm(m, w, s, p, i=None):
-    from policies.decoders import decode_bidirectional
+    from policies.fast_dllm import decode_fast_dllm
 
-    return decode_bidirectional(m, w, s, p.steps, p.schedule, p.confidence, reuse_prefix_cache=True, images=i)
+    return decode_fast_dllm(
+        m,
+        w,
+        s,
+        p.block_size,
+        p.threshold,
+        p.cache,
+        p.steps_per_block,
+        p.schedule,
+        p.confidence,
+        i,
+        p.temperature,
+        _generator(p),
+    )
 
 
 def _block_diffusion(m, w, s, p, i=None):
     from policies.decoders import decode_block_diffusion
 
-    return decode_block_diffusion(m, w, s, p.steps_per_block, p.schedule, p.confidence, images=i)
+    return decode_block_diffusion(
+        m, w, s, p.steps_per_block, p.schedule, p.confidence, i, p.temperature, _generator(p)
+    )
 
 
 def _fast_dvla(m, w, s, p, i=None):
-    from policies.decoders import decode_fast_dvla
+    from policies.fast_dvla import decode_fast_dvla
 
-    return decode_fast_dvla(m, w, s, p.tau_conf, p.tau_add, p.tau_act, p.n, p.confidence, images=i)
+    return decode_fast_dvla(
+        m, w, s, p.tau_conf, p.tau_add, p.tau_act, p.n, p.confidence, i, p.temperature, _generator(p)
+    )
 
 
 def _autoregressive(m, w, s, p, i=None):
-    import torch
-
     from policies.decoders import decode_autoregressive
 
-    generator = torch.Generator().manual_seed(p.seed) if p.temperature > 0 else None
-    return decode_autoregressive(m, w, s, p.temperature, generator, images=i)
+    return decode_autoregressive(m, w, s, p.temperature, _generator(p), images=i)
 
 
 SPECS = [
@@ -332,7 +381,7 @@ SPECS = [
     ),
     _spec(
         "fast_dllm",
-        "bidirectional model reusing a stale prefix KV cache (Fast-dLLM baseline)",
+        "Fast-dLLM baseline: bidirectional model, block-wise approximate KV cache refreshed per block, confidence-threshold parallel decoding",
         FastDLLMParams,
         "bidirectional",
         _fast_dllm,

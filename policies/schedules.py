@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 SCHEDULES = ("cosine", "linear", "concave")
-CONFIDENCES = ("max_prob", "margin")
+CONFIDENCES = ("max_prob", "margin", "entropy", "random")  # policies/decoding.py says what each is
 
 
 def still_masked(schedule: str, step: int, steps: int, total: int) -> int:
@@ -17,3 +17,7 @@ def still_masked(schedule: str, step: int, steps: int, total: int) -> int:
     r = step / steps
     frac = {"cosine": math.cos(math.pi / 2 * r), "linear": 1 - r, "concave": 1 - r * r}[schedule]
     return min(total, max(0, math.ceil(total * frac - 1e-9)))
+
+
+# Fast-dLLM's approximate KV cache (policies/fast_dllm.py): what a step inside a block reuses.
+CACHE_MODES = ("dual", "prefix", "none")

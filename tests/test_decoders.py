@@ -6,12 +6,8 @@ import pytest
 import torch
 
 from harness.nfe import NFECounter
-from policies.decoders import (
-    decode_autoregressive,
-    decode_bidirectional,
-    decode_block_diffusion,
-    decode_fast_dvla,
-)
+from policies.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
+from policies.fast_dvla import decode_fast_dvla
 from policies.schedules import still_masked
 from tests.fakes import tiny_model
 
@@ -46,7 +42,7 @@ def test_bidirectional_nfe_is_t(steps):
     assert sorted(p for step in out.trace for p in step) == list(range(16))  # each committed once
 
 
-def test_fast_dllm_reuses_the_prefix_and_keeps_t():
+def test_a_never_refreshed_prefix_cache_keeps_t():
     out, nfe = _count(_model("bidirectional"), decode_bidirectional, steps=6, reuse_prefix_cache=True)
     assert nfe == 6 and (out.tokens < 32).all()
 

@@ -49,7 +49,7 @@ def make_checkpoint(path, pattern: str, block_size: int = 0):
     ("policy", "pattern", "block", "params", "nfe"),
     [
         ("bidirectional", "bidirectional", 0, "steps=5", 5.0),
-        ("fast_dllm", "bidirectional", 0, "steps=3", 3.0),
+        ("fast_dllm", "bidirectional", 0, "threshold=0,steps_per_block=3", 12.0),  # 4 blocks x 3
         ("autoregressive", "causal", 0, "", 16.0),
         ("block_diffusion", "block_causal", 8, "steps_per_block=3", 6.0),
     ],
