@@ -20,6 +20,7 @@ from pathlib import Path
 
 from harness.config import PolicyChoice, RunConfig
 from harness.errors import UsageError
+from policies.recipes import NOISE_SCHEDULES
 from policies.registry import PolicyParamError, UnknownPolicyError, get_policy, param_types, parse_params
 
 Grid = dict[str, list[str]]  # parameter -> values as typed, in the order given
@@ -61,7 +62,7 @@ def _unknown_key(policy: str, key: str, valid: Sequence[str]) -> str:
         )
         message += (
             ". The noise schedule is fixed when a checkpoint is trained (`dvla-harness train "
-            "--noise-schedule frontier|linear|sorted_uniform`) and recorded in its header: sweep "
+            f"--noise-schedule {'|'.join(NOISE_SCHEDULES)}`) and recorded in its header: sweep "
             "checkpoints trained with each, `--grid checkpoint=a.safetensors,b.safetensors`, and "
             f"plot with `--hue noise_schedule`; {unmask}"
         )

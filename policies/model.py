@@ -284,6 +284,7 @@ class ActionTokenModel(nn.Module):
         state: Tensor | None = None,  # (B, state_dim)
         cache: KVCache | None = None,  # keys/values of earlier positions to attend to
         images: Tensor | None = None,  # (B, cameras, H, W, 3) uint8, with the prefix
+        attn_mask: Tensor | None = None,  # (n_q, n_k) bool, replaces the pattern's (training)
     ) -> StepOutput:
         cfg = self.cfg
         parts, positions = [], []
@@ -308,7 +309,7 @@ class ActionTokenModel(nn.Module):
         pos = torch.cat(positions)
         x = x + self.positions(pos)
         key_pos = pos if cache is None else torch.cat([cache.positions, pos])
-        allowed = self.attention_mask(pos, key_pos)
+        allowed = self.attention_mask(pos, key_pos) if attn_mask is None else attn_mask
         keys, values = [], []
         for i, block in enumerate(self.blocks):
             x, k, v = block(x, allowed, cache, i)

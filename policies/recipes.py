@@ -9,7 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 RECIPES = ("bidirectional", "autoregressive", "block_diffusion", "distill")
-NOISE_SCHEDULES = ("frontier", "linear", "sorted_uniform")
+# Per-block mask ratios of the block-causal recipes (policies/training.py says what each is).
+NOISE_SCHEDULES = ("clean_context", "frontier", "d2f", "linear", "sorted_uniform")
+# The schedule a recipe trains with when none is named; the others use none.
+DEFAULT_NOISE_SCHEDULE = {"block_diffusion": "clean_context", "distill": "frontier"}
 SAMPLING = ("task", "step")
 NOISY_TARGETS = ("first_action", "chunk")
 STATE_FEATURES = ("raw", "relative")
@@ -39,7 +42,7 @@ class TrainConfig:
     heads: int = 4
     ffn: int = 512
     block_size: int = 0  # 0 = one action step
-    noise_schedule: str = "frontier"
+    noise_schedule: str = ""  # "" = the recipe's default (DEFAULT_NOISE_SCHEDULE)
     obs_noise: float = 0.01  # std of Gaussian noise on normalised states
     teacher: str = ""  # distill: the bidirectional checkpoint
     init: str = ""  # start from this checkpoint's weights, tokenizer and normalisation
@@ -60,12 +63,29 @@ class TrainConfig:
     # only: --init and --teacher bring their tokenizer.
     action_range: str = "percentile"
 
+    @property
+    def schedule(self) -> str:
+        """The noise schedule this run really uses ("" for recipes without one)."""
+        return self.noise_schedule or DEFAULT_NOISE_SCHEDULE.get(self.recipe, "")
+
     def validate(self) -> None:
         if self.recipe not in RECIPES:
             raise ValueError(f"recipe {self.recipe!r} is not one of {', '.join(RECIPES)}")
-        if self.noise_schedule not in NOISE_SCHEDULES:
+        if self.noise_schedule and self.noise_schedule not in NOISE_SCHEDULES:
             raise ValueError(
                 f"noise_schedule {self.noise_schedule!r} is not one of {', '.join(NOISE_SCHEDULES)}"
+            )
+        if self.noise_schedule and self.recipe not in DEFAULT_NOISE_SCHEDULE:
+            raise ValueError(
+                f"noise_schedule {self.noise_schedule!r}: recipe {self.recipe!r} draws no per-block "
+                f"mask ratios; only {' and '.join(DEFAULT_NOISE_SCHEDULE)} take a noise schedule"
+            )
+        if self.recipe == "distill" and self.noise_schedule == "clean_context":
+            raise ValueError(
+                "noise_schedule 'clean_context' is block_diffusion's loss (cross-entropy against the "
+                "demonstrated tokens, each block read with the earlier ones clean); distill matches "
+                "the teacher on one noisy chunk the teacher sees whole, so it takes a "
+                "diffusion-forcing schedule: frontier (its default), d2f, linear or sorted_uniform"
             )
         if self.sampling not in SAMPLING:
             raise ValueError(f"sampling {self.sampling!r} is not one of {', '.join(SAMPLING)}")

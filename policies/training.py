@@ -3,20 +3,37 @@
     bidirectional    masked-diffusion loss: a random mask ratio per sample, cross-entropy
                      on the masked positions; every token sees every token (Dream-VLA).
     autoregressive   next-token loss under the causal pattern ([MASK] stands for 'begin').
-    block_diffusion  block-causal pattern from scratch with diffusion forcing: per-block
-                     mask ratios, non-decreasing along the chunk, from `noise_schedule`.
+    block_diffusion  block-causal pattern, cross-entropy on the masked positions. By
+                     default BD3-LM's clean-context loss: every block is noised and
+                     predicted with every earlier block clean in context, the condition
+                     block-by-block decoding always meets. From scratch, or as the papers
+                     build the baseline, with --init from a bidirectional checkpoint (its
+                     weights, tokenizer, vocabulary and normalisation carry over; the
+                     pattern becomes block-causal, blocks of --block-size or its own).
     distill          Fast-dVLA's asymmetric distillation: a block-causal student that
                      starts from the bidirectional teacher's weights matches the frozen
                      teacher's distribution (KL over masked positions); the teacher sees
                      every noisy block, the student blocks 1..i. Full fine-tuning (the
                      paper uses LoRA rank 32).
 
-Noise schedules (per-block mask ratios t_1 <= ... <= t_N) and why: decoding starts
-every block fully masked while earlier blocks are clean or partly decoded, and under
-block-causal attention a block's loss depends only on itself and earlier blocks.
-    frontier        a random frontier block f with ratio r ~ U(0, 1); earlier blocks below
-                    r, later blocks above it: covers "this block fully masked, the ones
-                    before clean or half done", which is what decoding meets (default).
+Noise schedules (`--noise-schedule`, for block_diffusion and distill; the checkpoint
+records the one used). Under block-causal attention a block's loss depends only on the
+prefix, itself and earlier blocks, and decoding starts every block fully masked.
+    clean_context   block_diffusion's default (BD3-LM): each block's mask ratio ~ U(0, 1),
+                    independently, and the model runs two streams in one pass of twice the
+                    chunk: a clean copy, block-causal among itself, and a noisy copy whose
+                    block i reads the prefix, clean blocks < i and noisy block i, never
+                    clean block i (policies/losses.py). Every scored token sees clean
+                    earlier blocks; in one noisy stream only ~10% do. Not for distill: its
+                    teacher reads one noisy chunk whole, so there is no clean copy to match.
+The diffusion-forcing schedules run one noisy stream with ratios t_1 <= ... <= t_N, so
+earlier blocks are cleaner, as in decoding where they are clean or partly decoded:
+    frontier        distill's default: a random frontier block f with ratio r ~ U(0, 1);
+                    earlier blocks below r, later blocks above it: covers "this block fully
+                    masked, the ones before clean or half done" (the project's own).
+    d2f             Discrete Diffusion Forcing's (D2F, which Fast-dVLA builds on): a start
+                    ratio in [0.2, 0.7] plus random non-negative increments per block,
+                    staying within [0.2, 0.7].
     linear          t_i = t_0 + slope * i / (N - 1), t_0 and slope random.
     sorted_uniform  N uniform ratios, sorted: the naive recipe; the first block is rarely
                     near fully masked (kept for ablations).
@@ -30,16 +47,16 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import torch
-import torch.nn.functional as F
 
 from policies.checkpoint import Checkpoint, load, save, words_of
+from policies.losses import PROBE_SEED, probe_loss, recipe_loss
 from policies.model import ActionTokenModel, ModelConfig
 from policies.observations import relative_positions
 from policies.recipes import ACTION_RANGES, PATTERN, TrainConfig
@@ -174,22 +191,6 @@ def _padded(rows: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
     return out, sizes
 
 
-def block_ratios(schedule: str, batch: int, blocks: int, g: torch.Generator) -> torch.Tensor:
-    """(batch, blocks) non-decreasing mask ratios."""
-    if schedule == "sorted_uniform":
-        return torch.rand(batch, blocks, generator=g).sort(dim=1).values
-    if schedule == "linear":
-        t0 = torch.rand(batch, 1, generator=g)
-        slope = torch.rand(batch, 1, generator=g) * (1 - t0)
-        steps = torch.arange(blocks) / max(blocks - 1, 1)
-        return t0 + slope * steps
-    r = torch.rand(batch, 1, generator=g)
-    f = torch.randint(0, blocks, (batch, 1), generator=g)
-    u = torch.rand(batch, blocks, generator=g).sort(dim=1).values
-    i = torch.arange(blocks)[None, :]
-    return torch.where(i < f, r * u, torch.where(i == f, r, r + (1 - r) * u))
-
-
 def _lr(step: int, cfg: TrainConfig) -> float:
     warmup = cfg.warmup if cfg.warmup_steps is None else cfg.warmup_steps
     if step < warmup:
@@ -228,13 +229,7 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
                 f"{cfg.teacher}: reads cameras {list(teacher.model.cfg.cameras)}, the demonstrations "
                 f"have {list(demos.cameras)}"
             )
-        student_cfg = ModelConfig(
-            **{
-                **teacher.model.cfg.to_dict(),
-                "pattern": "block_causal",
-                "block_size": cfg.block_size or teacher.model.cfg.block_size,
-            }
-        )
+        student_cfg = _block_causal(teacher.model.cfg, cfg.block_size)
         _check_features(cfg, cfg.teacher, teacher, demos)
         student = ActionTokenModel(student_cfg)
         student.load_state_dict(_student_weights(cfg, teacher, student_cfg))
@@ -250,32 +245,7 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         )
         return ckpt, teacher.model.eval()
     if cfg.init:
-        # Continued training: same tokenizer, vocabulary and normalisation, or the
-        # weights would read inputs they were not trained on.
-        ckpt = load(cfg.init)
-        if ckpt.model.cfg.pattern != PATTERN[cfg.recipe]:
-            raise ValueError(
-                f"{cfg.init}: a {ckpt.model.cfg.pattern} model; recipe {cfg.recipe!r} trains a "
-                f"{PATTERN[cfg.recipe]} model"
-            )
-        if (
-            ckpt.raw_state_dim != demos.observations.shape[1]
-            or ckpt.model.cfg.action_dim != demos.actions.shape[1]
-        ):
-            raise ValueError(f"{cfg.init}: its state/action sizes do not match the demonstrations")
-        _check_features(cfg, cfg.init, ckpt, demos)
-        if (ckpt.model.cfg.cameras, ckpt.model.cfg.image_size) != (demos.cameras, demos.image_size):
-            raise ValueError(
-                f"{cfg.init}: reads cameras {list(ckpt.model.cfg.cameras)} at "
-                f"{ckpt.model.cfg.image_size} px, the demonstrations have {list(demos.cameras)} at "
-                f"{demos.image_size} px"
-            )
-        unknown = {w for t in set(demos.instructions) for w in words_of(t)} - set(ckpt.vocab)
-        if unknown:
-            raise ValueError(
-                f"{cfg.init}: the demonstrations use words it has never seen: {sorted(unknown)[:5]}"
-            )
-        return ckpt, None
+        return _initial(cfg, demos), None
     tokenizer = ActionTokenizer.fit(demos.actions, bins=cfg.bins, percentiles=ACTION_RANGES[cfg.action_range])
     words = sorted({w for text in set(demos.instructions) for w in words_of(text)})
     vocab = {w: i + 2 for i, w in enumerate(words)}
@@ -305,6 +275,55 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
     ), None
 
 
+def _initial(cfg: TrainConfig, demos: Demos) -> Checkpoint:
+    """The --init checkpoint to continue, checked against the demonstrations: same
+    tokenizer, vocabulary and normalisation, or the weights would read inputs they were
+    not trained on. block_diffusion may start from a bidirectional model (a teacher)."""
+    ckpt = load(cfg.init)
+    pattern = ckpt.model.cfg.pattern
+    # block_diffusion also starts from a bidirectional model, as the papers fine-tune it.
+    starts = ("bidirectional", "block_causal") if cfg.recipe == "block_diffusion" else (PATTERN[cfg.recipe],)
+    if pattern not in starts:
+        also = (
+            "; only block_diffusion starts from a bidirectional model (distill takes one as --teacher)"
+            if pattern == "bidirectional"
+            else ""
+        )
+        raise ValueError(
+            f"{cfg.init}: a {pattern} model; recipe {cfg.recipe!r} trains a {PATTERN[cfg.recipe]} model{also}"
+        )
+    if (
+        ckpt.raw_state_dim != demos.observations.shape[1]
+        or ckpt.model.cfg.action_dim != demos.actions.shape[1]
+    ):
+        raise ValueError(f"{cfg.init}: its state/action sizes do not match the demonstrations")
+    _check_features(cfg, cfg.init, ckpt, demos)
+    if (ckpt.model.cfg.cameras, ckpt.model.cfg.image_size) != (demos.cameras, demos.image_size):
+        raise ValueError(
+            f"{cfg.init}: reads cameras {list(ckpt.model.cfg.cameras)} at "
+            f"{ckpt.model.cfg.image_size} px, the demonstrations have {list(demos.cameras)} at "
+            f"{demos.image_size} px"
+        )
+    unknown = {w for t in set(demos.instructions) for w in words_of(t)} - set(ckpt.vocab)
+    if unknown:
+        raise ValueError(f"{cfg.init}: the demonstrations use words it has never seen: {sorted(unknown)[:5]}")
+    if PATTERN[cfg.recipe] == "block_causal":
+        # The weights carry over; the attention pattern (and the block size, if asked) change.
+        block_cfg = _block_causal(ckpt.model.cfg, cfg.block_size)
+        if block_cfg != ckpt.model.cfg:
+            model = ActionTokenModel(block_cfg)
+            model.load_state_dict(ckpt.model.state_dict())
+            ckpt.model = model
+    return ckpt
+
+
+def _block_causal(model: ModelConfig, block_size: int) -> ModelConfig:
+    """A model's shape under the block-causal pattern, blocks of `block_size` or its own."""
+    return ModelConfig(
+        **{**model.to_dict(), "pattern": "block_causal", "block_size": block_size or model.block_size}
+    )
+
+
 def _check_features(cfg: TrainConfig, path: str, ckpt: Checkpoint, demos: Demos) -> None:
     """A continued model or a student reads states exactly as the checkpoint it grows
     from: asking for other features is an error, not a silent switch."""
@@ -326,31 +345,13 @@ class TrainReport:
     checkpoint: Path
     losses: list[float] = field(default_factory=list)
     probes: list[tuple[int, float]] = field(default_factory=list)  # (step, probe loss)
+    # Block-causal models: (step, probe loss with clean earlier blocks), the condition
+    # block-by-block decoding meets (losses.probe_loss with schedule clean_context).
+    clean_probes: list[tuple[int, float]] = field(default_factory=list)
     seconds: float = 0.0
 
 
 PROBE_SAMPLES = 512
-PROBE_SEED = 20260
-
-
-def probe_loss(model: ActionTokenModel, clean, words, state, positions, images=None) -> float:
-    """One yardstick for recipes whose training losses differ (KL for distill, CE else).
-
-    Cross-entropy of the true tokens at masked positions, with masks drawn once from a
-    fixed seed (block-causal models: per-block `frontier` ratios, the conditions
-    decoding meets; bidirectional: one ratio per sample; causal: next-token). Comparing
-    it across recipes is how steps-to-convergence is measured (benchmarks/convergence.py).
-    """
-    recipe = {"block_causal": "block_diffusion", "causal": "autoregressive"}.get(
-        model.cfg.pattern, "bidirectional"
-    )
-    g = torch.Generator().manual_seed(PROBE_SEED)
-    was_training = model.training
-    model.eval()
-    with torch.no_grad():
-        value = _loss(recipe, "frontier", model, None, clean, words, state, positions, g, images).item()
-    model.train(was_training)
-    return value
 
 
 def train(
@@ -360,6 +361,7 @@ def train(
     on_step: Callable[[int, float], None] | None = None,
 ) -> TrainReport:
     cfg.validate()
+    cfg = replace(cfg, noise_schedule=cfg.schedule)  # the checkpoint records the one used
     torch.manual_seed(cfg.seed)
     g = torch.Generator().manual_seed(cfg.seed)
     demos = load_demos(demos_dir, cfg.chunk_len)
@@ -389,10 +391,16 @@ def train(
         positions,
         demos.image_batch(probe_rows),
     )
+
+    def probe(step: int) -> None:
+        report.probes.append((step, probe_loss(model, *probe_inputs)))
+        if mcfg.pattern == "block_causal":
+            report.clean_probes.append((step, probe_loss(model, *probe_inputs, schedule="clean_context")))
+
     start = time.perf_counter()
     for step in range(cfg.steps):
         if cfg.probe_every and step % cfg.probe_every == 0:
-            report.probes.append((step, probe_loss(model, *probe_inputs)))
+            probe(step)
         size = min(cfg.batch_size, len(tokens_all))
         if task_weights is None:
             batch = torch.randint(0, len(tokens_all), (size,), generator=g)
@@ -402,7 +410,7 @@ def train(
         state = states_all[batch] + cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
         images = demos.image_batch(batch)
         first_only = None if first_only_all is None else first_only_all[batch]
-        loss = _loss(
+        loss = recipe_loss(
             cfg.recipe,
             cfg.noise_schedule,
             model,
@@ -427,7 +435,7 @@ def train(
             on_step(step, value)
     report.seconds = time.perf_counter() - start
     if cfg.probe_every:
-        report.probes.append((cfg.steps, probe_loss(model, *probe_inputs)))
+        probe(cfg.steps)
     ckpt.model = model.eval()
     ckpt.meta = {
         "recipe": cfg.recipe,
@@ -446,6 +454,7 @@ def train(
         "final_loss": float(np.mean(report.losses[-50:])),
         "train_seconds": report.seconds,
         "probe": report.probes,
+        "probe_clean_context": report.clean_probes,
     }
     save(ckpt, out)
     _write_curve(report, Path(out))
@@ -465,62 +474,6 @@ def _task_weights(instructions: list[str]) -> torch.Tensor:
 
 def _sha256(path: str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def _loss(
-    recipe, schedule, model, teacher, clean, words, state, positions, g, images=None, first_only=None
-) -> torch.Tensor:
-    """The recipe's loss on one batch. `first_only` (B,) marks rows whose chunk target is
-    only its first action (see `_first_action_only`); None leaves every row whole."""
-    cfg = model.cfg
-    b, n = clean.shape
-    later = None if first_only is None else first_only[:, None] & (positions >= cfg.action_dim)[None, :]
-    if recipe == "autoregressive":
-        inputs = torch.cat([torch.full((b, 1), cfg.mask_id), clean[:, :-1]], dim=1)
-        logits = model(inputs, positions, words, state, images=images).logits
-        if later is not None:
-            return F.cross_entropy(logits[~later], clean[~later])
-        return F.cross_entropy(logits.reshape(-1, cfg.bins), clean.reshape(-1))
-    if recipe == "bidirectional":
-        ratio = torch.rand(b, 1, generator=g).expand(b, n)
-    else:
-        ratio = block_ratios(schedule, b, n // cfg.block, g).repeat_interleave(cfg.block, dim=1)
-    mask = torch.rand(b, n, generator=g) < ratio
-    none = ~mask.any(dim=1)
-    mask[none, torch.randint(0, n, (int(none.sum()),), generator=g)] = True  # at least one per sample
-    scored = mask
-    if later is not None and recipe != "distill":
-        mask, scored = _first_action_only(mask, later, cfg.action_dim, g)
-    noisy = torch.where(mask, torch.full_like(clean, cfg.mask_id), clean)
-    logits = model(noisy, positions, words, state, images=images).logits
-    if recipe == "distill":
-        with torch.no_grad():
-            target = torch.log_softmax(teacher(noisy, positions, words, state, images=images).logits, dim=-1)
-        kl = F.kl_div(torch.log_softmax(logits, dim=-1), target, log_target=True, reduction="none").sum(-1)
-        return kl[mask].mean()
-    return F.cross_entropy(logits[scored], clean[scored])
-
-
-def _first_action_only(
-    mask: torch.Tensor, later: torch.Tensor, action_dim: int, g: torch.Generator
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """(input mask, loss mask) for rows of DART-noisy demonstrations.
-
-    Such a row's chunk is the demonstrator's next H actions, but actions 2..H answer noise
-    executed after the row's state, which that state cannot predict: trained on whole, the
-    model learns their blur (a spatial teacher fell from 64 to 22 of 100 that way). Only
-    the first action is the demonstrator's answer to this state, so only it is scored, and
-    the later positions are always [MASK] so the model never reads the blur either.
-    Distillation needs none of this: its target is the teacher, a function of the state.
-    """
-    mask = mask | later
-    scored = mask & ~later
-    rows = ~scored.any(dim=1)
-    if rows.any():  # a row whose first action drew no mask: mask one of its tokens
-        pick = torch.randint(0, action_dim, (int(rows.sum()),), generator=g)
-        mask[rows.nonzero().squeeze(1), pick] = True
-        scored[rows.nonzero().squeeze(1), pick] = True
-    return mask, scored
 
 
 def _write_curve(report: TrainReport, ckpt_path: Path) -> None:

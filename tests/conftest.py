@@ -18,3 +18,29 @@ def cli(capsys):
         return code, captured.out, captured.err
 
     return invoke
+
+
+@pytest.fixture(scope="session")
+def demos(tmp_path_factory):
+    """Tiny Meta-World demonstrations (2 tasks x 2 episodes) for training tests."""
+    out = tmp_path_factory.mktemp("demos") / "mt"
+    assert (
+        main(
+            [
+                "collect",
+                "--suite",
+                "metaworld/mt10",
+                "--tasks",
+                "reach-v3,drawer-close-v3",
+                "--policy",
+                "scripted",
+                "--episodes-per-task",
+                "2",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    return out

@@ -8,39 +8,13 @@ import pytest
 import torch
 
 from policies.checkpoint import load
+from policies.losses import block_ratios
 from policies.recipes import NOISE_SCHEDULES, TrainConfig
-from policies.training import block_ratios, train
+from policies.training import train
 from results.store import RunDir
 from tests.fakes import TINY_TRAIN
 
 TINY = TINY_TRAIN
-
-
-@pytest.fixture(scope="module")
-def demos(tmp_path_factory):
-    from harness.cli import main
-
-    out = tmp_path_factory.mktemp("demos") / "mt"
-    assert (
-        main(
-            [
-                "collect",
-                "--suite",
-                "metaworld/mt10",
-                "--tasks",
-                "reach-v3,drawer-close-v3",
-                "--policy",
-                "scripted",
-                "--episodes-per-task",
-                "2",
-                "--out",
-                str(out),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    return out
 
 
 def _mean(xs):
@@ -103,7 +77,7 @@ def test_distilled_student_runs_as_fast_dvla(demos, tmp_path, cli):
     assert row["policy"] == "fast_dvla" and row["chunks"] > 0 and row["nfe_total"] >= row["chunks"]
 
 
-@pytest.mark.parametrize("schedule", NOISE_SCHEDULES)
+@pytest.mark.parametrize("schedule", [s for s in NOISE_SCHEDULES if s != "clean_context"])
 def test_noise_schedules_are_non_decreasing_ratios(schedule):
     ratios = block_ratios(schedule, 512, 8, torch.Generator().manual_seed(0))
     assert ratios.shape == (512, 8) and (ratios >= 0).all() and (ratios <= 1).all()
@@ -342,11 +316,20 @@ def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
     assert load(out).meta["data_sha256"] == two.sha256
 
 
-@pytest.mark.parametrize("recipe", ["bidirectional", "block_diffusion", "autoregressive"])
-def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(recipe):
+@pytest.mark.parametrize(
+    "recipe, schedule",
+    [
+        ("bidirectional", ""),
+        ("block_diffusion", "frontier"),
+        ("block_diffusion", "clean_context"),
+        ("autoregressive", ""),
+    ],
+)
+def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(recipe, schedule):
     """What actions 2..H of a DART row say (they answer noise its state cannot predict)
-    must change nothing: not the loss, and not what the model reads."""
-    from policies.training import _loss
+    must change nothing: not the loss, and not what the model reads (with clean_context,
+    not in the clean copy either)."""
+    from policies.losses import recipe_loss
     from tests.fakes import tiny_model
 
     pattern = {"bidirectional": "bidirectional", "autoregressive": "causal"}.get(recipe, "block_causal")
@@ -361,7 +344,9 @@ def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(reci
 
     def loss(tokens, first_only):
         seed = torch.Generator().manual_seed(1)
-        return _loss(recipe, "frontier", model, None, tokens, words, state, positions, seed, None, first_only)
+        return recipe_loss(
+            recipe, schedule, model, None, tokens, words, state, positions, seed, None, first_only
+        )
 
     noisy = torch.ones(16, dtype=torch.bool)
     if recipe != "autoregressive":  # later tokens are its inputs, but they score nothing

@@ -24,6 +24,7 @@ CLIPPED = 0.1  # warn above this tokenizer error on a training action (a tenth o
 def register(sub: argparse._SubParsersAction) -> None:
     from policies.recipes import (
         ACTION_RANGES,
+        DEFAULT_NOISE_SCHEDULE,
         NOISE_SCHEDULES,
         NOISY_TARGETS,
         RECIPES,
@@ -47,7 +48,19 @@ def register(sub: argparse._SubParsersAction) -> None:
             "examples:\n"
             "  dvla-harness train --demos demos/mt10 --recipe bidirectional --out ckpt/teacher.safetensors\n"
             "  dvla-harness train --demos demos/mt10 --recipe distill --teacher ckpt/teacher.safetensors "
-            "--out ckpt/fast_dvla.safetensors"
+            "--out ckpt/fast_dvla.safetensors\n"
+            "  # the block-diffusion baseline, fine-tuned from the same teacher (clean-context loss)\n"
+            "  dvla-harness train --demos demos/mt10 --recipe block_diffusion --init ckpt/teacher.safetensors "
+            "--out ckpt/bd.safetensors\n"
+            "\n"
+            "recipes: bidirectional (masked diffusion, full attention), autoregressive (next token),\n"
+            "block_diffusion (block-causal; by default BD3-LM's clean-context loss: each block noised\n"
+            "and predicted with every earlier block clean), distill (Fast-dVLA: a block-causal student\n"
+            "matches the bidirectional --teacher's distribution). Noise schedules (block_diffusion,\n"
+            "distill): clean_context (block_diffusion's default), and the diffusion-forcing ones,\n"
+            "one noisy stream with mask ratios non-decreasing along the chunk: frontier (distill's\n"
+            "default), d2f (D2F: start in [0.2, 0.7], increments staying within it), linear,\n"
+            "sorted_uniform. policies/training.py explains each."
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -65,8 +78,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--init",
         metavar="FILE",
-        help="continue training this checkpoint (its pattern must fit the recipe; tokenizer and "
-        "normalisation are kept); with distill, a student of --teacher to distil further",
+        help="start from this checkpoint (its tokenizer, vocabulary and normalisation are kept): one "
+        "of the recipe's pattern to continue; with block_diffusion also a bidirectional one (a "
+        "teacher: the weights carry over, the pattern becomes block-causal with blocks of "
+        "--block-size or its own); with distill, a student of --teacher to distil further",
     )
     p.add_argument(
         "--sampling",
@@ -101,8 +116,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--noise-schedule",
         choices=NOISE_SCHEDULES,
-        default=d.noise_schedule,
-        help="per-block mask ratios (block_diffusion, distill)",
+        help="per-block mask ratios, block_diffusion and distill only (default: "
+        + ", ".join(f"{s} for {r}" for r, s in DEFAULT_NOISE_SCHEDULE.items())
+        + "; clean_context is block_diffusion's only); recorded in the checkpoint",
     )
     for name, kind in (
         ("steps", int),
@@ -120,7 +136,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "--" + name.replace("_", "-"),
             type=kind,
             default=getattr(d, name),
-            help=f"default {getattr(d, name)}",
+            help=f"default {getattr(d, name)}"
+            if name != "block_size"
+            else "action tokens per block, block-causal recipes (default 0: one action step, or "
+            "with --init / --teacher that checkpoint's)",
         )
     p.add_argument("--overwrite", action="store_true", help="replace an existing checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -152,7 +171,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         heads=args.heads,
         ffn=args.ffn,
         block_size=args.block_size,
-        noise_schedule=args.noise_schedule,
+        noise_schedule=args.noise_schedule or "",
         teacher=args.teacher or "",
         init=args.init or "",
         warmup_steps=args.warmup_steps,
