@@ -65,6 +65,8 @@ def parse_policy_arg(text: str) -> PolicyChoice:
         key, eq, value = item.partition("=")
         if not eq or not key.strip():
             raise UsageError(f"--policy {text!r}: expected NAME:key=value[,key=value...], got {item!r}")
+        if key.strip() in params:
+            raise UsageError(f"--policy {text!r}: parameter {key.strip()!r} is given twice")
         params[key.strip()] = value
     if not name.strip():
         raise UsageError(f"--policy {text!r}: missing policy name")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -97,23 +98,40 @@ def load(path: str | Path) -> Checkpoint:
     try:
         with safe_open(str(path), framework="pt") as fh:
             raw = (fh.metadata() or {}).get("dvla_harness")
-            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+            shapes = {k: tuple(fh.get_slice(k).get_shape()) for k in fh.keys()}
     except (SafetensorError, OSError, ValueError) as exc:
         raise CheckpointError(f"{path}: not a readable safetensors file ({exc})") from None
     if raw is None:
         raise CheckpointError(f"{path}: safetensors file without a dvla-harness header")
     try:
         header = json.loads(raw)
+        if not isinstance(header, dict):
+            raise CheckpointError(f"{path}: invalid header (a JSON {type(header).__name__}, not an object)")
         if header.get("format") != FORMAT:
             raise CheckpointError(f"{path}: format {header.get('format')!r}, expected {FORMAT!r}")
+        _check_header(header)
         cfg = ModelConfig(**header["model"])
+        cfg.validate()
+        _check_shapes(cfg, shapes)
         model = ActionTokenModel(cfg)
         tokenizer = ActionTokenizer.from_dict(header["tokenizer"])
         positions = tuple(int(p) for p in header.get("state_positions") or ())
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, RecursionError) as exc:
         if isinstance(exc, CheckpointError):
             raise
-        raise CheckpointError(f"{path}: invalid header ({exc})") from None
+        what = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise CheckpointError(f"{path}: invalid header ({what})") from None
+    try:
+        with safe_open(str(path), framework="pt") as fh:
+            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path}: not a readable safetensors file ({exc})") from None
+    converted = sorted({str(t.dtype) for t in tensors.values() if t.is_floating_point()} - {"torch.float32"})
+    if converted:
+        warnings.warn(
+            f"{path}: weights stored as {', '.join(converted)}, converted to float32 on load",
+            stacklevel=2,
+        )
     try:
         model.load_state_dict(tensors, strict=True)
     except RuntimeError as exc:
@@ -123,6 +141,7 @@ def load(path: str | Path) -> Checkpoint:
         raise CheckpointError(
             f"{path}: tokenizer ({tokenizer.action_dim}-D, {tokenizer.bins} bins) does not fit the model"
         )
+    _check_normalisation(path, header, tokenizer)
     ckpt = Checkpoint(
         model=model.eval(),
         tokenizer=tokenizer,
@@ -138,6 +157,72 @@ def load(path: str | Path) -> Checkpoint:
             "(need the end effector and at least one more position, each 3 entries inside it)"
         )
     return ckpt
+
+
+# Bounds on a header's model fields: a hostile or corrupt header must be refused before
+# it allocates anything (a width of 10^9 would try to, for minutes).
+_FIELD_BOUNDS = {
+    "action_dim": (1, 64),
+    "chunk_len": (1, 1024),
+    "state_dim": (1, 1 << 16),
+    "bins": (2, 1 << 16),
+    "vocab_words": (2, 1 << 20),
+    "max_words": (1, 4096),
+    "state_tokens": (1, 256),
+    "width": (1, 1 << 14),
+    "layers": (1, 256),
+    "heads": (1, 256),
+    "ffn": (1, 1 << 16),
+    "block_size": (0, 1 << 16),
+    "image_size": (0, 4096),
+    "image_tokens": (1, 1024),
+}
+
+
+def _check_header(header: dict[str, Any]) -> None:
+    """The header's structure and the model's sizes, before anything is built from them."""
+    for key, kind in (("model", dict), ("tokenizer", dict), ("vocab", dict), ("meta", dict)):
+        if key in header and not isinstance(header[key], kind):
+            raise CheckpointError(
+                f"invalid header: {key!r} must be a JSON object, got {type(header[key]).__name__}"
+            )
+    model = header["model"]
+    for name, (low, high) in _FIELD_BOUNDS.items():
+        if name not in model:
+            continue
+        value = model[name]
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            raise CheckpointError(f"invalid header: model {name}={value!r}, valid range [{low}, {high}]")
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in header["vocab"].values()):
+        raise CheckpointError("invalid header: vocab must map words to integer ids")
+
+
+def _check_shapes(cfg: ModelConfig, shapes: dict[str, tuple[int, ...]]) -> None:
+    """The file's tensors have the shapes the header's model would give them, read
+    without loading them (a header that lies about sizes is refused here)."""
+    with torch.device("meta"):
+        expected = {k: tuple(v.shape) for k, v in ActionTokenModel(cfg).state_dict().items()}
+    if expected != shapes:
+        diff = sorted(set(expected) ^ set(shapes)) or [k for k in expected if expected[k] != shapes[k]]
+        raise CheckpointError(
+            f"invalid header: the weights do not fit the model it describes (first: {diff[0]})"
+        )
+
+
+def _check_normalisation(path: Path, header: dict[str, Any], tokenizer: ActionTokenizer) -> None:
+    """State normalisation and tokenizer ranges must be finite, and std > 0, or every
+    action would come out NaN (an ordinary-looking unsuccessful run)."""
+    try:
+        mean = np.asarray(header["state_mean"], dtype=np.float64)
+        std = np.asarray(header["state_std"], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: invalid header (state normalisation: {exc})") from None
+    if mean.ndim != 1 or mean.shape != std.shape:
+        raise CheckpointError(f"{path}: state_mean and state_std must be lists of one length")
+    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise CheckpointError(f"{path}: state normalisation is not finite or has std <= 0")
+    if not (np.isfinite(tokenizer.low).all() and np.isfinite(tokenizer.high).all()):
+        raise CheckpointError(f"{path}: the action tokenizer's range is not finite")
 
 
 def to_tensors(

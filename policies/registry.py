@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -96,7 +97,17 @@ def param_types(params_cls: type) -> dict[str, type]:
     return {f.name: hints[f.name] for f in dataclasses.fields(params_cls)}
 
 
+INT64 = (-(2**63), 2**63 - 1)  # what an integer parameter may hold when it names no range
+
+
 def _coerce(policy: str, name: str, kind: type, raw: Any) -> Any:
+    value = _coerce_type(policy, name, kind, raw)
+    if kind is float and not math.isfinite(value):
+        raise PolicyParamError(f"policy {policy!r}: parameter {name!r} must be a finite number, got {raw!r}")
+    return value
+
+
+def _coerce_type(policy: str, name: str, kind: type, raw: Any) -> Any:
     if isinstance(raw, str):
         text = raw.strip()
         try:
@@ -141,6 +152,9 @@ def parse_params(spec: PolicySpec, raw: Mapping[str, Any]) -> Any:
                 f"choose one of {', '.join(map(str, choices))}"
             )
         low, high = meta.get("low"), meta.get("high")
+        if isinstance(value, int) and not isinstance(value, bool):  # stays a machine integer
+            low = INT64[0] if low is None else low
+            high = INT64[1] if high is None else high
         if (low is not None and value < low) or (high is not None and value > high):
             lo = "-inf" if low is None else low
             hi = "inf" if high is None else high
@@ -159,4 +173,4 @@ def parse_params(spec: PolicySpec, raw: Mapping[str, Any]) -> Any:
 
 def params_json(params: Any) -> str:
     """Canonical JSON of the full parameter set (defaults included), for rows and keys."""
-    return json.dumps(dataclasses.asdict(params), sort_keys=True, separators=(",", ":"))
+    return json.dumps(dataclasses.asdict(params), sort_keys=True, separators=(",", ":"), allow_nan=False)

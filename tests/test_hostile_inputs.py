@@ -1,0 +1,108 @@
+"""Hostile or corrupt checkpoints and parameter values: refused with one line (exit 2),
+before anything is allocated or written."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import pytest
+from safetensors.torch import load_file, save_file
+
+from policies.checkpoint import CheckpointError, load
+from policies.registry import PolicyParamError, get_policy, params_json, parse_params
+from tests.test_dvla_policies import make_checkpoint
+
+
+def _rewrite(src, dst, edit=None, raw=None, tensors=None):
+    """A copy of checkpoint `src` with its header edited (or replaced by `raw` text)."""
+    from safetensors import safe_open
+
+    with safe_open(str(src), framework="pt") as fh:
+        header = json.loads(fh.metadata()["dvla_harness"])
+    if edit:
+        edit(header)
+    text = raw if raw is not None else json.dumps(header)
+    save_file(tensors or load_file(str(src)), str(dst), metadata={"dvla_harness": text})
+    return dst
+
+
+def _set(path, value):
+    def edit(header):
+        node = header
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = value
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    ("edit", "raw", "message"),
+    [
+        (_set(["model", "width"], -32), None, "model width=-32, valid range"),
+        (_set(["model", "width"], 10**9), None, "model width=1000000000, valid range"),
+        (_set(["model", "layers"], 3), None, "the weights do not fit the model it describes"),
+        (_set(["meta"], "a string"), None, "'meta' must be a JSON object"),
+        (_set(["vocab"], ["reach", "goal"]), None, "'vocab' must be a JSON object"),
+        (None, "[" * 100_000 + "]" * 100_000, "nested too deeply"),
+        (None, "[1, 2]", "not an object"),
+        (_set(["state_mean", 0], float("nan")), None, "not finite"),
+        (_set(["state_std", 3], 0.0), None, "std <= 0"),
+        (_set(["tokenizer", "high", 0], float("inf")), None, "range is not finite"),
+    ],
+)
+def test_a_hostile_header_is_refused_naming_the_problem(tmp_path, edit, raw, message):
+    good = make_checkpoint(tmp_path / "good.safetensors", "bidirectional")
+    bad = _rewrite(good, tmp_path / "bad.safetensors", edit, raw)
+    with pytest.raises(CheckpointError, match=message.replace("(", r"\(")):
+        load(bad)
+
+
+def test_the_cli_refuses_a_hostile_checkpoint_with_one_line_and_nothing_written(cli, tmp_path):
+    good = make_checkpoint(tmp_path / "good.safetensors", "bidirectional")
+    bad = _rewrite(good, tmp_path / "bad.safetensors", _set(["model", "heads"], -1))
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3", "--policy", f"bidirectional:checkpoint={bad}",
+        "--out", str(tmp_path / "run"), "--quiet",
+    )  # fmt: skip
+    assert code == 2 and "heads=-1" in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_dtype_conversion_on_load_is_stated(tmp_path):
+    good = make_checkpoint(tmp_path / "good.safetensors", "bidirectional")
+    half = {k: v.half() if v.is_floating_point() else v for k, v in load_file(str(good)).items()}
+    path = _rewrite(good, tmp_path / "half.safetensors", tensors=half)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load(path)
+    assert any("torch.float16, converted to float32" in str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"tau_conf": "nan"}, "must be a finite number"),
+        ({"tau_conf": float("inf")}, "must be a finite number"),
+        ({"seed": str(10**23)}, "out of range"),
+    ],
+)
+def test_parameter_values_a_decoder_cannot_use_are_refused_at_parse_time(params, message):
+    with pytest.raises(PolicyParamError, match=message):
+        parse_params(get_policy("fast_dvla"), params)
+
+
+def test_an_unbounded_integer_parameter_stays_a_machine_integer():
+    with pytest.raises(PolicyParamError, match="out of range"):
+        parse_params(get_policy("random"), {"seed": str(2**64)})
+    assert json.loads(params_json(parse_params(get_policy("random"), {"seed": "7"})))["seed"] == 7
+
+
+def test_a_parameter_given_twice_in_one_policy_string_is_an_error(cli, tmp_path):
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random:seed=1,seed=2",
+        "--out", str(tmp_path / "run"), "--quiet",
+    )  # fmt: skip
+    assert code == 2 and "'seed' is given twice" in err
+    assert not (tmp_path / "run").exists()
