@@ -172,6 +172,11 @@ class FastDVLAParams:
     n: int = param(2, "a fully activated block commits at least 1/n of its masked tokens", low=1, high=64)
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     block_size: int = param(0, BLOCK_SIZE_HELP, low=0, high=4096)
+    random_block_sizes: bool = param(
+        False,
+        "the paper's ablation: blocks of random sizes (1 to 2k-1 tokens for block size k), one "
+        "partition of the chunk drawn from seed",
+    )
     temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
     seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
 
@@ -358,10 +363,13 @@ def _block_diffusion(m, w, s, p, i=None):
 
 
 def _fast_dvla(m, w, s, p, i=None):
-    from policies.fast_dvla import decode_fast_dvla
+    from policies.fast_dvla import decode_fast_dvla, random_block_sizes
 
+    sizes = (
+        random_block_sizes(m.cfg.action_tokens, m.cfg.block, _generator(p)) if p.random_block_sizes else None
+    )
     return decode_fast_dvla(
-        m, w, s, p.tau_conf, p.tau_add, p.tau_act, p.n, p.confidence, i, p.temperature, _generator(p)
+        m, w, s, p.tau_conf, p.tau_add, p.tau_act, p.n, p.confidence, i, p.temperature, _generator(p), sizes
     )
 
 

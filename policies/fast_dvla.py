@@ -54,18 +54,41 @@ def commit_full(masked: np.ndarray, conf: np.ndarray, tau_conf: float, n: int) -
     return commit
 
 
-def advance(status: np.ndarray, done: np.ndarray, k: int, tau_add: float, tau_act: float) -> None:
+def advance(
+    status: np.ndarray, done: np.ndarray, sizes: np.ndarray | int, tau_add: float, tau_act: float
+) -> None:
     """Promote blocks after a pass (in place): block i+1 becomes semi-activated once
     block i's decoded fraction exceeds tau_add, fully activated once it exceeds tau_act,
-    and both once block i is complete."""
+    and both once block i is complete. `sizes`: tokens per block (or one size for all)."""
+    sizes = np.broadcast_to(sizes, done.shape)
     for i in range(len(status) - 1):
         if status[i] == INACTIVE:
             break
-        fraction, complete = done[i] / k, done[i] == k
+        fraction, complete = done[i] / sizes[i], done[i] == sizes[i]
         if status[i + 1] == INACTIVE and (fraction > tau_add or complete):
             status[i + 1] = SEMI
         if status[i + 1] == SEMI and (fraction > tau_act or complete):
             status[i + 1] = FULL
+
+
+def random_block_sizes(total: int, mean: int, generator: torch.Generator) -> list[int]:
+    """Block sizes for the paper's random-block-size ablation: each drawn uniformly from
+    1..2*mean-1 (so `mean` on average), the last cut to fit the chunk."""
+    sizes: list[int] = []
+    while sum(sizes) < total:
+        draw = int(torch.randint(1, 2 * mean, (1,), generator=generator))
+        sizes.append(min(draw, total - sum(sizes)))
+    return sizes
+
+
+def block_mask(prefix_len: int, starts: np.ndarray, total: int, query: Tensor, keys: Tensor) -> Tensor:
+    """The block-causal rule `group(key) <= group(query)` for blocks that start at
+    `starts`, over absolute positions (prefix in group -1): what the model's own mask
+    does for equal blocks, for a partition of the decoder's choosing."""
+    groups = torch.full((prefix_len + total,), -1, dtype=torch.long)
+    groups[prefix_len:] = torch.from_numpy(np.searchsorted(starts, np.arange(total), side="right") - 1)
+    groups = groups.to(query.device)
+    return groups[keys][None, :] <= groups[query][:, None]
 
 
 def decode_fast_dvla(
@@ -80,14 +103,22 @@ def decode_fast_dvla(
     images: Tensor | None = None,
     temperature: float = 0.0,
     generator: torch.Generator | None = None,
+    block_sizes: list[int] | None = None,
 ) -> Decoded:
+    """`block_sizes` replaces the model's equal blocks by another partition of the chunk
+    (the random-block-size ablation); the attention mask follows it."""
     # Bookkeeping (which block is where, what to commit) runs in numpy on one copy of
     # each pass's choices and confidences: per-token tensor ops cost more than a small
     # model's forward pass, and this loop runs once per pass.
     cfg = model.cfg
-    rows, total, k, dev = words.shape[0], cfg.action_tokens, cfg.block, words.device
-    blocks = total // k
+    rows, total, dev = words.shape[0], cfg.action_tokens, words.device
     gen = generator or torch.Generator().manual_seed(0)
+    sizes = np.asarray(block_sizes or [cfg.block] * (total // cfg.block))
+    if sizes.sum() != total or (sizes < 1).any():
+        raise ValueError(f"block sizes {sizes.tolist()} do not partition the chunk's {total} tokens")
+    starts = np.concatenate([[0], np.cumsum(sizes)])  # block i is starts[i]:starts[i + 1]
+    uniform = not block_sizes or (sizes == cfg.block).all()
+    blocks = len(sizes)
     tokens = np.full((rows, total), cfg.mask_id, dtype=np.int64)
     done = np.zeros((rows, blocks), dtype=np.int64)  # committed tokens per block
     status = np.full((rows, blocks), INACTIVE, dtype=np.int8)
@@ -95,21 +126,28 @@ def decode_fast_dvla(
     out = Decoded(torch.empty(0))
     cache: KVCache | None = None
     cached = 0  # leading blocks whose keys/values are in the cache (complete in every row)
-    while (done < k).any():
-        open_ = (done < k) & (status != INACTIVE)  # blocks decoding, per row
-        first_open = int(np.argmax(done < k, axis=1)[(done < k).any(axis=1)].min())
+    while (done < sizes).any():
+        open_ = (done < sizes) & (status != INACTIVE)  # blocks decoding, per row
+        first_open = int(np.argmax(done < sizes, axis=1)[(done < sizes).any(axis=1)].min())
         last = int(np.nonzero(open_.any(axis=0))[0].max())
         first_run = cached
-        run_np = np.arange(first_run * k, (last + 1) * k)
+        run_np = np.arange(starts[first_run], starts[last + 1])
         run = torch.from_numpy(run_np).to(dev)
         inputs = torch.from_numpy(tokens[:, run_np]).to(dev)
+        extra = {}  # equal blocks: the model's own mask; other partitions bring theirs
+        if not uniform:
+            query = run + cfg.prefix_len
+            if cache is None:
+                query = torch.cat([torch.arange(cfg.prefix_len, device=dev), query])
+            keys = query if cache is None else torch.cat([cache.positions, query])
+            extra["attn_mask"] = block_mask(cfg.prefix_len, starts, total, query, keys)
         if cache is None:
-            result = model(inputs, run, words, state, images=images)
+            result = model(inputs, run, words, state, images=images, **extra)
         else:
-            result = model(inputs, run, cache=cache)
+            result = model(inputs, run, cache=cache, **extra)
         out.passes.append(Pass(run_np.tolist(), cache is None, 0 if cache is None else len(cache), []))
         if cache is None or first_open > cached:
-            finished = result.kv.select(result.kv.positions < cfg.prefix_len + first_open * k)
+            finished = result.kv.select(result.kv.positions < cfg.prefix_len + starts[first_open])
             cache = finished if cache is None else cache.extend(finished)
             cached = first_open
         choice_t, conf_t = score(result.logits, confidence, temperature, gen)
@@ -117,7 +155,7 @@ def decode_fast_dvla(
         for r in range(rows):
             committed: list[int] = []
             for i in np.nonzero(open_[r])[0]:
-                at = slice((i - first_run) * k, (i - first_run + 1) * k)
+                at = slice(starts[i] - starts[first_run], starts[i + 1] - starts[first_run])
                 pos, c = run_np[at], conf[r, at]
                 masked = tokens[r, pos] == cfg.mask_id
                 if status[r, i] == SEMI:
@@ -128,6 +166,6 @@ def decode_fast_dvla(
                 done[r, i] += int(commit.sum())
                 committed += pos[commit].tolist()
             out.passes[-1].committed.append(sorted(committed))
-            advance(status[r], done[r], k, tau_add, tau_act)
+            advance(status[r], done[r], sizes, tau_add, tau_act)
     out.tokens = torch.from_numpy(tokens).to(dev)
     return out

@@ -32,9 +32,9 @@ class ScriptedModel:
         self.calls: list[tuple[torch.Tensor, torch.Tensor]] = []
 
     def __call__(
-        self, action_tokens=None, action_positions=None, words=None, state=None, cache=None, images=None
+        self, action_tokens=None, action_positions=None, words=None, state=None, cache=None, images=None, **kw
     ):
-        out = self.model(action_tokens, action_positions, words, state, cache, images)
+        out = self.model(action_tokens, action_positions, words, state, cache, images, **kw)
         self.calls.append((action_positions.clone(), out.logits.clone()))  # compared unscaled
         return StepOutput(out.logits * self.scale[:, action_positions, None], out.kv)
 
@@ -200,3 +200,27 @@ def test_a_batch_decodes_in_one_pass_per_step_and_each_row_as_alone(pattern, kw,
         assert torch.equal(batch.tokens[r], single.tokens[0]), f"row {r}"
         committed = [step for step in batch.row_trace(r)["committed"] if step]
         assert committed == [step for step in single.trace if step], f"row {r}"
+
+
+def test_fast_dvla_with_random_block_sizes_attends_by_its_own_partition():
+    """The random-block-size ablation: blocks of other sizes than the model's, with the
+    attention mask following them; every pass still equals a full pass under that mask."""
+    from policies.fast_dvla import block_mask, random_block_sizes
+
+    model = tiny_model("block_causal", block_size=4)
+    sizes = random_block_sizes(16, 4, torch.Generator().manual_seed(5))
+    assert sum(sizes) == 16 and sizes != [4] * 4 and all(1 <= s <= 7 for s in sizes)
+    starts = torch.tensor([0, *torch.tensor(sizes).cumsum(0).tolist()]).numpy()
+    spy = ScriptedModel(model, torch.ones(1, 16))
+    words, state = _inputs()
+    with torch.no_grad():
+        out = decode_fast_dvla(spy, words, state, block_sizes=sizes, **FAST_DVLA_PIPELINED)
+        everything = torch.arange(model.cfg.prefix_len + 16)
+        mask = block_mask(model.cfg.prefix_len, starts, 16, everything, everything)
+        for p, (positions, logits) in enumerate(spy.calls):
+            visible = _visible(out.tokens, out.trace, p, model.cfg.mask_id)
+            full = model(visible, torch.arange(16), words, state, attn_mask=mask).logits
+            assert (logits - full[:, positions]).abs().max() < TOL, f"pass {p}"
+    assert sorted(p for step in out.trace for p in step) == list(range(16))
+    with pytest.raises(ValueError, match="do not partition"):
+        decode_fast_dvla(model, words, state, block_sizes=[4, 4, 4])
