@@ -1,28 +1,41 @@
 """Meta-World v3 suites: `metaworld/mt1/<task>`, `metaworld/mt10`, `metaworld/mt50`.
 
-Episode protocol: Meta-World's own benchmark object (`metaworld.MT1(task, seed)`)
-draws 50 object/goal layouts per task from one seed; episode i starts from layout i,
-like LIBERO's fixed initial states. The layout seed is derived from ("metaworld",
-split, task), not from the suite name, so `mt1/reach-v3` and `mt10` evaluate the same
-reach layouts, and demonstrations collected on the "train" split never share a layout
-with evaluation ("eval").
+Two layout modes, a suite option like LIBERO's (docs/metaworld.md has the whole story):
 
-Evaluation keeps the protocol's 50 layouts per task. The train split offers
-TRAIN_LAYOUT_SETS x 50: episode j draws layout j % 50 of set j // 50, so a policy
-trained on more than 50 demonstrations per task sees new goal and object positions
-instead of repeats (the goal-conditioned tasks fail at the edge of what was seen).
-Set 0 is the seed the train split always had, so earlier demonstrations stay
+`layouts=fixed` (the default; the suite name carries no option): Meta-World's own
+benchmark object (`metaworld.MT1(task, seed)`) draws 50 object/goal layouts per task
+from one seed; episode i starts from layout i, like LIBERO's fixed initial states. The
+layout seed is derived from ("metaworld", split, task), not from the suite name, so
+`mt1/reach-v3` and `mt10` evaluate the same reach layouts, and demonstrations collected
+on the "train" split never share a layout with evaluation ("eval").
+
+`layouts=upstream,seed=S` (e.g. `metaworld/mt10:layouts=upstream,seed=1`; seed 1 when
+not given): exactly what Meta-World's own evaluation gives for `gym.make_vec(
+"Meta-World/MT10", seed=S)` (MT50, MT1 alike). The layouts are `metaworld.MT10(seed=S)`'s
+(all tasks' layouts drawn from one stream), and every reset picks one of the task's 50
+at random with replacement (`RandomTaskSelectWrapper`, its env seeded with S). Those
+picks are replayed from S when the suite is built, so episode j knows its layout
+without running episodes 0..j-1. The train split stays the fixed mode's.
+
+The train split offers TRAIN_LAYOUT_SETS x 50: episode j draws layout j % 50 of set
+j // 50, so a policy trained on more than 50 demonstrations per task sees new goal and
+object positions instead of repeats (the goal-conditioned tasks fail at the edge of what
+was seen). Set 0 is the seed the train split always had, so earlier demonstrations stay
 reproducible.
 
-Meta-World does not end an episode on success; the runner does.
+Meta-World does not end an episode on success; the runner does (as Meta-World's
+evaluation does, with `terminate_on_success`).
 """
 
 from __future__ import annotations
 
 import importlib.util
+from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import gymnasium as gym
+from gymnasium.utils import seeding
 
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec, derive_seed
 from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
@@ -31,6 +44,11 @@ SUITE_VERSION = "1"
 MAX_STEPS = 500  # Meta-World's max_path_length for every v3 task.
 LAYOUTS_PER_TASK = 50  # metaworld._N_GOALS: layouts drawn per task and seed.
 TRAIN_LAYOUT_SETS = 20  # train split only: up to 1,000 distinct layouts per task.
+# layouts=upstream: the seed when none is given, the default of the code behind Meta-World+'s
+# published numbers (metaworld-algorithms: `MetaworldConfig.spawn(seed=1)`, its examples' seed).
+DEFAULT_UPSTREAM_SEED = 1
+UPSTREAM_EPISODES = 50  # metaworld.evaluation.evaluation(num_episodes=50), per task
+MAX_SEED = 2**32 - 1  # np.random.seed's bound (metaworld._make_tasks seeds the global RNG)
 
 # Every v3 task with an English instruction (Meta-World ships names only).
 INSTRUCTIONS: dict[str, str] = {
@@ -102,6 +120,85 @@ MT10 = (
 MT50 = tuple(INSTRUCTIONS)
 
 
+class SuiteOptionError(UnknownSuiteError):
+    """A `:key=value` suite option is unknown or out of range; the message says which."""
+
+
+@dataclass(frozen=True)
+class Options:
+    """`layouts=fixed` (our layout i for episode i) or `layouts=upstream,seed=S`."""
+
+    layouts: str = "fixed"
+    seed: int | None = None  # upstream only; DEFAULT_UPSTREAM_SEED when not given
+
+    def suffix(self) -> str:
+        """The canonical option string: empty for fixed, mode and seed for upstream."""
+        return f":layouts=upstream,seed={self.seed}" if self.layouts == "upstream" else ""
+
+
+_OPTIONS_HELP = "valid options: layouts=fixed|upstream, seed=N (upstream only)"
+
+
+def parse_options(text: str) -> Options:
+    values: dict[str, Any] = {}
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        key, eq, value = (s.strip() for s in item.partition("="))
+        if not eq:
+            raise SuiteOptionError(f"suite option {item!r}: expected key=value; {_OPTIONS_HELP}")
+        if key == "layouts":
+            if value not in ("fixed", "upstream"):
+                raise SuiteOptionError(f"suite option layouts={value!r}: choose fixed or upstream")
+            values[key] = value
+        elif key == "seed":
+            if not (value.isascii() and value.isdigit()) or int(value) > MAX_SEED:
+                raise SuiteOptionError(f"suite option seed={value!r}: expected an integer in [0, {MAX_SEED}]")
+            values[key] = int(value)
+        else:
+            raise SuiteOptionError(f"unknown suite option {key!r}; {_OPTIONS_HELP}")
+    layouts = values.get("layouts", "fixed")
+    if layouts == "fixed":
+        if "seed" in values:
+            raise SuiteOptionError(
+                "suite option seed= applies to layouts=upstream; fixed layouts derive their seeds "
+                "from the task name (e.g. metaworld/mt10:layouts=upstream,seed=1)"
+            )
+        return Options()
+    return Options("upstream", values.get("seed", DEFAULT_UPSTREAM_SEED))
+
+
+def upstream_layout_ids(seed: int, episodes: int = UPSTREAM_EPISODES) -> tuple[int, ...]:
+    """The layout each of the first `episodes` resets picks in Meta-World's evaluation.
+
+    `metaworld._init_each_env` seeds every task's env with the benchmark seed
+    (`SawyerXYZEnv.seed`: `gymnasium.utils.seeding.np_random(seed)`), and on each reset
+    `RandomTaskSelectWrapper._set_random_task` draws `np_random.choice(len(tasks))`; nothing
+    else draws from that generator (layouts are frozen once set). Replaying the draws here
+    gives episode j's layout without running resets 0..j-1. The same for every task of a
+    benchmark: all its envs get the same seed.
+    """
+    rng, _ = seeding.np_random(seed)
+    return tuple(int(rng.choice(LAYOUTS_PER_TASK)) for _ in range(episodes))
+
+
+@lru_cache(maxsize=64)
+def _mt1_layouts(task: str, seed: int) -> tuple[Any, ...]:
+    """Meta-World's own `MT1(task, seed=...)`: the task's 50 layouts, in order."""
+    import metaworld
+
+    return tuple(metaworld.MT1(task, seed=seed).train_tasks)
+
+
+@lru_cache(maxsize=2)
+def _benchmark_layouts(benchmark: str, seed: int) -> dict[str, tuple[Any, ...]]:
+    """Meta-World's own `MT10(seed=...)` / `MT50(seed=...)`: each task's 50 layouts, in order."""
+    import metaworld
+
+    layouts: dict[str, list[Any]] = {}
+    for task in getattr(metaworld, benchmark)(seed=seed).train_tasks:
+        layouts.setdefault(task.env_name, []).append(task)
+    return {name: tuple(tasks) for name, tasks in layouts.items()}
+
+
 def _installed() -> bool:
     return importlib.util.find_spec("metaworld") is not None
 
@@ -114,26 +211,34 @@ def _require_metaworld() -> None:
 
 
 class MetaWorldEpisodeEnv(gym.Wrapper):
-    """One Meta-World task whose `reset` honours the episode spec (seed + layout id)."""
+    """One Meta-World task whose `reset` honours the episode spec (seed + layout id).
+
+    `benchmark` says which of Meta-World's benchmark objects the spec's seed builds:
+    "MT1" (`MT1(task, seed)`, fixed layouts and mt1 upstream), "MT10" or "MT50" (the whole
+    benchmark from one seed, upstream layouts).
+    """
 
     # Meta-World v3's 39-D observation: hand position (0:3), gripper opening (3), two
     # objects' position + quaternion (4:11, 11:18; zeros where a task has one), the
     # previous frame's 18 (18:36), the goal position (36:39). World frame throughout.
     state_positions = (0, 4, 11, 36)
 
-    def __init__(self, task_name: str):
+    def __init__(self, task_name: str, benchmark: str = "MT1"):
         import metaworld.env_dict
 
         super().__init__(metaworld.env_dict.ALL_V3_ENVIRONMENTS[task_name]())
         self.task_name = task_name
-        self._layouts: dict[int, list[Any]] = {}
+        self.benchmark = benchmark
+
+    def layouts(self, seed: int) -> tuple[Any, ...]:
+        """The task's 50 layouts (`metaworld.Task`s) that `seed` draws, in Meta-World's order
+        (computed once per process: MT1 takes ~0.5 s, MT10 ~6 s, MT50 ~30 s on a 2-core CPU)."""
+        if self.benchmark == "MT1":
+            return _mt1_layouts(self.task_name, seed)
+        return _benchmark_layouts(self.benchmark, seed)[self.task_name]
 
     def _layout(self, seed: int, layout_id: int) -> Any:
-        import metaworld
-
-        if seed not in self._layouts:
-            self._layouts[seed] = metaworld.MT1(self.task_name, seed=seed).train_tasks
-        layouts = self._layouts[seed]
+        layouts = self.layouts(seed)
         if not 0 <= layout_id < len(layouts):
             raise ValueError(f"layout id {layout_id} outside 0..{len(layouts) - 1}")
         return layouts[layout_id]
@@ -154,44 +259,91 @@ class MetaWorldEpisodeEnv(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def _make_env(task: TaskSpec) -> gym.Env:
-    _require_metaworld()
-    env = MetaWorldEpisodeEnv(task.name)
-    if task.episodes:  # draw the layouts now, so no episode's wall-clock pays for them
-        env._layout(task.episodes[0].seed, 0)
-    return env
-
-
 def _layout_seed(split: str, task: str, layout_set: int) -> int:
     if layout_set == 0:
         return derive_seed("metaworld", split, task)
     return derive_seed("metaworld", split, task, layout_set)
 
 
-def build_suite(name: str, task_names: tuple[str, ...], split: str = "eval") -> Suite:
+def _fixed_episodes(split: str, task: str) -> tuple[EpisodeSpec, ...]:
+    return tuple(
+        EpisodeSpec(
+            index=j,
+            seed=_layout_seed(split, task, j // LAYOUTS_PER_TASK),
+            init_state_id=j % LAYOUTS_PER_TASK,
+        )
+        for j in range(LAYOUTS_PER_TASK * (TRAIN_LAYOUT_SETS if split == "train" else 1))
+    )
+
+
+def _check_disjoint_from_train(seed: int, task_names: tuple[str, ...]) -> None:
+    """Refuse an upstream seed that is a train-split layout seed: `MT1(task, seed)` and the
+    first task of `MT10/MT50(seed)` would then be the demonstrations' own layouts.
+
+    Any other seed gives none in practice: a benchmark draws its layouts from one
+    `np.random.seed(seed)` stream (MT19937), so the first task's layouts equal a train set's
+    only for the same seed, and the later tasks' come from the middle of that stream, where
+    a freshly seeded one would have to land on the same state."""
+    for task in task_names:
+        for layout_set in range(TRAIN_LAYOUT_SETS):
+            if _layout_seed("train", task, layout_set) == seed:
+                raise SuiteOptionError(
+                    f"suite option seed={seed}: that is the train split's layout seed for {task} "
+                    f"(set {layout_set}), so evaluation would start from the demonstrations' layouts; "
+                    "choose another seed"
+                )
+
+
+def build_suite(
+    name: str, task_names: tuple[str, ...], split: str = "eval", options: Options | None = None
+) -> Suite:
+    options = options or Options()
+    upstream = options.layouts == "upstream" and split == "eval"
+    if options.layouts == "upstream":
+        assert options.seed is not None
+        _check_disjoint_from_train(options.seed, task_names)
+        # MT1(task, seed) for one task, else the whole benchmark from the one seed
+        benchmark = "MT1" if name.startswith("metaworld/mt1/") else name.removeprefix("metaworld/").upper()
+        picks = upstream_layout_ids(options.seed)
+    else:
+        benchmark = "MT1"
+
+    def episodes(task: str) -> tuple[EpisodeSpec, ...]:
+        if upstream:
+            return tuple(
+                EpisodeSpec(index=j, seed=options.seed, init_state_id=k) for j, k in enumerate(picks)
+            )
+        return _fixed_episodes(split, task)
+
     tasks = tuple(
         TaskSpec(
             name=task,
             instruction=INSTRUCTIONS[task],
             max_steps=MAX_STEPS,
             index=i,
-            episodes=tuple(
-                EpisodeSpec(
-                    index=j,
-                    seed=_layout_seed(split, task, j // LAYOUTS_PER_TASK),
-                    init_state_id=j % LAYOUTS_PER_TASK,
-                )
-                for j in range(LAYOUTS_PER_TASK * (TRAIN_LAYOUT_SETS if split == "train" else 1))
-            ),
+            episodes=episodes(task),
         )
         for i, task in enumerate(task_names)
     )
+
+    def make_env(task: TaskSpec) -> gym.Env:
+        _require_metaworld()
+        # the train split of an upstream suite is the fixed mode's, MT1 per layout seed
+        env = MetaWorldEpisodeEnv(task.name, benchmark if upstream else "MT1")
+        if task.episodes:  # draw the layouts now, so no episode's wall-clock pays for them
+            env.layouts(task.episodes[0].seed)
+        return env
+
+    if upstream:
+        mode = f"layouts as Meta-World's evaluation picks them ({benchmark}, seed {options.seed})"
+    else:
+        mode = "fixed layouts" if split == "eval" else "train-split layouts"
     return Suite(
-        name=name,
+        name=name + options.suffix(),
         version=SUITE_VERSION,
         tasks=tasks,
-        make_env=_make_env,
-        description=f"Meta-World v3, {len(tasks)} task(s), state observations (39-D), 4-D actions",
+        make_env=make_env,
+        description=f"Meta-World v3, {len(tasks)} task(s), {mode}, state observations (39-D), 4-D actions",
         extra="metaworld",
         simulator_packages=("metaworld", "mujoco"),
     )
@@ -211,12 +363,15 @@ def _suite_tasks(name: str) -> tuple[str, ...]:
         )
     raise UnknownSuiteError(
         f"unknown suite {name!r}; Meta-World suites: metaworld/mt10, metaworld/mt50, "
-        "metaworld/mt1/<task> (see `dvla-harness list tasks metaworld/mt50`)"
+        "metaworld/mt1/<task> (see `dvla-harness list tasks metaworld/mt50`; "
+        "option: metaworld/mt10:layouts=upstream,seed=1)"
     )
 
 
 def load_suite(name: str, split: str = "eval") -> Suite:
-    return build_suite(name, _suite_tasks(name), split)
+    """`metaworld/<suite>[:layouts=fixed|upstream[,seed=S]]`; see the module docstring."""
+    base, _, opts = name.partition(":")
+    return build_suite(base, _suite_tasks(base), split, parse_options(opts))
 
 
 def list_suites() -> list[SuiteInfo]:
@@ -225,6 +380,7 @@ def list_suites() -> list[SuiteInfo]:
         ("metaworld/mt10", "Meta-World MT10: ten manipulation tasks", len(MT10)),
         ("metaworld/mt50", "Meta-World MT50: all fifty v3 tasks", len(MT50)),
         ("metaworld/mt1/<task>", "one Meta-World task, e.g. metaworld/mt1/reach-v3", 1),
+        # every Meta-World suite also takes :layouts=upstream[,seed=S] (docs/metaworld.md)
     ]
     return [SuiteInfo(name, desc, n, LAYOUTS_PER_TASK, "metaworld", installed) for name, desc, n in rows]
 

@@ -1,8 +1,13 @@
-"""Meta-World through the real simulator: the scripted expert, the table, determinism."""
+"""Meta-World through the real simulator: the scripted expert, the table, determinism,
+and the two layout modes (fixed; upstream, checked against Meta-World's own evaluation)."""
 
 from __future__ import annotations
 
+import pickle
+
+import numpy as np
 import pyarrow.parquet as pq
+import pytest
 
 from adapters import metaworld as mw
 from adapters.registry import load_suite
@@ -53,6 +58,128 @@ def test_train_split_offers_new_layouts_beyond_the_first_50():
         goals.add(tuple(round(float(x), 6) for x in obs[-3:]))
     env.close()
     assert len(goals) == 4  # four different goal positions
+
+
+def _layout_vectors(tasks) -> set[tuple[float, ...]]:
+    """A layout's identity: the random vector Meta-World drew for it (goal and object places)."""
+    return {tuple(pickle.loads(t.data)["rand_vec"].tolist()) for t in tasks}
+
+
+def test_train_layouts_are_disjoint_from_evaluation_in_both_modes():
+    """Demonstrations (train split) never start from an evaluation layout, fixed or upstream.
+
+    reach-v3 is MT10's and the check's hard case: a benchmark's first task draws its
+    layouts from a freshly seeded stream, as each train set does, so upstream mode could
+    equal a train set exactly; the suite refuses those seeds. Later tasks draw from the
+    middle of the benchmark's stream."""
+    import metaworld
+
+    task = "reach-v3"
+    train = load_suite(f"metaworld/mt1/{task}", "train").tasks[0].episodes
+    train_seeds = sorted({s.seed for s in train})
+    assert len(train_seeds) == mw.TRAIN_LAYOUT_SETS
+    fixed_seed = load_suite(f"metaworld/mt1/{task}").tasks[0].episodes[0].seed
+    upstream = load_suite(f"metaworld/mt1/{task}:layouts=upstream").tasks[0].episodes
+    assert fixed_seed not in train_seeds and mw.DEFAULT_UPSTREAM_SEED not in train_seeds
+    # the layouts themselves: the first and last train sets against both evaluation sets
+    sets = {
+        "train set 0": _layout_vectors(metaworld.MT1(task, seed=train_seeds[0]).train_tasks),
+        "train set 19": _layout_vectors(metaworld.MT1(task, seed=train_seeds[-1]).train_tasks),
+        "fixed": _layout_vectors(metaworld.MT1(task, seed=fixed_seed).train_tasks),
+        "upstream": _layout_vectors(metaworld.MT1(task, seed=upstream[0].seed).train_tasks),
+    }
+    assert all(len(v) == 50 for v in sets.values())
+    names = list(sets)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            assert not sets[a] & sets[b], (a, b)
+    # a train seed as the upstream seed would BE the train layouts: refused, for mt1 and mt10
+    for suite in (f"metaworld/mt1/{task}", "metaworld/mt10"):
+        with pytest.raises(mw.SuiteOptionError, match="train split's layout seed"):
+            load_suite(f"{suite}:layouts=upstream,seed={train_seeds[3]}")
+    # an upstream suite's own train split is the fixed mode's (disjoint as above)
+    up_train = load_suite("metaworld/mt10:layouts=upstream", "train")
+    assert [t.episodes for t in up_train.tasks] == [
+        t.episodes for t in load_suite("metaworld/mt10", "train").tasks
+    ]
+
+
+def test_layout_options_parse_and_name_the_suite():
+    fixed = load_suite("metaworld/mt10:layouts=fixed")
+    assert fixed.name == "metaworld/mt10"
+    assert [t.episodes for t in fixed.tasks] == [t.episodes for t in load_suite("metaworld/mt10").tasks]
+    up = load_suite("metaworld/mt10:layouts=upstream")
+    assert up.name == f"metaworld/mt10:layouts=upstream,seed={mw.DEFAULT_UPSTREAM_SEED}"
+    assert load_suite("metaworld/mt1/push-v3:seed=42,layouts=upstream").name == (
+        "metaworld/mt1/push-v3:layouts=upstream,seed=42"
+    )
+    picks = mw.upstream_layout_ids(mw.DEFAULT_UPSTREAM_SEED)
+    for task in up.tasks:  # every task of a benchmark: its env seeded with the same seed
+        assert [s.init_state_id for s in task.episodes] == list(picks)
+        assert {s.seed for s in task.episodes} == {mw.DEFAULT_UPSTREAM_SEED}
+        assert [s.index for s in task.episodes] == list(range(mw.UPSTREAM_EPISODES))
+    assert len(set(picks)) < len(picks)  # with replacement: some layouts twice, some never
+    for bad in ("seed=3", "layouts=fixed,seed=3", "layouts=random", "seed=-1", "layout=upstream", "upstream"):
+        with pytest.raises(mw.SuiteOptionError):
+            load_suite(f"metaworld/mt10:{bad}")
+
+
+def test_upstream_mode_gives_metaworlds_own_layouts_for_every_mt10_task():
+    """Episode j of each task starts where Meta-World's own `evaluation` starts that task's
+    j-th episode on `gym.make_vec("Meta-World/MT10", seed=S)`: same layout, same observation.
+
+    One-step episodes (`max_episode_steps=1`) make the upstream loop cheap: every call of
+    the agent then sees a new episode's first observation, right after the env's reset."""
+    import gymnasium as gym
+    from metaworld.evaluation import evaluation
+
+    seed, episodes = mw.DEFAULT_UPSTREAM_SEED, 10
+    envs = gym.make_vec("Meta-World/MT10", vector_strategy="sync", seed=seed, max_episode_steps=1)
+
+    class Recorder:  # metaworld.evaluation.Agent
+        def __init__(self):
+            self.starts = []  # per call: (observations, each env's layout vector)
+
+        def reset(self, env_mask):
+            pass
+
+        def eval_action(self, observations):
+            self.starts.append((observations.copy(), [np.array(v) for v in envs.get_attr("_last_rand_vec")]))
+            return np.zeros((envs.num_envs, 4))
+
+    agent = Recorder()
+    evaluation(agent, envs, num_episodes=episodes)
+    envs.close()
+    assert len(agent.starts) >= episodes
+
+    suite = load_suite(f"metaworld/mt10:layouts=upstream,seed={seed}")
+    assert [t.name for t in suite.tasks] == list(mw.MT10)  # MT10_V3's order, the vector env's
+    for i, task in enumerate(suite.tasks):
+        env = suite.make_env(task)
+        for j in range(episodes):
+            obs, _ = env.reset(options={"episode": task.episodes[j]})
+            upstream_obs, upstream_layouts = agent.starts[j]
+            assert np.array_equal(env.unwrapped._last_rand_vec, upstream_layouts[i]), (task.name, j)
+            assert np.array_equal(obs, upstream_obs[i]), (task.name, j)
+        env.close()
+
+
+def test_upstream_episode_alone_equals_episode_in_sequence():
+    """Meta-World's MT1 env reset after reset (its shared generator) against our episodes
+    run alone, in reverse order, each on a fresh env."""
+    import gymnasium as gym
+
+    seed, episodes = 7, 8
+    upstream = gym.make("Meta-World/MT1", env_name="push-v3", seed=seed, disable_env_checker=True)
+    in_sequence = [upstream.reset()[0] for _ in range(episodes)]
+    upstream.close()
+    suite = load_suite(f"metaworld/mt1/push-v3:layouts=upstream,seed={seed}")
+    task = suite.tasks[0]
+    for j in reversed(range(episodes)):
+        env = suite.make_env(task)
+        alone, _ = env.reset(options={"episode": task.episodes[j]})
+        env.close()
+        assert np.array_equal(alone, in_sequence[j]), j
 
 
 def test_same_episode_spec_gives_the_same_start():
@@ -149,3 +276,17 @@ def test_manifest_records_config_and_provenance(cli, tmp_path):
     assert manifest["suite"]["render_backend"].startswith("none")
     assert env["cpu"] and env["python"] and env["platform"]
     assert manifest["started_at"] <= manifest["finished_at"] and manifest["status"] == "finished"
+
+
+def test_rows_and_manifest_record_the_layout_mode_and_seed(cli, tmp_path):
+    import json
+
+    out = tmp_path / "up"
+    suite = "metaworld/mt1/reach-v3:layouts=upstream,seed=3"
+    args = ["run", "--suite", suite, "--policy", "scripted", "--episodes-per-task", "2", "--quiet"]
+    assert cli(*args, "--out", str(out))[0] == 0
+    df = RunDir(out).read_episodes()
+    assert set(df["suite"]) == {suite} and set(df["seed"]) == {3}
+    assert list(df.sort_values("episode_index")["init_state_id"]) == list(mw.upstream_layout_ids(3)[:2])
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["suite"]["name"] == suite and manifest["config"]["suite"] == suite
