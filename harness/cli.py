@@ -4,20 +4,22 @@ Every subcommand is a module of harness/commands/ (run, list, show, collect, tra
 leaderboard, report, gate, sweep, plot); this file only assembles them and turns
 `UsageError` into one line and exit status 2.
 
-Exit status: 0 success; 1 some episodes raised (recorded with a failure_reason), or a
-gate found a regression; 2 bad input (nothing written); 130 interrupted (what
-finished is kept; use --resume).
+Exit statuses are defined once, in harness/errors.py (EXIT_STATUS_HELP): 0 success;
+1 some episodes raised (recorded with a failure_reason), or a gate found a regression;
+2 bad input (nothing written); 3 harness or I/O error (a full disk; rows kept);
+130 interrupted (what finished is kept; use --resume).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import traceback
 from collections.abc import Sequence
 from typing import Any
 
 from harness.console import console, err_console
-from harness.errors import UsageError
+from harness.errors import EXIT_HARNESS, EXIT_STATUS_HELP, EXIT_USAGE, HarnessError, UsageError
 
 __all__ = ["build_parser", "console", "entry", "err_console", "main"]
 
@@ -44,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
             "Benchmark and evaluation harness for robot policies that decode discrete action "
             "tokens: success, NFE, control Hz and tokens/s per episode, into Parquet."
         ),
-        epilog=EXAMPLES,
+        epilog=EXAMPLES + "\n" + EXIT_STATUS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     from harness import __version__
@@ -63,8 +65,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return args.func(args)
     except UsageError as exc:
         print(f"dvla-harness {args.command}: error: {exc}", file=sys.stderr)  # one unwrapped line
-        return 2
+        return EXIT_USAGE
+    except HarnessError as exc:
+        print(f"dvla-harness {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_HARNESS
 
 
 def entry() -> Any:
-    sys.exit(main())
+    try:
+        code = main()
+    except Exception:  # a bug or an unforeseen I/O failure: the traceback, then exit 3
+        traceback.print_exc()
+        print("dvla-harness: internal error (traceback above); exit status 3", file=sys.stderr)
+        code = EXIT_HARNESS
+    sys.exit(code)

@@ -12,16 +12,20 @@ from pathlib import Path
 from typing import Any
 
 from harness.console import console, episode_progress, err_console, raise_interrupt
-from harness.errors import UsageError
+from harness.errors import EXIT_STATUS_HELP, UsageError
 
-EXAMPLES = """\
+EXAMPLES = (
+    """\
 examples:
   dvla-harness run                                   # the main job (embedded default config)
   dvla-harness run --suite metaworld/mt10 --policy scripted --episodes-per-task 10 --out runs/demo
   dvla-harness run --suite metaworld/mt1/reach-v3 --policy random:seed=3 --episodes-per-task 2
   dvla-harness run --suite metaworld/mt10 --policy fast_dvla --policy bidirectional --traces
   dvla-harness run --out runs/demo --resume          # finish an interrupted run
+
 """
+    + EXIT_STATUS_HELP
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from harness.errors import UsageError
+from harness.errors import EXIT_STATUS_HELP, UsageError
 
 EXAMPLES = """\
 examples:
@@ -19,6 +19,7 @@ examples:
       --grid checkpoint=ckpt/frontier.safetensors,ckpt/linear.safetensors --out runs/noise
   dvla-harness sweep ...same flags... --resume        # finish an interrupted sweep
   dvla-harness plot ablation runs/sweep --x block_size --y success,tokens_per_s --hue tau_conf --out fig.png
+
 """
 
 
@@ -37,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "property of a checkpoint, not a parameter: sweep checkpoints trained with each "
             "(see docs/sweeps-and-plots.md)."
         ),
-        epilog=EXAMPLES,
+        epilog=EXAMPLES + EXIT_STATUS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_run_arguments(p)
