@@ -9,17 +9,29 @@
       traces.jsonl      with --traces: one line per action chunk, which positions each
                         forward pass committed; an episode's lines are written (one
                         flushed write) just before its row (docs/sweeps-and-plots.md)
+      writer.lock       while a process writes the folder: flock()ed, with its pid, host
+                        and start time; removed when it stops (see RunLock)
 
 Readers take episodes.parquet and pending.jsonl together, so an interrupted run can
 be read and resumed; if the same episode appears twice, the later write wins. A row
 is one small append (~20 us), not a Parquet file per episode (~2 ms): on fast suites
 that difference alone was a 5-8% harness overhead.
+
+A line cut short (a kill mid-write, a full disk, a hand-truncated file) is dropped on
+read, and dropped from the file itself before the next append to it, so that the next
+row cannot be glued onto it (the dropped text goes to events.jsonl).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import json
 import os
+import re
+import socket
+import sys
 import time
 from collections.abc import Iterable, Mapping
 from datetime import datetime
@@ -43,6 +55,12 @@ EPISODES = "episodes.parquet"
 EVENTS = "events.jsonl"
 PENDING = "pending.jsonl"
 TRACES = "traces.jsonl"
+LOCK = "writer.lock"
+# Everything the harness writes into a run folder; --overwrite deletes only these (and
+# their temporaries), and refuses a folder that holds anything else.
+HARNESS_FILES = (MANIFEST, EPISODES, EVENTS, PENDING, TRACES, LOCK)
+# atomic_write's and _write_table's temporaries (".NAME.PID.tmp"), left behind by a kill
+_TEMPORARY = re.compile(r"^\.(" + "|".join(re.escape(n) for n in HARNESS_FILES) + r")\.\d+\.tmp$")
 # Fields of every trace line besides what the policy put in its trace ("committed": a
 # list, one entry per forward pass, of the action positions that pass committed).
 TRACE_FIELDS = (
@@ -62,24 +80,222 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _temporary(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
 def atomic_write(path: Path, data: bytes) -> None:
     """Write via a temporary file and rename, so readers never see half a file."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    tmp = _temporary(path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)  # a full disk must not stay full of half a file
+        raise
     _fsync_dir(path.parent)
 
 
 def _write_table(path: Path, table: pa.Table) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    pq.write_table(table, tmp)
-    with open(tmp, "rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    tmp = _temporary(path)
+    try:
+        pq.write_table(table, tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
     _fsync_dir(path.parent)
+
+
+def repair_tail(path: Path) -> tuple[str, bytes] | None:
+    """Make an append-only JSON-lines file end at a line boundary before it is appended to.
+
+    A last line without its newline (a kill mid-write, a full disk, a hand-truncated
+    file) would otherwise be glued to the next line written, and the file would stop
+    parsing. If that line is a complete JSON value (only the newline was lost), the
+    newline is added and it stays, as readers already counted it; otherwise it is
+    truncated away. Returns ("completed" | "dropped", the line's bytes), or None if the
+    file was whole.
+    """
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return None
+    if size == 0:
+        return None
+    with open(path, "rb+") as fh:
+        fh.seek(size - 1)
+        if fh.read(1) == b"\n":
+            return None
+        cut, end = 0, size
+        while end > 0:  # the last newline, read backwards a block at a time
+            start = max(0, end - (1 << 16))
+            fh.seek(start)
+            i = fh.read(end - start).rfind(b"\n")
+            if i >= 0:
+                cut = start + i + 1
+                break
+            end = start
+        fh.seek(cut)
+        tail = fh.read()
+        try:
+            json.loads(tail)
+            action = "completed"
+            fh.seek(size)
+            fh.write(b"\n")
+        except ValueError:  # JSONDecodeError and UnicodeDecodeError
+            action = "dropped"
+            fh.truncate(cut)
+        fh.flush()
+        os.fsync(fh.fileno())
+    return action, tail
+
+
+class RunLockedError(Exception):
+    """Another process writes the run folder (or may: its lock cannot be checked from here)."""
+
+
+def _pid_alive(pid: Any) -> bool:
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's process
+    except (OverflowError, OSError):
+        return False
+    return True
+
+
+def describe_holder(holder: Mapping[str, Any] | None) -> str:
+    if not holder:
+        return "holder unknown (its record is empty or unreadable)"
+    return f"pid {holder.get('pid')} on host {holder.get('host')}, started {holder.get('started_at')}"
+
+
+class RunLock:
+    """The single-writer lock of a run folder: flock() on OUT/writer.lock, plus a JSON
+    record in that file of who holds it (pid, host, start time, command) for messages.
+
+    The flock dies with the process that holds it, so a killed writer never blocks the
+    next one; its record stays behind and is reported as stale when the lock is taken
+    over. On release the file is removed (while still locked; a process that opened
+    the old file checks that the path is still the file it locked, and retries).
+
+    Where it does not hold: flock is per host on network filesystems whose locks are
+    not shared between clients (NFS mounted with `nolock`, some FUSE filesystems). On
+    such a mount two hosts writing one folder are not excluded; a record left by
+    another host is never taken over here (that host's process cannot be checked), so
+    the user is asked to delete it.
+    """
+
+    def __init__(self, folder: str | os.PathLike[str]):
+        self.folder = Path(folder)
+        self.path = self.folder / LOCK
+        self._fd: int | None = None
+        self.stale: dict[str, Any] | None = None  # the record of a holder that is gone
+        self.unsupported = False  # the filesystem refused flock: only the record guards
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def _read_record(self, fd: int) -> dict[str, Any] | None:
+        data = os.pread(fd, 1 << 16, 0)
+        if not data.strip():
+            return None
+        try:
+            record = json.loads(data)
+        except ValueError:
+            return {}
+        return record if isinstance(record, dict) else {}
+
+    def acquire(self) -> None:
+        """Take the lock or raise RunLockedError naming the holder; writes this process's record."""
+        if self._fd is not None:
+            return
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = self._read_record(fd)
+                os.close(fd)
+                raise RunLockedError(
+                    f"{self.folder} is being written by another process ({describe_holder(holder)}); "
+                    "wait for it to finish, or use another --out"
+                ) from None
+            except OSError as exc:
+                if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                    os.close(fd)
+                    raise
+                self.unsupported = True
+            try:
+                current = os.stat(self.path)
+                mine = os.fstat(fd)
+                same = (current.st_dev, current.st_ino) == (mine.st_dev, mine.st_ino)
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)  # released and removed between our open and our flock: again
+        previous = self._read_record(fd)
+        if previous is not None:
+            host = previous.get("host")
+            if host and host != socket.gethostname():
+                os.close(fd)
+                raise RunLockedError(
+                    f"{self.folder} has a writer lock from another host ({describe_holder(previous)}); "
+                    f"this host cannot tell whether that process still runs. If it does not, delete "
+                    f"{self.path} and try again"
+                )
+            if self.unsupported and previous.get("pid") != os.getpid() and _pid_alive(previous.get("pid")):
+                os.close(fd)
+                raise RunLockedError(
+                    f"{self.folder} is being written by another process ({describe_holder(previous)}; "
+                    "this filesystem does not support locks, so only its record says so); wait for "
+                    f"it to finish, or use another --out"
+                )
+            self.stale = previous
+        record = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "started_at": datetime.now().astimezone().isoformat(timespec="seconds"),
+            "command": sys.argv,
+        }
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, (json.dumps(record) + "\n").encode(), 0)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd = fd
+
+    def stale_message(self) -> str | None:
+        """One line about the dead holder this lock was taken over from, if any."""
+        if self.stale is None:
+            return None
+        pid = self.stale.get("pid")
+        gone = "no longer runs" if not _pid_alive(pid) else "no longer holds it (its pid was reused)"
+        return f"{self.folder}: taking over a stale writer lock ({describe_holder(self.stale)}): that process {gone}"
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            self.path.unlink(missing_ok=True)  # still locked: nobody takes the old file
+        finally:
+            os.close(self._fd)
+            self._fd = None
 
 
 def _json_default(value: Any) -> Any:
@@ -133,6 +349,7 @@ class RunDir:
         self.path = Path(path)
         self._pending: Any = None  # open append handle, kept across episodes
         self._traces: Any = None  # the same for traces.jsonl
+        self._repaired: set[str] = set()  # JSON-lines files whose tail was checked
 
     @property
     def manifest_path(self) -> Path:
@@ -142,10 +359,71 @@ class RunDir:
         return self.manifest_path.is_file()
 
     def is_empty(self) -> bool:
-        return not self.path.exists() or not any(self.path.iterdir())
+        """Nothing recorded: no entries but a leftover lock or temporary file."""
+        if not self.path.exists():
+            return True
+        return all(p.name == LOCK or _TEMPORARY.match(p.name) for p in self.path.iterdir())
+
+    def foreign_files(self) -> list[str]:
+        """Entries the harness did not write (sorted names): --overwrite leaves such a folder alone."""
+        if not self.path.is_dir():
+            return []
+        return sorted(
+            p.name + ("/" if p.is_dir() else "")
+            for p in self.path.iterdir()
+            if not ((p.name in HARNESS_FILES or _TEMPORARY.match(p.name)) and not p.is_dir())
+        )
+
+    def temporaries(self) -> list[Path]:
+        if not self.path.is_dir():
+            return []
+        return sorted(p for p in self.path.iterdir() if _TEMPORARY.match(p.name) and not p.is_dir())
+
+    def remove_temporaries(self) -> list[str]:
+        """Delete the temporary files a killed writer left (call with the lock held)."""
+        removed = []
+        for p in self.temporaries():
+            p.unlink(missing_ok=True)
+            removed.append(p.name)
+        return removed
+
+    def remove_recorded(self) -> None:
+        """Delete what the harness wrote (for --overwrite, with the lock held; the lock stays)."""
+        for name in HARNESS_FILES:
+            if name != LOCK:
+                (self.path / name).unlink(missing_ok=True)
+        self.remove_temporaries()
+        _fsync_dir(self.path)
+
+    def lock(self) -> RunLock:
+        return RunLock(self.path)
 
     def create(self) -> None:
         self.path.mkdir(parents=True, exist_ok=True)
+
+    def _open_append(self, name: str) -> Any:
+        """An append handle to a JSON-lines file whose cut-off last line (if any) is gone."""
+        self._repair(name)
+        return open(self.path / name, "a")
+
+    def _repair(self, name: str) -> None:
+        if name in self._repaired:
+            return
+        self._repaired.add(name)
+        fixed = repair_tail(self.path / name)
+        if fixed is not None:
+            action, tail = fixed
+            self.log_event(
+                "partial_line_" + action,
+                file=name,
+                bytes=len(tail),
+                text=tail[:4000].decode("utf-8", "replace"),
+            )
+
+    def repair(self) -> None:
+        """Check every JSON-lines file's tail now (see repair_tail); with the lock held."""
+        for name in (EVENTS, PENDING, TRACES):
+            self._repair(name)
 
     def write_manifest(self, manifest: Mapping[str, Any]) -> None:
         atomic_write(self.manifest_path, (json.dumps(manifest, indent=2) + "\n").encode())
@@ -160,7 +438,7 @@ class RunDir:
 
     def log_event(self, event: str, **fields: Any) -> None:
         record = {"time": time.time(), "event": event, **fields}
-        with open(self.path / EVENTS, "a") as fh:
+        with self._open_append(EVENTS) as fh:
             fh.write(json.dumps(record, default=str) + "\n")
             fh.flush()
 
@@ -168,7 +446,7 @@ class RunDir:
         """Record one finished episode: one flushed line, complete or absent after a kill."""
         line = json.dumps(dict(row), default=_json_default, allow_nan=False) + "\n"
         if self._pending is None:
-            self._pending = open(self.path / PENDING, "a")  # closed in compact()
+            self._pending = self._open_append(PENDING)  # closed in compact()
         self._pending.write(line)
         self._pending.flush()  # in the kernel now: a killed process cannot lose it
 
@@ -182,7 +460,7 @@ class RunDir:
         if not text:
             return
         if self._traces is None:
-            self._traces = open(self.path / TRACES, "a")  # closed in compact()
+            self._traces = self._open_append(TRACES)  # closed in compact()
         self._traces.write(text)
         self._traces.flush()
 
@@ -225,12 +503,16 @@ class RunDir:
 
     def compact(self) -> None:
         """Fold pending rows into episodes.parquet (atomically), then drop pending.jsonl."""
-        if self._pending is not None:
-            self._pending.close()
-            self._pending = None
-        if self._traces is not None:
-            self._traces.close()
-            self._traces = None
+        handles, self._pending, self._traces = (self._pending, self._traces), None, None
+        failed: OSError | None = None
+        for handle in handles:
+            if handle is not None:
+                try:
+                    handle.close()  # the file is closed even when its last flush fails
+                except OSError as exc:
+                    failed = failed or exc
+        if failed is not None:
+            raise failed
         pending = self.path / PENDING
         if not pending.is_file():
             return

@@ -59,6 +59,9 @@ def test_sigkill_then_resume_records_each_episode_once(tmp_path):
         timeout=300,
     )
     assert done.returncode == 0, done.stderr
+    # the killed process's lock died with it; its record is reported stale and taken over
+    assert f"taking over a stale writer lock (pid {proc.pid} " in done.stderr
+    assert not (out / "writer.lock").exists()
     df = RunDir(out).read_episodes()
     assert sorted(df["episode_index"]) == list(range(10))
     raw = pq.read_table(out / "episodes.parquet").to_pandas()

@@ -23,6 +23,9 @@ examples:
   dvla-harness run --suite metaworld/mt10 --policy fast_dvla --policy bidirectional --traces
   dvla-harness run --out runs/demo --resume          # finish an interrupted run
 
+one process writes a run folder at a time (OUT/writer.lock names it); a second run,
+--resume, --overwrite or sweep on it is refused while it runs
+
 """
     + EXIT_STATUS_HELP
 )
