@@ -24,8 +24,7 @@ from typing import Any
 import pandas as pd
 from rich.table import Table
 
-from results.runs import Run, combined_episodes
-from results.schema import EPISODE_KEY
+from results.runs import Run, combined_episodes, dedupe_episodes
 from results.summary import wilson_interval
 
 DEFAULT_BASELINE = "bidirectional"
@@ -348,16 +347,9 @@ def _episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Map
 
 
 def prepare_rows(episodes: pd.DataFrame) -> tuple[pd.DataFrame, int]:
-    df = episodes.copy()
-    for column in ("run", "machine"):
-        if column not in df:
-            df[column] = ""
-    df["machine"] = df["machine"].fillna("")
-    before = len(df)
-    if "started_at" in df:
-        df = df.sort_values("started_at", kind="stable")
-    df = df.drop_duplicates([*EPISODE_KEY, "machine"], keep="last")
-    return df, before - len(df)
+    """Rows as every output counts them (results.runs.dedupe_episodes), for frames that
+    did not come through combined_episodes; the count includes what it dropped."""
+    return dedupe_episodes(episodes)
 
 
 def leaderboard(

@@ -10,21 +10,21 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from results.leaderboard import (
     DEFAULT_BASELINE,
     Block,
     Cell,
+    Entry,
     Success,
-    Timed,
     finite_or_none,
     leaderboards,
     markdown_table,
     number_cell,
-    prepare_rows,
-    speedups,
 )
 from results.published import LIBERO, libero_column, tables_for
-from results.runs import Run, combined_episodes
+from results.runs import Run
 
 
 @dataclass(frozen=True)
@@ -51,32 +51,45 @@ class PaperTable:
 
 
 def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
+    """Speedups are taken within each suite (its own leaderboard: the baseline's rows of
+    that suite, on the same machine) and averaged over the suites a row has, never
+    across suites: a LIBERO row is not measured against a Meta-World teacher. Tokens/s
+    is the mean over those suites likewise, so each suite counts once."""
     boards = leaderboards(runs, baseline)
     baseline = baseline or DEFAULT_BASELINE
-    df, _ = prepare_rows(combined_episodes(runs))
     keys = list(dict.fromkeys((e.policy_config_id, e.machine) for b in boards for e in b.entries))
-    entries = {(e.policy_config_id, e.machine): e for b in boards for e in b.entries}
-    timed = []
-    for cid, machine in keys:
-        rows = df[(df["policy_config_id"] == cid) & (df["machine"] == machine)]
-        e = entries[(cid, machine)]
-        runs_of = tuple(dict.fromkeys(rows["run"]))
-        timed.append(Timed(e.policy, cid, e.label, machine, runs_of, float(rows["tokens_per_s"].mean())))
-    ratios, extra = speedups(timed, baseline)
     out = []
-    for (cid, machine), t, (s, note) in zip(keys, timed, ratios, strict=True):
-        success = {
-            b.suite: e.overall
-            for b in boards
-            for e in b.entries
-            if (e.policy_config_id, e.machine) == (cid, machine)
+    for cid, machine in keys:
+        mine = {
+            b.suite: e for b in boards for e in b.entries if (e.policy_config_id, e.machine) == (cid, machine)
         }
+        success = {suite: e.overall for suite, e in mine.items()}
         average = (
             sum(100 * v.rate for v in success.values()) / len(boards) if len(success) == len(boards) else None
         )
-        out.append(PaperRow(t.label, cid, machine, success, average, t.tokens_per_s, s, note, t.runs))
-    warnings = [f"{b.suite}: {w}" for b in boards for w in b.warnings] + extra
+        speedup, note = _suite_mean_speedup(mine)
+        first = next(iter(mine.values()))
+        tokens = (
+            float(np.nanmean([e.tokens_per_s for e in mine.values()]))
+            if any(np.isfinite(e.tokens_per_s) for e in mine.values())
+            else float("nan")
+        )
+        runs_of = tuple(dict.fromkeys(r for e in mine.values() for r in e.runs))
+        out.append(PaperRow(first.label, cid, machine, success, average, tokens, speedup, note, runs_of))
+    warnings = [f"{b.suite}: {w}" for b in boards for w in b.warnings]
     return PaperTable(tuple(b.suite for b in boards), tuple(out), baseline, tuple(dict.fromkeys(warnings)))
+
+
+def _suite_mean_speedup(entries: dict[str, Entry]) -> tuple[float | None, str]:
+    """The mean of a row's per-suite speedups, or why there is none; names the suites
+    left out when only some have one."""
+    have = {suite: e.speedup for suite, e in entries.items() if e.speedup is not None}
+    if not have:
+        return None, next(iter(entries.values())).speedup_note
+    if len(have) < len(entries):
+        missing = ", ".join(s for s in entries if s not in have)
+        return sum(have.values()) / len(have), f"without {missing}"
+    return sum(have.values()) / len(have), ""
 
 
 def paper_blocks(pt: PaperTable) -> list[Block]:

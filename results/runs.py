@@ -16,7 +16,7 @@ from typing import Any
 
 import pandas as pd
 
-from results.schema import COLUMN_NAMES
+from results.schema import COLUMN_NAMES, EPISODE_KEY
 from results.store import EPISODES, MANIFEST, ResultsFileError, RunDir, read_table
 
 
@@ -71,6 +71,26 @@ def load_runs(paths: Iterable[str | os.PathLike[str]]) -> list[Run]:
 
 
 def combined_episodes(runs: Iterable[Run]) -> pd.DataFrame:
-    """All rows of several runs, with `run` (its path) and `machine` columns added."""
+    """All rows of several runs, with `run` (its path) and `machine` columns added, one
+    row per episode: every cross-run output (leaderboard, gate, reports, plots) reads
+    through here, so they all count the same episodes. An episode found in several runs
+    (a copied or resumed folder given twice) on one machine counts once, its latest
+    write; how many were dropped is in `df.attrs["duplicates"]`."""
     frames = [r.episodes.assign(run=r.label, machine=r.machine) for r in runs]
-    return pd.concat(frames, ignore_index=True)
+    df, dropped = dedupe_episodes(pd.concat(frames, ignore_index=True))
+    df.attrs["duplicates"] = dropped
+    return df
+
+
+def dedupe_episodes(episodes: pd.DataFrame) -> tuple[pd.DataFrame, int]:
+    """(one row per episode and machine, the latest write of each; rows dropped)."""
+    df = episodes.copy()
+    for column in ("run", "machine"):
+        if column not in df:
+            df[column] = ""
+    df["machine"] = df["machine"].fillna("")
+    if "started_at" in df:
+        df = df.sort_values("started_at", kind="stable")
+    kept = df.drop_duplicates([*EPISODE_KEY, "machine"], keep="last").reset_index(drop=True)
+    kept.attrs["duplicates"] = episodes.attrs.get("duplicates", 0) + len(df) - len(kept)
+    return kept, kept.attrs["duplicates"]

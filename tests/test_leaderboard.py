@@ -347,3 +347,43 @@ def test_numbers_come_from_the_parquet_rows(tmp_path):
     for column in ("tokens_per_s", "control_hz", "wall_clock_s", "nfe_per_chunk"):
         assert frame[column] == pytest.approx(df[column].mean())
     assert frame["successes[overall]"] == int(df["success"].sum())
+
+
+def test_every_output_counts_an_episode_given_twice_once(tmp_path):
+    """A run folder and a copy of it (or a resumed folder given twice): leaderboard,
+    plots and reports all read through combined_episodes and count the same rows."""
+    import shutil
+
+    from results.plots import pareto_plot, plot_frame
+    from results.runs import combined_episodes
+
+    rows = episodes("bidirectional", BIDI, "bidi000001", [1, 1, 0]) + episodes(
+        "fast_dvla", FAST, "fast000001", [1, 0, 0], tokens_per_s=200.0
+    )
+    a = write_run(tmp_path / "a", rows)
+    shutil.copytree(a, tmp_path / "b")
+    runs = [load_run(a), load_run(tmp_path / "b")]
+    combined = combined_episodes(runs)
+    assert len(combined) == 6 and combined.attrs["duplicates"] == 6
+    (board,) = leaderboards(runs)
+    assert by_label(board)["fast_dvla"].overall.episodes == 3
+    assert any("appear in more than one run" in w for w in board.warnings)
+    frame = plot_frame(combined)
+    assert frame.groupby("policy").size().to_dict() == {"bidirectional": 3, "fast_dvla": 3}
+    pareto_plot(frame, out=tmp_path / "p.png")
+
+
+def test_paper_table_speedups_are_taken_within_each_suite(tmp_path):
+    """An MT10 teacher never becomes the baseline of a LIBERO row: each suite's speedup
+    uses that suite's baseline, and a row's speedup averages its suites'."""
+    mt10 = episodes("bidirectional", BIDI, "bidi000001", [1, 1], tokens_per_s=1000.0)
+    lib_bidi = '{"checkpoint":"/x/libero-spatial-bidirectional.safetensors","steps":12}'
+    lib_fast = '{"checkpoint":"/x/libero-spatial-fast_dvla.safetensors","tau_conf":0.5}'
+    spatial = [
+        r | {"suite": "libero/spatial"}
+        for r in episodes("bidirectional", lib_bidi, "bidilib001", [1, 0], tokens_per_s=100.0)
+        + episodes("fast_dvla", lib_fast, "fastlib001", [1, 1], tokens_per_s=300.0)
+    ]
+    table = paper_table([load_run(write_run(tmp_path / "r", mt10 + spatial))])
+    fast = next(r for r in table.rows if r.policy_config_id == "fastlib001")
+    assert fast.speedup == pytest.approx(3.0)  # 300 / the spatial teacher's 100, not / 1000
