@@ -18,8 +18,18 @@ def success_cell(row: pd.Series) -> str:
     return f"{rate}% [{low}, {high}] ({row['successes']}/{row['episodes']})"
 
 
+# Fewer episodes than this on either side and a per-task speedup is noise (one slow
+# episode moves it by tens of percent); the ALL row always has one.
+MIN_EPISODES_FOR_TASK_SPEEDUP = 10
+CAPTION = (
+    "control Hz: env steps per second of policy time (the policy alone); loop Hz: env steps per "
+    "second of wall-clock (policy + simulator + harness); speedup: tokens/s over bidirectional's "
+    f"in this run (per task only with >= {MIN_EPISODES_FOR_TASK_SPEEDUP} episodes each)"
+)
+
+
 def summary_table(summary: pd.DataFrame, title: str = "") -> Table:
-    table = Table(title=title or None, show_lines=False)
+    table = Table(title=title or None, show_lines=False, caption=CAPTION)
     for name, justify in (
         ("policy", "left"),
         ("task", "left"),
@@ -27,22 +37,23 @@ def summary_table(summary: pd.DataFrame, title: str = "") -> Table:
         ("NFE/chunk", "right"),
         ("tokens/s", "right"),
         ("control Hz", "right"),
+        ("loop Hz", "right"),
         ("wall s/episode", "right"),
         ("errors", "right"),
-        ("speedup", "right"),
+        ("speedup vs bidirectional", "right"),
     ):
         table.add_column(name, justify=justify)  # type: ignore[arg-type]
-    # Speedup in tokens/s over the `bidirectional` rows of the same task, when present.
-    base = (
-        summary[summary["policy"] == "bidirectional"]
-        .drop_duplicates("task")
-        .set_index("task")["tokens_per_s"]
-    )
+    base = summary[summary["policy"] == "bidirectional"].drop_duplicates("task").set_index("task")
     previous = None
     for _, row in summary.iterrows():
         is_all = row["task"] == "ALL"
         policy = row["policy"] if row["policy_config_id"] != previous else ""
         previous = row["policy_config_id"]
+        speedup = "-"
+        if row["task"] in base.index:
+            enough = min(row["episodes"], base.loc[row["task"], "episodes"]) >= MIN_EPISODES_FOR_TASK_SPEEDUP
+            if is_all or enough:
+                speedup = _num(row["tokens_per_s"] / base.loc[row["task"], "tokens_per_s"], ".2f") + "x"
         cells = [
             policy,
             "[b]ALL[/b]" if is_all else row["task"],
@@ -50,9 +61,10 @@ def summary_table(summary: pd.DataFrame, title: str = "") -> Table:
             _num(row["nfe_per_chunk"], ".1f"),
             _num(row["tokens_per_s"], ".0f"),
             _num(row["control_hz"], ".0f"),
+            _num(row.get("loop_hz", math.nan), ".0f"),
             _num(row["wall_clock_s"], ".2f"),
             str(row["failures"]),
-            _num(row["tokens_per_s"] / base[row["task"]], ".2f") + "x" if row["task"] in base else "-",
+            speedup,
         ]
         table.add_row(*cells, style="bold" if is_all else None, end_section=is_all)
     return table

@@ -25,6 +25,7 @@ SUMMARY_COLUMNS = (
     "nfe_per_chunk",
     "tokens_per_s",
     "control_hz",
+    "loop_hz",
     "wall_clock_s",
 )
 
@@ -54,6 +55,7 @@ def _summarise(group: pd.DataFrame) -> dict[str, float]:
         "nfe_per_chunk": group["nfe_per_chunk"].mean(),
         "tokens_per_s": group["tokens_per_s"].mean(),
         "control_hz": group["control_hz"].mean(),
+        "loop_hz": group["loop_hz"].mean() if "loop_hz" in group else math.nan,
         "wall_clock_s": group["wall_clock_s"].mean(),
     }
 
