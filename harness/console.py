@@ -6,7 +6,9 @@ to stderr so that stdout stays the table (or the Markdown/CSV a command prints).
 
 from __future__ import annotations
 
+import math
 import sys
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -43,13 +45,23 @@ def episode_progress(quiet: bool) -> tuple[Progress, Callable[[int, int], Callab
             err_console.print(f"resuming: {skipped} episode(s) already recorded, {total} to run")
         task_id = progress.add_task("episodes", total=total, success="success -")
 
+        started = time.monotonic()
+        step = max(1, math.ceil(total / 20))  # a plain line every 5% when not on a terminal
+
         def tick(success: bool) -> None:
             state["done"] += 1
             state["ok"] += int(success)
             rate = 100 * state["ok"] / state["done"]
-            progress.update(
-                task_id, advance=1, success=f"success {rate:.0f}% ({state['ok']}/{state['done']})"
-            )
+            summary = f"success {rate:.0f}% ({state['ok']}/{state['done']})"
+            progress.update(task_id, advance=1, success=summary)
+            done = state["done"]
+            if not quiet and not err_console.is_terminal and (done % step == 0 or done == total):
+                elapsed = time.monotonic() - started
+                eta = elapsed / done * (total - done)
+                err_console.print(
+                    f"episodes {done}/{total} ({100 * done / total:.0f}%), {summary}, "
+                    f"{elapsed:.0f} s elapsed, ETA {eta:.0f} s"
+                )
 
         return tick
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
 from harness.console import console
 from harness.errors import UsageError
@@ -32,11 +34,36 @@ def cmd_show(args: argparse.Namespace) -> int:
     except ResultsFileError as exc:
         raise UsageError(str(exc)) from None
     env = manifest.get("environment", {})
+    status = manifest.get("status")
+    if status == "running" and not _writer_alive(run_dir.path):
+        status = "interrupted or killed: no process is writing it; finish it with --resume"
     console.print(
-        f"run {manifest.get('run_id')} ({manifest.get('status')}), suite {manifest['suite']['name']}, "
+        f"run {manifest.get('run_id')} ({status}), suite {manifest['suite']['name']}, "
         f"{len(episodes)} episodes; started {manifest.get('started_at')}; "
         f"{env.get('cpu')}, GPU {env.get('gpu') or 'none'}; git {env.get('git_commit') or 'n/a'}"
     )
     if len(episodes):
         console.print(summary_table(summarize(episodes)))
     return 0
+
+
+def _writer_alive(folder: Path) -> bool:
+    """Whether a live process holds the folder's writer lock (results.store.RunLock):
+    a manifest says "running" from start to finish, and a killed run cannot change it."""
+    import fcntl
+
+    from results.store import RunLock
+
+    try:
+        fd = os.open(RunLock(folder).path, os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return True  # cannot tell: say nothing new
+    finally:
+        os.close(fd)
+    return False
