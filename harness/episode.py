@@ -2,7 +2,8 @@
 
 Every env and policy call is timed with one monotonic clock; the overhead column is
 the episode's wall-clock minus both, so the three add up by construction and the
-overhead is exactly the loop's own bookkeeping. NFE is read from the harness's hooks.
+overhead is exactly the loop's own bookkeeping. NFE is counted by the harness's hooks,
+which are on only inside `policy.reset` and `policy.act` (`nfe.counting()`).
 A Python exception from the env or the policy ends the episode with a failure reason;
 it never ends the run. With `record_traces`, each chunk's decode trace (what the policy
 returned in ChunkBatch.trace) is kept in memory and written by the runner after the
@@ -74,13 +75,15 @@ def run_episode(
         obs, info = env.reset(seed=spec.seed, options={"episode": spec})
         t = clock()
         env_time += t - start
-        policy.reset([context])
+        with nfe.counting():
+            policy.reset([context])
         t2 = clock()
         policy_time += t2 - t
         done = False
         while not done and steps < context.max_steps:
             t = clock()
-            batch = policy.act([obs])
+            with nfe.counting():
+                batch = policy.act([obs])
             t2 = clock()
             policy_time += t2 - t
             chunks += 1

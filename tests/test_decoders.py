@@ -28,7 +28,7 @@ class Holder:
 
 def _count(model, fn, **kw):
     counter = NFECounter(Holder(model))
-    with torch.inference_mode():
+    with torch.inference_mode(), counter.counting():
         out = fn(model, *_inputs(), **kw)
     nfe = counter.take()
     counter.close()
