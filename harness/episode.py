@@ -5,7 +5,9 @@ the episode's wall-clock minus both, so the three add up by construction and the
 overhead is exactly the loop's own bookkeeping. NFE is counted by the harness's hooks,
 which are on only inside `policy.reset` and `policy.act` (`nfe.counting()`).
 A Python exception from the env or the policy ends the episode with a failure reason;
-it never ends the run. With `record_traces`, each chunk's decode trace (what the policy
+it never ends the run: a policy's SystemExit or other BaseException is that episode's
+failure row too, and so is a non-finite or absurd action. Only KeyboardInterrupt (Ctrl-C,
+SIGTERM) stops the run. With `record_traces`, each chunk's decode trace (what the policy
 returned in ChunkBatch.trace) is kept in memory and written by the runner after the
 episode, so recording costs the loop one list append per chunk.
 """
@@ -43,6 +45,11 @@ class EpisodeOutcome:
     traces: list[dict[str, Any]] | None = None
 
 
+# Beyond any action space a simulator clips to: a policy's arithmetic went wrong, and the
+# episode's outcome would say nothing about the policy (an env clips it to a corner).
+ABSURD_ACTION = 1e6
+
+
 def _check_chunk(actions: np.ndarray, action_dim: int) -> None:
     if actions.ndim != 3 or actions.shape[0] != 1 or actions.shape[1] < 1:
         raise ValueError(
@@ -50,6 +57,10 @@ def _check_chunk(actions: np.ndarray, action_dim: int) -> None:
         )
     if actions.shape[2] != action_dim:
         raise ValueError(f"policy returned {actions.shape[2]}-D actions; the action space is {action_dim}-D")
+    if not np.isfinite(actions).all():
+        raise ValueError("policy returned a non-finite action (NaN or infinity)")
+    if np.abs(actions).max() > ABSURD_ACTION:
+        raise ValueError(f"policy returned an absurd action ({np.abs(actions).max():.3g} in magnitude)")
 
 
 def run_episode(
@@ -105,7 +116,9 @@ def run_episode(
                     done = True
                 if done:
                     break
-    except Exception as exc:
+    except KeyboardInterrupt:
+        raise  # an interrupt (Ctrl-C, SIGTERM) stops the run; it is not the episode's failure
+    except BaseException as exc:  # SystemExit from a policy too: that episode's failure row
         failure = f"{type(exc).__name__}: {exc}"
         trace = traceback.format_exc()
         success = False

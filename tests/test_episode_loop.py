@@ -88,3 +88,43 @@ def test_wrong_action_dimension_is_a_clear_failure():
 def test_control_hz_inputs(chunk):
     out = _run(CountdownEnv(succeed_at=7), ChunkPolicy(chunk=chunk))
     assert out.steps == 7 and out.chunks == math.ceil(7 / chunk)
+
+
+class _Misbehaving(ChunkPolicy):
+    """Acts normally, then on its second chunk does `what`."""
+
+    def __init__(self, what):
+        super().__init__(chunk=2)
+        self.what = what
+
+    def act(self, observations):
+        batch = super().act(observations)  # counts self.calls
+        if self.calls == 2:
+            if isinstance(self.what, BaseException):
+                raise self.what
+            batch.actions = np.full_like(np.asarray(batch.actions, dtype=float), self.what)
+        return batch
+
+
+class _Custom(BaseException):
+    pass
+
+
+@pytest.mark.parametrize(
+    ("what", "reason"),
+    [
+        (SystemExit(3), "SystemExit: 3"),
+        (_Custom("gone"), "_Custom: gone"),
+        (float("nan"), "non-finite action"),
+        (float("inf"), "non-finite action"),
+        (1e30, "absurd action (1e+30 in magnitude)"),
+    ],
+)
+def test_a_policy_that_exits_or_acts_non_finite_ends_only_its_episode(what, reason):
+    out = _run(CountdownEnv(succeed_at=None), _Misbehaving(what), max_steps=20)
+    assert not out.success and out.steps == 2 and reason in out.failure_reason
+
+
+def test_keyboard_interrupt_still_stops_the_run():
+    with pytest.raises(KeyboardInterrupt):
+        _run(CountdownEnv(succeed_at=None), _Misbehaving(KeyboardInterrupt()), max_steps=20)

@@ -132,3 +132,23 @@ def test_a_run_that_stops_before_its_episodes_closes_the_pre_flight_env(tmp_path
     with pytest.raises(UsageError):
         run(resolved, tmp_path / "run")
     assert len(resolved.made_envs) == 1 and resolved.made_envs[0].closed
+
+
+def test_a_policy_calling_sys_exit_fails_its_episode_and_the_run_goes_on(tmp_path):
+    class Exits(ChunkPolicy):
+        episodes = 0
+
+        def reset(self, episodes):
+            super().reset(episodes)
+            self.episodes += 1
+
+        def act(self, observations):
+            if self.episodes == 2:
+                raise SystemExit(3)
+            return super().act(observations)
+
+    report = run(fake_resolved(Exits(chunk=2), episodes=4, succeed_at=5), tmp_path / "run")
+    assert report.executed == 4 and report.failed == 1
+    df = RunDir(tmp_path / "run").read_episodes()
+    assert df.set_index("episode_index").loc[1, "failure_reason"] == "SystemExit: 3"
+    assert json.loads((tmp_path / "run" / "manifest.json").read_text())["status"] == "finished"
