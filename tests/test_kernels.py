@@ -9,12 +9,8 @@ import pytest
 import torch
 
 from policies import kernels
-from policies.decoders import (
-    decode_autoregressive,
-    decode_bidirectional,
-    decode_block_diffusion,
-    decode_fast_dvla,
-)
+from policies.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
+from policies.fast_dvla import decode_fast_dvla
 from tests.fakes import tiny_model
 
 PATTERN = {
