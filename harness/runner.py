@@ -246,6 +246,13 @@ def open_run(
                 f"--resume: {str(out)!r} belongs to a different config ({diff}); "
                 "use another --out, or --overwrite to replace it"
             )
+        suites = sorted(set(recorded["suite"]) - {resolved.suite.name}) if len(recorded) else []
+        if suites:
+            raise UsageError(
+                f"--resume: {str(out)!r} holds rows of suite {suites[0]!r}, this config now resolves to "
+                f"{resolved.suite.name!r} (a changed default, e.g. LIBERO's seeding); resuming would "
+                "mix the two. Name the old one in --suite, or use another --out"
+            )
         changed = _changed_checkpoints(manifest, recorded, resolved)
         if changed:
             raise UsageError(

@@ -152,3 +152,22 @@ def test_a_policy_calling_sys_exit_fails_its_episode_and_the_run_goes_on(tmp_pat
     df = RunDir(tmp_path / "run").read_episodes()
     assert df.set_index("episode_index").loc[1, "failure_reason"] == "SystemExit: 3"
     assert json.loads((tmp_path / "run" / "manifest.json").read_text())["status"] == "finished"
+
+
+def test_resume_refuses_rows_of_a_suite_the_config_no_longer_resolves_to(tmp_path):
+    """A default that changes the suite's canonical name (LIBERO's seeding) must not let
+    --resume add rows of the new protocol to a folder of the old one."""
+    resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=3, succeed_at=5)
+    run(resolved, tmp_path / "run")
+    rows = RunDir(tmp_path / "run").read_episodes()
+    rows = rows.assign(suite="fake/countdown:seeding=old")
+    import pyarrow as pa
+
+    from results.schema import arrow_schema
+
+    table = pa.Table.from_pandas(rows, schema=arrow_schema(), preserve_index=False)
+    pq.write_table(
+        table.replace_schema_metadata(arrow_schema().metadata), tmp_path / "run" / "episodes.parquet"
+    )
+    with pytest.raises(UsageError, match="holds rows of suite 'fake/countdown:seeding=old'"):
+        run(fake_resolved(ChunkPolicy(chunk=2), episodes=4, succeed_at=5), tmp_path / "run", resume=True)
