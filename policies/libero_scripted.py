@@ -406,6 +406,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
     from policies.libero_push import PUSHED, PushExpert, push_plan
 
     problem, slices = _problem(context)
+    _check_privileged_state(context, slices)
     goals = problem["goal_state"]
     entities = libero.entity_names(problem)
     drawer = drawer_plan(slices, entities, goals[0][-1]) if len(goals) == 1 else None
@@ -422,6 +423,21 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
             plan = push_plan(slices, obj, problem["regions"][region], PUSHED[category(obj)])
             return PushExpert(plan, slices[region], params)
     return PickPlaceExpert(plan_for(context), params, rng)
+
+
+def _check_privileged_state(context: EpisodeContext, slices: dict[str, slice]) -> None:
+    """The experts read object poses from the state; obs=upstream has none (8-D proprio)."""
+    import gymnasium as gym
+
+    space = context.observation_space
+    state = space["state"] if isinstance(space, gym.spaces.Dict) else space
+    need = max(s.stop for s in slices.values())
+    if state.shape[0] < need:
+        raise ValueError(
+            f"libero_scripted reads object poses from the privileged state ({need}+ numbers); "
+            f"{context.suite} gives {state.shape[0]} (obs=upstream has no object poses): use "
+            "obs=state or obs=images"
+        )
 
 
 def plan_for(context: EpisodeContext) -> PickPlace:

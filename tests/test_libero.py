@@ -431,3 +431,96 @@ def test_the_shipped_libero_student_solves_an_episode_by_set_name(cli, tmp_path,
     assert row["checkpoint"].endswith(f"policies/checkpoints/{name}-fast_dvla.safetensors")
     assert pd.isna(row["failure_reason"]) and row["nfe_per_chunk"] < 56
     assert row["success"], row[["steps", "chunks"]].to_dict()
+
+
+# ---------------------------------------------------------------- obs=upstream
+
+
+def test_upstream_observation_option_names_itself_and_defaults_to_256_px():
+    up = lb.parse_options("obs=upstream")
+    assert (up.size, up.cameras) == (lb.UPSTREAM_IMAGE_SIZE, True)
+    assert up.suffix() == ":obs=upstream,seeding=openvla"
+    assert lb.parse_options("obs=upstream,image_size=256").suffix() == ":obs=upstream,seeding=openvla"
+    assert (
+        lb.parse_options("obs=upstream,image_size=224").suffix()
+        == ":obs=upstream,image_size=224,seeding=openvla"
+    )
+    # the other regimes keep their names (and old runs theirs)
+    assert lb.parse_options("obs=images").size == 128 and lb.parse_options("").suffix() == ":seeding=openvla"
+    assert (
+        lb.parse_options("obs=images,image_size=256").suffix() == ":obs=images,image_size=256,seeding=openvla"
+    )
+    with pytest.raises(lb.SuiteOptionError, match="state, images, upstream"):
+        lb.parse_options("obs=pixels")
+
+
+def test_axis_angle_is_openpis_quat2axisangle():
+    """openpi copied robosuite's transform_utils.quat2axisangle: angle 2 acos(w) in [0, 2 pi]."""
+    pytest.importorskip("robosuite")
+    import robosuite.utils.transform_utils as T
+
+    rng = np.random.default_rng(0)
+    quats = [q / np.linalg.norm(q) for q in rng.normal(size=(20, 4))]
+    quats += [np.array([0.0, 0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, -1.0])]
+    for q in quats:
+        given = q.copy()
+        assert np.array_equal(lb.quat2axisangle(given), T.quat2axisangle(q.copy()))
+        assert np.array_equal(given, q)  # upstream clips its argument in place; we do not
+    assert np.linalg.norm(lb.quat2axisangle(quats[0] * np.sign(-quats[0][3]))) > np.pi  # w < 0: not folded
+
+
+@needs_libero
+def test_upstream_observations_are_what_openvla_and_openpi_feed_their_models():
+    """obs=upstream: both cameras rotated 180 degrees (`img[::-1, ::-1]`) from robosuite's
+    own render of the same step, and openpi's 8-D state from the env's sim data."""
+    import robosuite.utils.transform_utils as T
+    from scipy.spatial.transform import Rotation
+
+    suite = lb.load_suite("libero/spatial:obs=upstream,image_size=48,shadows=off")
+    assert suite.name == "libero/spatial:obs=upstream,image_size=48,shadows=off,seeding=openvla"
+    assert "48 px" in suite.render_backend and "8-D proprio" in suite.description
+    task = suite.tasks[0]
+    env = suite.make_env(task)
+    try:
+        first, _ = env.reset(options={"episode": task.episodes[0]})
+        raws = []
+        step = env.libero.step  # capture the raw robosuite observation of the next step
+        env.libero.step = lambda a: raws.append(step(a)) or raws[-1]
+        obs, *_ = env.step(np.array([0.5, 0.3, 0.0, 0.0, 0.0, 0.5, 1.0], dtype=np.float32))
+        raw = raws[-1][0]
+        # Sample every observable again now, for comparison with the sim data as it is.
+        inner = env.libero.env
+        fresh = env._observe(inner._get_observations(force_update=True))
+        sim, robot = inner.sim, inner.robots[0]
+        model, data = sim.model, sim.data
+        pos = data.site_xpos[model.site_name2id(robot.gripper.important_sites["grip_site"])].copy()
+        body = model.body_name2id(robot.robot_model.eef_name)
+        w, x, y, z = data.body_xquat[body]
+        hand = data.body_xmat[body].reshape(3, 3).copy()
+        grip = [float(data.qpos[model.get_joint_qpos_addr(j)]) for j in robot.gripper.joints]
+        renders = {k: sim.render(camera_name=cam, width=48, height=48) for k, cam in lb.CAMERAS.items()}
+    finally:
+        env.close()
+
+    space = env.observation_space
+    assert sorted(space.spaces) == ["agentview", "state", "wrist"] and space["state"].shape == (8,)
+    assert env.state_positions == (0,) and [n for n, _, _ in env.layout][1] == "eef_axis_angle"
+    for o in (first, obs, fresh):
+        assert o["state"].dtype == np.float32 and o["state"].shape == (8,)
+        for k in lb.CAMERAS:
+            assert o[k].dtype == np.uint8 and o[k].shape == (48, 48, 3) and o[k].flags.c_contiguous
+    for k, cam in lb.CAMERAS.items():
+        assert np.array_equal(obs[k], np.rot90(raw[f"{cam}_image"], 2))  # the step's own render
+        assert not np.array_equal(obs[k], raw[f"{cam}_image"])  # and the rotation shows
+        assert np.array_equal(fresh[k], renders[k][::-1, ::-1])
+    # What openpi's main.py sends as observation/state, from the same raw observation.
+    upstream = np.concatenate(
+        (raw["robot0_eef_pos"], T.quat2axisangle(raw["robot0_eef_quat"].copy()), raw["robot0_gripper_qpos"])
+    )
+    assert np.array_equal(obs["state"], upstream.astype(np.float32))
+    # The same 8 numbers from the sim data: grip site position, the hand body's orientation
+    # (the axis-angle is a rotation that reproduces its matrix), the finger joints.
+    expected = np.concatenate((pos, T.quat2axisangle(np.array([x, y, z, w])), grip)).astype(np.float32)
+    np.testing.assert_allclose(fresh["state"], expected, atol=1e-6)
+    np.testing.assert_allclose(Rotation.from_rotvec(fresh["state"][3:6]).as_matrix(), hand, atol=1e-5)
+    assert abs(fresh["state"][6] - fresh["state"][7]) > 0.01  # two fingers, opposite signs
