@@ -219,15 +219,21 @@ def check_out(out: str | os.PathLike[str], overwrite: bool) -> None:
 
 
 def write_report(
-    runs: Sequence[Run], out: str | os.PathLike[str], baseline: str | None = None, overwrite: bool = False
+    runs: Sequence[Run],
+    out: str | os.PathLike[str],
+    baseline: str | None = None,
+    overwrite: bool = False,
+    allow_privileged: bool = False,
 ) -> tuple[Path, tuple[str, ...]]:
     """OUT/index.html (the page), leaderboard.md/.csv and paper-table.md, all or nothing.
 
-    Returns the folder and the leaderboards' warnings (the caller shows them)."""
+    Returns the folder and the leaderboards' warnings (the caller shows them). LIBERO rows
+    measured on privileged state raise results.published.PrivilegedRowsError before
+    anything is written, unless `allow_privileged` (results.paper_table.paper_blocks)."""
     out = Path(out)
     check_out(out, overwrite)
     boards = leaderboards(runs, baseline)
-    blocks = paper_blocks(paper_table(runs, baseline))
+    blocks = paper_blocks(paper_table(runs, baseline), allow_privileged)
     files = {
         INDEX: render_page(runs, boards, paper=blocks),
         "leaderboard.md": to_markdown(boards),

@@ -24,6 +24,7 @@ from typing import Any
 import pandas as pd
 from rich.table import Table
 
+from results.published import observation_regime, privileged_label
 from results.runs import Run, combined_episodes, dedupe_episodes
 from results.summary import wilson_interval
 
@@ -103,6 +104,7 @@ class Leaderboard:
                 "policy_config_id": e.policy_config_id,
                 "machine": e.machine,
                 "runs": " ".join(e.runs),
+                "observations": observation_regime(self.suite),
             }
             for group, s in [*((g, e.success[g]) for g in self.groups), (OVERALL, e.overall)]:
                 low, high = s.interval
@@ -127,14 +129,16 @@ class Leaderboard:
         return pd.DataFrame(rows)
 
     def cells(self) -> tuple[list[str], list[list[Cell]]]:
-        """Headers and formatted cells: the one layout every output format shares."""
+        """Headers and formatted cells: the one layout every output format shares. Rows
+        measured on privileged state say so beside the policy ('[privileged state]')."""
         show_machine = len(self.machines) > 1
+        regime = privileged_label([self.suite])
         headers = ["policy", *(["machine"] if show_machine else []), *self.groups]
         headers += ["success (Wilson 95%)", "NFE/chunk", "tokens/s", "control Hz", "wall s/episode"]
         headers += ["errors", f"speedup vs {self.baseline}"]
         rows = []
         for e in self.entries:
-            row = [Cell(e.label, e.label)]
+            row = [Cell(e.label + regime, e.label)]
             if show_machine:
                 row.append(Cell(e.machine or "unknown", e.machine))
             row += [Cell(e.success[g].text(), finite_or_none(e.success[g].rate)) for g in self.groups]

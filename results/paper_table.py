@@ -23,7 +23,14 @@ from results.leaderboard import (
     markdown_table,
     number_cell,
 )
-from results.published import LIBERO, libero_column, tables_for
+from results.published import (
+    LIBERO,
+    PRIVILEGED,
+    check_comparable,
+    libero_column,
+    privileged_label,
+    tables_for,
+)
 from results.runs import Run
 
 
@@ -92,10 +99,15 @@ def _suite_mean_speedup(entries: dict[str, Entry]) -> tuple[float | None, str]:
     return sum(have.values()) / len(have), ""
 
 
-def paper_blocks(pt: PaperTable) -> list[Block]:
+def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
     """The measured rows in the paper's layout, then the published rows beneath them:
     in the same table when every measured suite is a LIBERO suite (same columns), else
-    in tables of their own. Published rows are always labelled with their source."""
+    in tables of their own. Published rows are always labelled with their source.
+
+    The published LIBERO rows read camera images; a LIBERO suite measured on privileged
+    state (obs=state or obs=images) raises PrivilegedRowsError unless `allow_privileged`,
+    and such rows are labelled '[privileged state]' either way."""
+    privileged = check_comparable(pt.suites, allow_privileged)
     columns = {s: libero_column(s) for s in pt.suites}
     aligned = bool(columns) and all(columns.values()) and len(set(columns.values())) == len(columns)
     suites = list(pt.suites)
@@ -107,7 +119,12 @@ def paper_blocks(pt: PaperTable) -> list[Block]:
     for r in pt.rows:
         rows.append(
             [
-                Cell(r.label + (f" @ {r.machine}" if len({x.machine for x in pt.rows}) > 1 else ""), r.label),
+                Cell(
+                    r.label
+                    + (f" @ {r.machine}" if len({x.machine for x in pt.rows}) > 1 else "")
+                    + privileged_label(list(r.success)),
+                    r.label,
+                ),
                 *(
                     Cell(r.success[s].text(), finite_or_none(r.success[s].rate))
                     if s in r.success
@@ -122,7 +139,14 @@ def paper_blocks(pt: PaperTable) -> list[Block]:
                 Cell("measured: " + ", ".join(r.runs), "measured"),
             ]
         )
-    blocks = [Block("measured", headers, rows, pt.warnings)]
+    notes = pt.warnings
+    if privileged:
+        notes = (
+            *notes,
+            f"rows marked [{PRIVILEGED}] were measured on object and fixture poses "
+            f"({', '.join(privileged)}); the published rows on camera images: not the same task",
+        )
+    blocks = [Block("measured", headers, rows, notes)]
     for table in tables_for(list(pt.suites)):
         label = f"published: {table.source}"
         pub_rows = []

@@ -117,6 +117,65 @@ def libero_column(suite: str) -> str | None:
     return {"spatial": "Spatial", "goal": "Goal", "object": "Object", "10": "Long", "long": "Long"}.get(tail)
 
 
+# --- observation regimes ------------------------------------------------------------
+# The published LIBERO rows come from models that read camera images (and proprioception);
+# a row measured on privileged state (object and fixture poses) answers an easier question.
+PRIVILEGED = "privileged state"
+ALLOW_PRIVILEGED_FLAG = "--allow-privileged"
+
+
+class PrivilegedRowsError(ValueError):
+    """Rows measured on privileged state would share a table with published image-based rows."""
+
+
+def _suite_options(suite: str) -> dict[str, str]:
+    _, _, opts = suite.partition(":")
+    pairs = (item.strip().partition("=") for item in opts.split(",") if item.strip())
+    return {key: value for key, _, value in pairs}
+
+
+def observation_regime(suite: str) -> str:
+    """What a suite's policies observed, from its name (the suite options ride on it):
+    'privileged state' for LIBERO's default obs=state and Meta-World's 39-D state,
+    'privileged state + images' for LIBERO obs=images (the state key is still there),
+    'upstream images + proprio' for LIBERO obs=upstream; '' when the suite is not known."""
+    base = suite.partition(":")[0].lower()
+    if base.startswith("libero/"):
+        obs = _suite_options(suite).get("obs", "state")
+        return {
+            "state": PRIVILEGED,
+            "images": f"{PRIVILEGED} + images",
+            "upstream": "upstream images + proprio",
+        }.get(obs, f"obs={obs}")
+    if base.startswith("metaworld/"):
+        return PRIVILEGED  # hand, gripper, object and goal positions
+    return ""
+
+
+def is_privileged(suite: str) -> bool:
+    return observation_regime(suite).startswith(PRIVILEGED)
+
+
+def privileged_label(suites: list[str] | tuple[str, ...]) -> str:
+    """' [privileged state]' (or '+ images') for a row measured on any such suite, else ''."""
+    regimes = list(dict.fromkeys(observation_regime(s) for s in suites if is_privileged(s)))
+    return f" [{'; '.join(regimes)}]" if regimes else ""
+
+
+def check_comparable(suites: list[str] | tuple[str, ...], allow_privileged: bool = False) -> list[str]:
+    """The measured suites that have published image-based rows and were measured on
+    privileged state; raises PrivilegedRowsError for them unless `allow_privileged`."""
+    found = [s for s in suites if is_privileged(s) and libero_column(s)]
+    if found and not allow_privileged:
+        raise PrivilegedRowsError(
+            f"{', '.join(found)}: measured on privileged state (object and fixture poses), "
+            "while the published LIBERO rows read camera images; measure with obs=upstream "
+            f"(e.g. libero/spatial:obs=upstream), or pass {ALLOW_PRIVILEGED_FLAG} to print them "
+            f"in one table anyway, each of ours labelled '{PRIVILEGED}'"
+        )
+    return found
+
+
 def tables_for(suites: list[str]) -> list[PublishedTable]:
     """The published tables worth showing beside these measured suites (LIBERO always)."""
     names = " ".join(suites).lower()

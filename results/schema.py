@@ -28,7 +28,13 @@ _TS = pa.timestamp("us", tz="UTC")
 
 COLUMNS: tuple[Column, ...] = (
     Column("run_id", pa.string(), "", "Identifier of the run (kept across --resume)."),
-    Column("suite", pa.string(), "", "Suite name, e.g. `metaworld/mt10`."),
+    Column(
+        "suite",
+        pa.string(),
+        "",
+        "Suite name with its options, e.g. `metaworld/mt10`, `libero/spatial:obs=upstream,seeding=openvla`"
+        " (the observation regime is read from it).",
+    ),
     Column("suite_version", pa.string(), "", "Version of the suite's task/episode definition."),
     Column("task", pa.string(), "", "Task name within the suite."),
     Column("task_index", pa.int64(), "", "Position of the task in the suite."),

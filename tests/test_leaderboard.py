@@ -156,7 +156,7 @@ def test_speedup_over_the_baseline_on_the_same_machine(tmp_path):
     assert e["fast_dvla"].speedup == pytest.approx(2.0) and e["fast_dvla"].nfe_per_chunk == 6.0
     assert e["scripted"].speedup is None and e["scripted"].speedup_note == "n/a: no tokens"
     headers, cells = board.cells()
-    speed = {r[0].text: r[headers.index("speedup vs bidirectional")].text for r in cells}
+    speed = {r[0].value: r[headers.index("speedup vs bidirectional")].text for r in cells}
     assert speed == {"bidirectional": "1.00x", "fast_dvla": "2.00x", "scripted": "n/a: no tokens"}
 
 
@@ -242,8 +242,10 @@ def test_paper_table_lines_up_libero_suites_and_puts_published_rows_beneath(tmp_
     fast = next(r for r in table.rows if r.label == "fast_dvla")
     assert fast.success["libero/spatial"].successes == 3 and fast.average == pytest.approx(50.0)
     assert fast.speedup == pytest.approx(3.0)
-    (block,) = paper_blocks(table)  # one table: the measured suites are LIBERO's columns
+    (block,) = paper_blocks(table, allow_privileged=True)  # one table: LIBERO's columns
     assert block.headers[1:3] == ["Spatial (libero/spatial)", "Goal (libero/goal)"]
+    measured = [r[0].text for r in block.rows[: block.published_from]]
+    assert measured == ["bidirectional [privileged state]", "fast_dvla [privileged state]"]
     published = block.rows[block.published_from :]
     assert len(published) == 8 and all(r[0].text.endswith("(published)") for r in published)
     assert all(r[-1].text.startswith("published: Fast-dVLA (arXiv 2603.25661)") for r in published)
@@ -274,7 +276,7 @@ def test_cli_markdown_to_a_file_and_warnings_on_stderr(cli, tmp_path):
     code, stdout, stderr = cli("leaderboard", str(a), str(b), "--out", str(out))
     assert code == 0 and f"wrote {out}" in stdout
     text = out.read_text()
-    assert "| fast_dvla | 50.0% [9, 91] (1/2) |" in text and "3.00x" in text
+    assert "| fast_dvla [privileged state] | 50.0% [9, 91] (1/2) |" in text and "3.00x" in text
     assert "warning: metaworld/mt10: episode counts differ" in stderr.replace("\n", " ")
     code, stdout, _ = cli("leaderboard", str(a), str(b), "--format", "csv")
     assert code == 0 and stdout.splitlines()[0].startswith("suite,policy,label,policy_config_id")
@@ -387,3 +389,84 @@ def test_paper_table_speedups_are_taken_within_each_suite(tmp_path):
     table = paper_table([load_run(write_run(tmp_path / "r", mt10 + spatial))])
     fast = next(r for r in table.rows if r.policy_config_id == "fastlib001")
     assert fast.speedup == pytest.approx(3.0)  # 300 / the spatial teacher's 100, not / 1000
+
+
+# ---------------------------------------------------------------------------- observation regimes
+
+
+@pytest.mark.parametrize(
+    ("suite", "regime"),
+    [
+        ("libero/spatial:seeding=openvla", "privileged state"),
+        ("libero/spatial", "privileged state"),  # rows from before the seeding option
+        ("libero/goal:obs=images,image_size=64,seeding=openpi", "privileged state + images"),
+        ("libero/10:obs=upstream,seeding=openvla", "upstream images + proprio"),
+        ("metaworld/mt10:layouts=upstream,seed=1", "privileged state"),
+        ("fake/countdown", ""),
+    ],
+)
+def test_the_observation_regime_comes_from_the_suite_name(suite, regime):
+    from results.published import is_privileged, observation_regime
+
+    assert observation_regime(suite) == regime
+    assert is_privileged(suite) == regime.startswith("privileged state")
+
+
+def _libero_rows(obs: str = "") -> list[dict]:
+    """Spatial and goal rows of two policies; `obs` is the suite option (e.g. 'obs=upstream,')."""
+    rows = []
+    for key, wins in (("spatial", [1, 1, 0]), ("goal", [1, 0, 0])):
+        suite = f"libero/{key}:{obs}seeding=openvla"
+        rows += [r | {"suite": suite} for r in episodes("bidirectional", BIDI, "bidi000001", wins)]
+        rows += [
+            r | {"suite": suite} for r in episodes("fast_dvla", FAST, "fast000001", wins, tokens_per_s=300.0)
+        ]
+    return rows
+
+
+def test_leaderboard_labels_rows_measured_on_privileged_state(cli, tmp_path):
+    state = write_run(tmp_path / "state", _libero_rows())
+    upstream = write_run(tmp_path / "upstream", _libero_rows("obs=upstream,"))
+    boards = {b.suite: b for b in leaderboards([load_run(state), load_run(upstream)])}
+    for suite, label in (
+        ("libero/spatial:seeding=openvla", "fast_dvla [privileged state]"),
+        ("libero/spatial:obs=upstream,seeding=openvla", "fast_dvla"),
+    ):
+        _, cells = boards[suite].cells()
+        assert [r[0].text for r in cells][1] == label
+    frame = boards["libero/goal:seeding=openvla"].frame()
+    assert set(frame["observations"]) == {"privileged state"}
+    code, stdout, _ = cli("leaderboard", str(state), str(upstream), "--format", "md")
+    assert code == 0
+    assert (
+        "## libero/spatial:seeding=openvla" in stdout
+        and "## libero/spatial:obs=upstream,seeding=openvla" in stdout
+    )
+    assert (
+        stdout.count("| bidirectional [privileged state] |") == 2
+    )  # spatial and goal; not the upstream rows
+    assert "| bidirectional |" in stdout
+
+
+@pytest.mark.parametrize("command", [["report", "paper-table"], ["report", "html"]])
+def test_paper_table_refuses_privileged_rows_beside_published_ones_without_the_flag(cli, tmp_path, command):
+    run = write_run(tmp_path / "state", _libero_rows())
+    out = tmp_path / "report"
+    extra = ["--out", str(out)] if command[-1] == "html" else []
+    code, stdout, stderr = cli(*command, str(run), *extra)
+    assert code == 2 and not out.exists()
+    assert "--allow-privileged" in stderr and "privileged state" in stderr and "obs=upstream" in stderr
+    assert "libero/spatial:seeding=openvla" in stderr and len(stderr.strip().splitlines()) == 1
+    assert "(published)" not in stdout
+    code, stdout, _ = cli(*command, str(run), *extra, "--allow-privileged")
+    assert code == 0
+    text = (out / "paper-table.md").read_text() if extra else stdout
+    assert "| fast_dvla [privileged state] |" in text and "Dream-VLA (published)" in text
+    assert "were measured on object and fixture poses" in text
+
+
+def test_paper_table_takes_upstream_observation_rows_without_the_flag(cli, tmp_path):
+    run = write_run(tmp_path / "upstream", _libero_rows("obs=upstream,"))
+    code, stdout, _ = cli("report", "paper-table", str(run))
+    assert code == 0 and "Spatial (libero/spatial:obs=upstream,seeding=openvla)" in stdout
+    assert "| fast_dvla |" in stdout and "privileged" not in stdout and "Dream-VLA (published)" in stdout

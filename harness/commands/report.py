@@ -13,12 +13,18 @@ examples:
   dvla-harness report paper-table runs/a --baseline bidirectional > table.md
   dvla-harness report html runs/a runs/b --out report/
   dvla-harness report html runs/a --out report/ --overwrite   # replace an earlier report
+  dvla-harness report paper-table runs/state-based --allow-privileged   # labelled [privileged state]
 
 paper-table prints Markdown: rows = policy configurations, columns = success per suite
 (Wilson 95%), average, tokens/s and speedup, with the published Fast-dVLA rows beneath,
 labelled with their source. html writes OUT/index.html (one self-contained page:
 sortable leaderboards, the paper table, a Pareto plot, provenance of every run) plus
 leaderboard.md, leaderboard.csv and paper-table.md. See docs/reports.md.
+
+The published LIBERO rows come from models that read camera images. LIBERO rows
+measured on privileged state (obs=state, the default, or obs=images: object and fixture
+poses) are refused beside them (exit 2) unless --allow-privileged is given; they are
+then printed labelled [privileged state]. Rows measured with obs=upstream need no flag.
 """
 
 
@@ -50,6 +56,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         q.add_argument(
             "--baseline", metavar="POLICY", help="policy or config id for speedups (default: bidirectional)"
         )
+        q.add_argument(
+            "--allow-privileged",
+            action="store_true",
+            help="print LIBERO rows measured on privileged state (obs=state or obs=images) in the "
+            "table of published image-based rows, labelled [privileged state]",
+        )
     web.add_argument("--out", required=True, metavar="DIR", help="report folder to write")
     web.add_argument("--overwrite", action="store_true", help="replace an earlier report in OUT")
     paper.set_defaults(func=cmd_paper_table)
@@ -59,11 +71,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_paper_table(args: argparse.Namespace) -> int:
     from harness.console import console
     from results.paper_table import blocks_markdown, paper_blocks, paper_table
+    from results.published import PrivilegedRowsError
 
     runs = load(args.runs)
     check_baseline(runs, args.baseline)
     table = paper_table(runs, args.baseline)
-    console.file.write(blocks_markdown(paper_blocks(table)))
+    try:
+        blocks = paper_blocks(table, args.allow_privileged)
+    except PrivilegedRowsError as exc:
+        raise UsageError(str(exc)) from None
+    console.file.write(blocks_markdown(blocks))
     console.file.flush()
     print_warnings(table.warnings)
     return 0
@@ -72,13 +89,14 @@ def cmd_paper_table(args: argparse.Namespace) -> int:
 def cmd_html(args: argparse.Namespace) -> int:
     from harness.console import console
     from results.html_report import ReportError, check_out, write_report
+    from results.published import PrivilegedRowsError
 
     try:
         check_out(args.out, args.overwrite)  # before reading runs: a bad --out is the cheaper error
         runs = load(args.runs)
         check_baseline(runs, args.baseline)
-        out, warnings = write_report(runs, args.out, args.baseline, args.overwrite)
-    except ReportError as exc:
+        out, warnings = write_report(runs, args.out, args.baseline, args.overwrite, args.allow_privileged)
+    except (ReportError, PrivilegedRowsError) as exc:
         raise UsageError(str(exc)) from None
     console.print(f"wrote {out / 'index.html'}")
     print_warnings(warnings)
