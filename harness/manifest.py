@@ -5,9 +5,11 @@ manifest records each so that two runs can be compared honestly (or refused).
 
 Timings move with the machine and with whatever else it is doing, so the manifest also
 carries a calibration: a fixed small torch workload timed at the start and the end of
-the run. Dividing a run's tokens/s by its own calibration speed gives a number that two
-runs on different (or differently loaded) machines can compare, which is what the CI
-regression gate (results/gate.py) does.
+the run. When the two differ beyond a tolerance the machine's load changed during the
+run, and the manifest flags its speed figures as unreliable (`speed_reliable: false`),
+which `show`, `leaderboard` and `gate` repeat. (Speeds are compared across machines as
+ratios to a reference decoder in the same run, not through the calibration:
+results/gate.py.)
 """
 
 from __future__ import annotations
@@ -188,10 +190,21 @@ def start_calibration() -> dict[str, Any]:
 
 
 def record_end_calibration(manifest: dict[str, Any], status: str) -> None:
-    """Add the end-of-run measurement (not after an interrupt: the user wants out)."""
+    """Add the end-of-run measurement (not after an interrupt: the user wants out), and
+    flag the run's speed figures as unreliable when the calibration drifted beyond
+    results.runs.CALIBRATION_DRIFT_TOLERANCE between start and end (the load changed)."""
+    from results.runs import CALIBRATION_DRIFT_TOLERANCE, calibration_drift, drift_reason
+
     calibration = manifest.get("calibration")
     if status == "finished" and calibration and "workload" in calibration:
         calibration["end"] = measure_calibration()
+        drift = calibration_drift(manifest)
+        if drift is not None:  # a resumed run is judged again, from its first start
+            calibration["drift"] = drift
+            manifest["speed_reliable"] = abs(drift) <= CALIBRATION_DRIFT_TOLERANCE
+            manifest.pop("speed_warning", None)
+            if not manifest["speed_reliable"]:
+                manifest["speed_warning"] = drift_reason(manifest, drift)
 
 
 def now() -> str:

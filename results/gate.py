@@ -18,7 +18,11 @@ docs/ci-gate.md explains the rules; in short:
   being another chance of a false alarm.
 * NFE per chunk (total passes / total chunks) is deterministic for deterministic
   decoders: any increase fails.
-* tokens/s is compared only as a ratio to each run's own calibration speed.
+* tokens/s is compared only as a paired ratio: each configuration's tokens/s over a
+  reference decoder's (default `bidirectional`) measured interleaved, episode by
+  episode, in the same run, against the same ratio in the other run. A machine that is
+  faster, slower or busier scales both alike, whatever its CPU model; where no such
+  reference exists on both sides the check says "not comparable: <reason>" and passes.
 """
 
 from __future__ import annotations
@@ -103,20 +107,26 @@ class TaskDiff:
 
 @dataclass(frozen=True)
 class SpeedDiff:
-    """tokens/s over the calibration speed (tokens per reference pass), per pair."""
+    """tokens/s relative to the in-run reference decoder's, per pair: candidate run vs baseline run."""
 
     pair: str
     baseline_tokens_per_s: float
     candidate_tokens_per_s: float
-    baseline_reference: float
-    candidate_reference: float
+    baseline_reference: float  # the reference decoder's tokens/s in the baseline run
+    candidate_reference: float  # ... and in the candidate run, over the same episodes
     max_slowdown: float
 
     @property
+    def baseline_ratio(self) -> float:
+        return self.baseline_tokens_per_s / self.baseline_reference
+
+    @property
+    def candidate_ratio(self) -> float:
+        return self.candidate_tokens_per_s / self.candidate_reference
+
+    @property
     def change(self) -> float:
-        base = self.baseline_tokens_per_s / self.baseline_reference
-        cand = self.candidate_tokens_per_s / self.candidate_reference
-        return cand / base - 1.0
+        return self.candidate_ratio / self.baseline_ratio - 1.0
 
     @property
     def regressed(self) -> bool:
@@ -131,6 +141,10 @@ class GateResult:
     notes: tuple[str, ...] = field(default=())  # skipped comparisons and why
     # Pairs whose candidate raised in more episodes than the baseline did.
     raised: tuple[str, ...] = field(default=())
+    # (pair label, why its speed was not compared): "not comparable: ..." in the table
+    not_comparable: tuple[tuple[str, str], ...] = field(default=())
+    reference: str = ""  # the label of the reference pair, whose ratio is 1 by definition
+    warnings: tuple[str, ...] = field(default=())  # runs whose speed figures are unreliable
 
     @property
     def failures(self) -> list[str]:
@@ -146,8 +160,9 @@ class GateResult:
         for s in self.speed:
             if s.regressed:
                 out.append(
-                    f"{s.pair}: tokens/s per calibration speed {s.change:+.1%} "
-                    f"(allowed -{s.max_slowdown:.0%})"
+                    f"{s.pair}: tokens/s relative to the reference {s.change:+.1%} "
+                    f"({s.baseline_ratio:.3f} -> {s.candidate_ratio:.3f}x the reference's; "
+                    f"allowed -{s.max_slowdown:.0%})"
                 )
         return out
 
@@ -314,6 +329,65 @@ def _task_diff(pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nf
     )
 
 
+DEFAULT_REFERENCE = "bidirectional"  # the teacher: every decoder config can run beside it
+
+
+def _reference_pair(
+    pairs: list[ConfigPair], baseline: pd.DataFrame, reference: str | None
+) -> tuple[ConfigPair | None, str]:
+    """The pair of the reference decoder's configurations, or (None, why there is none)."""
+    if not reference:
+        return None, "no reference decoder given"
+    found = list(
+        dict.fromkeys(
+            baseline.loc[
+                (baseline["policy"] == reference) | (baseline["policy_config_id"] == reference),
+                "policy_config_id",
+            ]
+        )
+    )
+    if not found:
+        return None, (
+            f"the baseline has no {reference} rows to time against (a run needs the reference "
+            "decoder beside the others: docs/ci-gate.md)"
+        )
+    if len(found) > 1:
+        return (
+            None,
+            f"the baseline has {len(found)} configurations of {reference} (pass --reference CONFIG_ID)",
+        )
+    pair = next(p for p in pairs if p.baseline_id == found[0])
+    if pair.rule != "same policy and params":
+        what = pair.changes or f"{pair.baseline} -> {pair.candidate}"
+        return None, f"the reference {reference} differs between the runs ({what})"
+    return pair, ""
+
+
+def _merged(baseline: pd.DataFrame, candidate: pd.DataFrame, pair: ConfigPair) -> pd.DataFrame:
+    """The pair's episodes side by side (measures suffixed _b and _c)."""
+    b = _keys(baseline[baseline["policy_config_id"] == pair.baseline_id])
+    c = _keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
+    cols = [*PAIR_KEY, *_MEASURES]
+    return b[cols].merge(c[cols], on=list(PAIR_KEY), suffixes=("_b", "_c"))
+
+
+def _speed(
+    pair: ConfigPair, merged: pd.DataFrame, reference: pd.DataFrame, max_slowdown: float
+) -> SpeedDiff | str:
+    """The pair's tokens/s against the reference's over the episodes both ran, or why not."""
+    keys = list(PAIR_KEY)
+    common = merged[keys].merge(reference[keys])
+    if common.empty:
+        return "not comparable: it shares no episodes with the reference"
+    mine, ref = merged.merge(common), reference.merge(common)
+    tps = [_tokens_per_s(_side(df, side)) for df in (mine, ref) for side in ("b", "c")]
+    if tps[0] is None or tps[1] is None:
+        return "no action tokens decoded on both sides"
+    if tps[2] is None or tps[3] is None:
+        return "not comparable: the reference decoded no tokens on these episodes"
+    return SpeedDiff(pair.label, tps[0], tps[1], tps[2], tps[3], max_slowdown)
+
+
 def gate(
     baseline: pd.DataFrame,
     candidate: pd.DataFrame,
@@ -321,29 +395,31 @@ def gate(
     alpha: float = 0.05,
     max_slowdown: float = 0.10,
     allow_nfe_increase: bool = False,
-    baseline_reference: float | None = None,
-    candidate_reference: float | None = None,
+    reference: str | None = DEFAULT_REFERENCE,
     speed_skipped: str = "",
 ) -> GateResult:
-    """Compare two episode tables; references are calibration speeds (passes/s), if any.
+    """Compare two episode tables. Speed is each configuration's tokens/s over the
+    `reference` decoder's (a policy name or config id) in the same run, against that
+    ratio in the other run; `speed_skipped` ("not comparable: why") skips it.
 
     Raises GateInputError when the runs cannot be compared (nothing is judged then).
     """
     pairs = pair_configs(baseline, candidate)
     for pair in pairs:
         check_episodes_match(baseline, candidate, pair)
-    timed = not speed_skipped and baseline_reference is not None and candidate_reference is not None
-    if not timed:
-        speed_skipped = speed_skipped or "time comparison skipped (no calibration speed for both runs)"
-    notes = [speed_skipped] if speed_skipped else []
+    ref_pair, why = (None, speed_skipped) if speed_skipped else _reference_pair(pairs, baseline, reference)
+    if why and not why.startswith("not comparable"):
+        why = f"not comparable: {why}"
+    notes = [f"speed {why}"] if why else []
+    ref_rows = _merged(baseline, candidate, ref_pair) if ref_pair else None
     tasks: list[TaskDiff] = []
     speed: list[SpeedDiff] = []
+    skipped: list[tuple[str, str]] = []
     errors: list[str] = []
     for pair in pairs:
         b = _keys(baseline[baseline["policy_config_id"] == pair.baseline_id])
         c = _keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
-        cols = [*PAIR_KEY, *_MEASURES]
-        merged = b[cols].merge(c[cols], on=list(PAIR_KEY), suffixes=("_b", "_c"))
+        merged = _merged(baseline, candidate, pair)
         order = list(dict.fromkeys(merged.sort_values("task_index_b", kind="stable")["task"]))
         for task in order:
             rows = merged[merged["task"] == task]
@@ -363,78 +439,82 @@ def gate(
                 f"{pair.label}: {raised['candidate']} candidate episode(s) raised, "
                 f"{raised['baseline']} in the baseline (failure_reason in the rows)"
             )
-        if not timed:
+        if pair == ref_pair:
             continue
-        base_tps, cand_tps = _tokens_per_s(_side(merged, "b")), _tokens_per_s(_side(merged, "c"))
-        if base_tps is None or cand_tps is None:
+        decodes = (
+            _tokens_per_s(_side(merged, "b")) is not None and _tokens_per_s(_side(merged, "c")) is not None
+        )
+        if not decodes:
             notes.append(f"{pair.label}: tokens/s not compared (no action tokens decoded on both sides)")
             continue
-        assert baseline_reference is not None and candidate_reference is not None
-        speed.append(
-            SpeedDiff(pair.label, base_tps, cand_tps, baseline_reference, candidate_reference, max_slowdown)
+        if ref_rows is None:
+            skipped.append((pair.label, why))
+            continue
+        diff = _speed(pair, merged, ref_rows, max_slowdown)
+        if isinstance(diff, SpeedDiff):
+            speed.append(diff)
+        else:
+            skipped.append((pair.label, diff))
+            notes.append(f"{pair.label}: speed {diff}")
+    if ref_pair is not None:
+        notes.append(
+            f"speed: tokens/s relative to {ref_pair.label}'s in the same run (the reference; "
+            "its own speed is the unit, so it is not judged)"
         )
     if allow_nfe_increase:
         notes.append("NFE increases reported but allowed (--allow-nfe-increase)")
-    return GateResult(tuple(pairs), tuple(tasks), tuple(speed), tuple(notes), tuple(errors))
+    return GateResult(
+        tuple(pairs),
+        tuple(tasks),
+        tuple(speed),
+        tuple(notes),
+        tuple(errors),
+        not_comparable=tuple(skipped),
+        reference=ref_pair.label if ref_pair else "",
+    )
 
 
-# ---- timing reference from manifests ---------------------------------------------
+# ---- what the manifests say about timing ---------------------------------------------
 
 
-def reference_speed(manifest: dict[str, Any]) -> tuple[float | None, str]:
-    """(calibration passes/s, '') or (None, why not); the mean of start and end when both exist."""
-    cal = manifest.get("calibration") if manifest else None
-    if not manifest:
-        return None, "no manifest.json beside it"
-    if not cal:
-        return None, "its manifest has no calibration (made before calibration was recorded)"
-    if "workload" not in cal:
-        return None, f"it was not calibrated ({cal.get('skipped', 'no reason recorded')})"
-    speeds = [m["passes_per_s"] for m in (cal.get("start"), cal.get("end")) if m]
-    return sum(speeds) / len(speeds), ""
+def torch_threads(manifest: dict[str, Any]) -> int | None:
+    """The torch thread count a run's policies ran with, if its manifest recorded it."""
+    threads = ((manifest or {}).get("calibration") or {}).get("torch_threads")
+    return int(threads) if threads is not None else None
 
 
-def workload_version(manifest: dict[str, Any]) -> Any:
-    return ((manifest or {}).get("calibration") or {}).get("workload", {}).get("version")
+def _speed_comparable(manifests: dict[str, dict[str, Any]]) -> str:
+    """'' or "not comparable: why" from the manifests (bare tables say nothing: compared)."""
+    threads = {side: torch_threads(m) for side, m in manifests.items()}
+    if None not in threads.values() and len(set(threads.values())) > 1:
+        return (
+            "not comparable: torch threads differ (baseline {baseline}, candidate {candidate}); "
+            "decoders gain unequally from threads, so their ratio moves (run both with "
+            "OMP_NUM_THREADS=1)".format(**threads)
+        )
+    return ""
 
 
-def _calibration_notes(manifests: dict[str, dict[str, Any]]) -> list[str]:
-    """What makes the time comparison less trustworthy, said next to the verdict."""
-    notes = []
-    for side, manifest in manifests.items():
-        cal = manifest.get("calibration") or {}
-        start, end = cal.get("start"), cal.get("end")
-        if start and end:
-            drift = end["passes_per_s"] / start["passes_per_s"] - 1.0
-            if abs(drift) > 0.2:
-                notes.append(
-                    f"{side} calibration moved {drift:+.0%} during its run (the machine's load changed)"
-                )
-    threads = {side: (m.get("calibration") or {}).get("torch_threads") for side, m in manifests.items()}
-    if len(set(threads.values())) > 1:
-        notes.append(f"torch threads differ ({threads}); the single-thread calibration does not cover that")
-    return notes
+def _machine_notes(manifests: dict[str, dict[str, Any]]) -> list[str]:
+    envs = {side: (m or {}).get("environment") or {} for side, m in manifests.items()}
+    cpus = {side: f"{e.get('cpu')} ({e.get('cpu_count')} CPUs)" for side, e in envs.items() if e}
+    if len(cpus) == 2 and len(set(cpus.values())) > 1:
+        return [
+            f"the runs come from different CPUs (baseline {cpus['baseline']}, candidate "
+            f"{cpus['candidate']}): speed is compared only through the in-run reference"
+        ]
+    return []
 
 
 def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
-    """`gate` on two loaded runs, with calibration speeds read from their manifests."""
-    base_ref, base_why = reference_speed(baseline.manifest)
-    cand_ref, cand_why = reference_speed(candidate.manifest)
-    skipped = ""
-    if base_why or cand_why:
-        why = "; ".join(f"{side}: {w}" for side, w in (("baseline", base_why), ("candidate", cand_why)) if w)
-        skipped = f"time comparison skipped ({why})"
-    elif workload_version(baseline.manifest) != workload_version(candidate.manifest):
-        skipped = "time comparison skipped (the runs were calibrated with different workload versions)"
-    result = gate(
-        baseline.episodes,
-        candidate.episodes,
-        baseline_reference=base_ref,
-        candidate_reference=cand_ref,
-        speed_skipped=skipped,
-        **options,
+    """`gate` on two loaded runs: thread counts, CPUs and calibration drift from their manifests."""
+    manifests = {"baseline": baseline.manifest, "candidate": candidate.manifest}
+    skipped = options.pop("speed_skipped", "") or _speed_comparable(manifests)
+    result = gate(baseline.episodes, candidate.episodes, speed_skipped=skipped, **options)
+    warnings = tuple(
+        f"{side} {run.label}: speed figures unreliable: {run.speed_warning}"
+        for side, run in (("baseline", baseline), ("candidate", candidate))
+        if run.speed_warning
     )
-    if skipped:
-        return result
-    extra = _calibration_notes({"baseline": baseline.manifest, "candidate": candidate.manifest})
-    return GateResult(result.pairs, result.tasks, result.speed, result.notes + tuple(extra))
+    notes = result.notes + tuple(_machine_notes(manifests))
+    return dataclasses.replace(result, notes=notes, warnings=warnings)

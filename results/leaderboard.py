@@ -25,7 +25,7 @@ import pandas as pd
 from rich.table import Table
 
 from results.published import observation_regime, privileged_label
-from results.runs import Run, combined_episodes, dedupe_episodes
+from results.runs import Run, combined_episodes, dedupe_episodes, speed_warning
 from results.summary import wilson_interval
 
 DEFAULT_BASELINE = "bidirectional"
@@ -297,6 +297,11 @@ def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
 def _provenance_warnings(runs: Sequence[str], provenance: Mapping[str, Mapping[str, Any]]) -> list[str]:
     warnings = []
     known = {r: _scoring_provenance(provenance[r]) for r in runs if provenance.get(r)}
+    warnings += [
+        f"{r}: speed figures unreliable (tokens/s, Hz, speedups): {speed_warning(provenance[r])}"
+        for r in runs
+        if provenance.get(r) and speed_warning(provenance[r])
+    ]
     for r in runs:
         if r not in known:
             warnings.append(

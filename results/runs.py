@@ -9,7 +9,7 @@ one place with one message.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +37,49 @@ class Run:
     @property
     def label(self) -> str:
         return str(self.path)
+
+    @property
+    def speed_warning(self) -> str:
+        """Why this run's speed figures are unreliable, or '' (calibration drift)."""
+        return speed_warning(self.manifest)
+
+
+# How far a run's calibration may move between its start and its end before its speed
+# figures are flagged as unreliable. Idle and steadily loaded runs of this project moved
+# 0-4%; a machine whose load changed mid-run moved 2x (docs/ci-gate.md has the numbers).
+CALIBRATION_DRIFT_TOLERANCE = 0.25
+
+
+def calibration_drift(manifest: Mapping[str, Any]) -> float | None:
+    """end / start - 1 of a run's calibration speed; None without both measurements."""
+    cal = (manifest or {}).get("calibration") or {}
+    start, end = cal.get("start"), cal.get("end")
+    if not (start and end and start.get("passes_per_s") and end.get("passes_per_s")):
+        return None
+    return float(end["passes_per_s"]) / float(start["passes_per_s"]) - 1.0
+
+
+def speed_warning(manifest: Mapping[str, Any]) -> str:
+    """Why a run's speed figures are unreliable, or '' (the manifest's own verdict when it
+    recorded one, else computed from its calibration, so older runs are judged too)."""
+    manifest = manifest or {}
+    if manifest.get("speed_reliable") is False:
+        return str(manifest.get("speed_warning") or "flagged unreliable in its manifest")
+    if manifest.get("speed_reliable") is True:
+        return ""
+    drift = calibration_drift(manifest)
+    if drift is None or abs(drift) <= CALIBRATION_DRIFT_TOLERANCE:
+        return ""
+    return drift_reason(manifest, drift)
+
+
+def drift_reason(manifest: Mapping[str, Any], drift: float) -> str:
+    cal = manifest["calibration"]
+    return (
+        f"the calibration moved {drift:+.0%} between the run's start and end "
+        f"({cal['start']['passes_per_s']:,.0f} -> {cal['end']['passes_per_s']:,.0f} passes/s; "
+        f"tolerance {CALIBRATION_DRIFT_TOLERANCE:.0%}): the machine's load changed during the run"
+    )
 
 
 def load_run(path: str | os.PathLike[str]) -> Run:

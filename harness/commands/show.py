@@ -24,6 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_show(args: argparse.Namespace) -> int:
     from results.render import summary_table
+    from results.runs import speed_warning
     from results.store import ResultsFileError, RunDir
     from results.summary import summarize
 
@@ -42,6 +43,8 @@ def cmd_show(args: argparse.Namespace) -> int:
         f"{len(episodes)} episodes; started {manifest.get('started_at')}; "
         f"{env.get('cpu')}, GPU {env.get('gpu') or 'none'}; git {env.get('git_commit') or 'n/a'}"
     )
+    if warning := speed_warning(manifest):
+        console.print(f"[yellow]warning[/yellow]: speed figures of this run are unreliable: {warning}")
     if len(episodes):
         console.print(summary_table(summarize(episodes)))
     return 0
