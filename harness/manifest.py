@@ -14,6 +14,7 @@ results/gate.py.)
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import shutil
@@ -79,22 +80,45 @@ def _gpu() -> str | None:
     return None
 
 
-def git_commit() -> str | None:
-    """The commit of the dvla-harness source tree, if it is a git checkout."""
-    source = Path(__file__).resolve().parent.parent
-    if not (source / ".git").exists():
-        return None
+BUILD_INFO = "_build_info.json"  # written into the package by setup.py's build_py
+
+
+def build_info() -> dict[str, Any]:
+    """What setup.py recorded when this copy was built (version, git commit), or {}."""
     try:
-        out = subprocess.run(
-            ["git", "-C", str(source), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() if out.returncode == 0 else None
+        return json.loads((Path(__file__).resolve().parent / BUILD_INFO).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def git_commit() -> str | None:
+    """The commit of the dvla-harness source: of the git checkout it runs from, else the
+    one recorded at build time (a non-editable `pip install .` has no .git beside it)."""
+    source = Path(__file__).resolve().parent.parent
+    if (source / ".git").exists():
+        try:
+            out = subprocess.run(
+                ["git", "-C", str(source), "rev-parse", "HEAD"],
+                capture_output=True,
+                text=True,
+                timeout=5,
+                check=False,
+            )
+        except (OSError, subprocess.SubprocessError):
+            out = None
+        if out is not None and out.returncode == 0 and out.stdout.strip():
+            return out.stdout.strip()
+    return build_info().get("git_commit")
+
+
+def harness_version() -> str | None:
+    """dvla-harness's version: the installed distribution's, else the one built in."""
+    return package_version("dvla-harness") or build_info().get("version")
+
+
+# What MUJOCO_GL is recorded as for a suite that renders nothing: whatever the variable
+# says (it depends on import order) does not touch its observations.
+NO_RENDERER = "unused (state observations)"
 
 
 def environment() -> dict[str, Any]:
@@ -102,6 +126,7 @@ def environment() -> dict[str, Any]:
         "python": platform.python_version(),
         "packages": {name: package_version(name) for name in CORE_PACKAGES},
         "simulators": {name: package_version(name) for name in SIMULATOR_PACKAGES},
+        "harness_version": harness_version(),
         "git_commit": git_commit(),
         "platform": platform.platform(),
         "host": platform.node(),
@@ -207,6 +232,14 @@ def record_end_calibration(manifest: dict[str, Any], status: str) -> None:
                 manifest["speed_warning"] = drift_reason(manifest, drift)
 
 
+def mujoco_gl(render_backend: str) -> str | None:
+    """MUJOCO_GL as it matters to the suite: NO_RENDERER when it renders nothing (state
+    observations), else the variable, which camera suites set before they render."""
+    if render_backend.startswith("none"):
+        return NO_RENDERER
+    return os.environ.get("MUJOCO_GL")
+
+
 def now() -> str:
     return datetime.now(UTC).isoformat()
 
@@ -237,7 +270,7 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
             }
             for p in resolved.policies
         ],
-        "environment": environment(),
+        "environment": environment() | {"mujoco_gl": mujoco_gl(suite.render_backend)},
         "calibration": start_calibration(),
         "command": sys.argv,
         "started_at": now(),

@@ -290,7 +290,10 @@ def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
     if not sims:  # a manifest without the suite's own list: every simulator installed
         out |= {f"{name} version": v for name, v in (env.get("simulators") or {}).items() if v is not None}
     out["render backend"] = suite.get("render_backend")
-    out["MUJOCO_GL"] = env.get("mujoco_gl")
+    # a suite that renders nothing is not touched by MUJOCO_GL (older manifests recorded
+    # the variable as import order left it); harness.manifest.mujoco_gl records this now
+    unrendered = str(suite.get("render_backend") or "").startswith("none")
+    out["MUJOCO_GL"] = "unused (state observations)" if unrendered else env.get("mujoco_gl")
     return out
 
 
