@@ -332,23 +332,35 @@ def _task_diff(pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nf
 DEFAULT_REFERENCE = "bidirectional"  # the teacher: every decoder config can run beside it
 
 
+def _is_reference(df: pd.DataFrame, reference: str | None) -> pd.Series:
+    return (df["policy"] == reference) | (df["policy_config_id"] == reference)
+
+
+def _one_sided_reference(
+    baseline: pd.DataFrame, candidate: pd.DataFrame, reference: str | None
+) -> tuple[str, pd.DataFrame] | None:
+    """(side, its table) when only that side holds the reference decoder, else None."""
+    if not reference:
+        return None
+    held = {
+        side: bool(_is_reference(df, reference).any())
+        for side, df in (("baseline", baseline), ("candidate", candidate))
+    }
+    if held["baseline"] == held["candidate"]:
+        return None
+    return ("baseline", baseline) if held["baseline"] else ("candidate", candidate)
+
+
 def _reference_pair(
     pairs: list[ConfigPair], baseline: pd.DataFrame, reference: str | None
 ) -> tuple[ConfigPair | None, str]:
     """The pair of the reference decoder's configurations, or (None, why there is none)."""
     if not reference:
         return None, "no reference decoder given"
-    found = list(
-        dict.fromkeys(
-            baseline.loc[
-                (baseline["policy"] == reference) | (baseline["policy_config_id"] == reference),
-                "policy_config_id",
-            ]
-        )
-    )
+    found = list(dict.fromkeys(baseline.loc[_is_reference(baseline, reference), "policy_config_id"]))
     if not found:
         return None, (
-            f"the baseline has no {reference} rows to time against (a run needs the reference "
+            f"neither run has {reference} rows to time against (a run needs the reference "
             "decoder beside the others: docs/ci-gate.md)"
         )
     if len(found) > 1:
@@ -404,10 +416,29 @@ def gate(
 
     Raises GateInputError when the runs cannot be compared (nothing is judged then).
     """
+    one_sided = _one_sided_reference(baseline, candidate, reference)
+    if one_sided:  # a run without the reference is still gated on success and NFE
+        side, df = one_sided
+        keep = ~_is_reference(df, reference)
+        baseline, candidate = (
+            (baseline[keep], candidate) if side == "baseline" else (baseline, candidate[keep])
+        )
     pairs = pair_configs(baseline, candidate)
     for pair in pairs:
         check_episodes_match(baseline, candidate, pair)
-    ref_pair, why = (None, speed_skipped) if speed_skipped else _reference_pair(pairs, baseline, reference)
+    if speed_skipped:
+        ref_pair, why = None, speed_skipped
+    elif one_sided:
+        other = "candidate" if one_sided[0] == "baseline" else "baseline"
+        ref_pair, why = (
+            None,
+            (
+                f"the {other} has no {reference} rows to time against (only the {one_sided[0]}'s "
+                f"{reference}, left out of the comparison)"
+            ),
+        )
+    else:
+        ref_pair, why = _reference_pair(pairs, baseline, reference)
     if why and not why.startswith("not comparable"):
         why = f"not comparable: {why}"
     notes = [f"speed {why}"] if why else []

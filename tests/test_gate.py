@@ -108,7 +108,7 @@ def test_identical_runs_pass():
     assert result.passed, result.failures
     overall = [t for t in result.tasks if t.task == "ALL"]
     assert len(overall) == 1 and overall[0].episodes == 12 and overall[0].p_value == 1.0
-    assert result.notes[0].startswith("speed not comparable: the baseline has no bidirectional rows")
+    assert result.notes[0].startswith("speed not comparable: neither run has bidirectional rows")
 
 
 def test_a_significant_drop_fails_and_names_the_task_and_p():
@@ -186,8 +186,16 @@ def test_speed_without_a_reference_on_both_sides_is_not_comparable_and_passes():
     assert result.passed and not result.speed
     assert (
         result.not_comparable == (("fast_dvla", result.notes[0].removeprefix("speed ")),)
-        and "not comparable: the baseline has no bidirectional rows" in result.notes[0]
+        and "not comparable: neither run has bidirectional rows" in result.notes[0]
     )
+    # the reference in one run only: left out, speed not comparable, the rest still gated
+    result = gate(with_reference(2000.0, 1000.0), slower)
+    assert result.passed and not result.speed and [p.label for p in result.pairs] == ["fast_dvla"]
+    assert "not comparable: the candidate has no bidirectional rows to time against" in result.notes[0]
+    result = gate(episodes(ALL_OK), with_reference(100.0, 1000.0, params={"n": 1}))
+    assert result.passed and "not comparable: the baseline has no bidirectional rows" in result.notes[0]
+    dropped = episodes({"a": [False] * 6, "b": [False] * 6}, tokens_per_s=100.0)
+    assert not gate(with_reference(2000.0, 1000.0), dropped).passed  # success still fails it
     # a reference that was changed between the runs times something else
     changed = pd.concat(
         [episodes(ALL_OK, tokens_per_s=100.0), episodes(ALL_OK, policy="bidirectional", params={"steps": 8})]
@@ -330,7 +338,7 @@ def test_cli_exit_status_is_the_verdict_and_a_table_is_printed_either_way(cli, t
     code, out, err = cli("gate", "--baseline", str(base_fast / "episodes.parquet"), "--candidate", str(worse))
     assert code == 1
     assert "6 -> 0" in out and "FAIL success" in out and "gate failed" in err
-    assert "not comparable" in out and "speed not comparable: the baseline has no bidirectional" in out
+    assert "not comparable" in out and "speed not comparable: neither run has bidirectional" in out
 
 
 def test_a_baseline_from_another_cpu_passes_on_the_paired_ratio(cli, tmp_path):
