@@ -28,8 +28,9 @@ from harness.errors import HarnessError, UsageError
 from harness.manifest import build_manifest, now, record_end_calibration
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext
+from results.lock import RunLock, RunLockedError
 from results.schema import EPISODE_KEY
-from results.store import ResultsFileError, RunDir, RunLock, RunLockedError
+from results.store import ResultsFileError, RunDir
 
 
 @dataclass(frozen=True)

@@ -76,7 +76,7 @@ def test_a_second_process_is_refused_with_exit_2_then_a_killed_holders_lock_is_t
         [
             sys.executable,
             "-c",
-            "import sys, time; from results.store import RunLock; "
+            "import sys, time; from results.lock import RunLock; "
             "RunLock(sys.argv[1]).acquire(); print('held', flush=True); time.sleep(120)",
             str(out),
         ],

@@ -51,11 +51,11 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def _writer_alive(folder: Path) -> bool:
-    """Whether a live process holds the folder's writer lock (results.store.RunLock):
+    """Whether a live process holds the folder's writer lock (results.lock.RunLock):
     a manifest says "running" from start to finish, and a killed run cannot change it."""
     import fcntl
 
-    from results.store import RunLock
+    from results.lock import RunLock
 
     try:
         fd = os.open(RunLock(folder).path, os.O_RDONLY | os.O_CLOEXEC)
