@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.config import ResolvedRun
+from harness.threads import threads_record
 from policies.dvla import checkpoint_fields
 
 MANIFEST_VERSION = 1
@@ -272,6 +273,8 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
         ],
         "environment": environment() | {"mujoco_gl": mujoco_gl(suite.render_backend)},
         "calibration": start_calibration(),
+        # torch's CPU threads: asked for (--threads, OMP_NUM_THREADS or the default) and in use
+        "threads": threads_record(),
         "command": sys.argv,
         "started_at": now(),
         "finished_at": None,

@@ -102,6 +102,16 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "(for `dvla-harness plot decoding-order`)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from harness.threads import DEFAULT_THREADS_PER_WORKER, parse_threads
+
+    p.add_argument(
+        "--threads",
+        type=parse_threads,
+        metavar="N",
+        help=f"torch CPU threads for the policies (default: OMP_NUM_THREADS if set, else "
+        f"{DEFAULT_THREADS_PER_WORKER}: more threads spin against other jobs on a busy machine; "
+        "recorded in the manifest)",
+    )
 
 
 def config_from_args(args: argparse.Namespace):
@@ -131,9 +141,11 @@ def config_from_args(args: argparse.Namespace):
 
 def cmd_run(args: argparse.Namespace) -> int:
     from harness.config import resolve
+    from harness.threads import apply_threads
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed only makes sense with --resume")
+    apply_threads(args.threads)  # before the policies load torch
     resolved = resolve(config_from_args(args))
     return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
 
@@ -147,8 +159,11 @@ def execute_run(
     display names per policy_config_id for the summary (a sweep's grid points).
     """
     from harness.runner import run
+    from harness.threads import apply_threads
     from results.render import summary_table
     from results.summary import summarize
+
+    apply_threads(args.threads)  # again, now that torch is loaded: its inter-op threads too
 
     out = Path(args.out) if args.out else None
     if out is None:

@@ -55,6 +55,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from harness.commands.run import config_from_args, execute_run
     from harness.config import load_config_file, resolve
     from harness.sweep import expand, parse_grid, point_label
+    from harness.threads import apply_threads
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed only makes sense with --resume")
@@ -62,6 +63,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         raise UsageError("sweep needs the policy to vary: --policy NAME (e.g. --policy fast_dvla)")
     grid = parse_grid(args.grid or [])
     config = expand(config_from_args(args), grid)
+    apply_threads(args.threads)  # before the policies load torch
     resolved = resolve(config)
     labels = {p.config_id: point_label(p.spec.name, _raw(p.params), grid) for p in resolved.policies}
     return execute_run(resolved, args, "the same `dvla-harness sweep` command with --resume", labels)
