@@ -25,10 +25,11 @@ import time
 from pathlib import Path
 
 from adapters.registry import load_suite
+from harness.backends.local import episode_context
 from harness.config import RunConfig, resolve
 from harness.episode import run_episode
 from harness.nfe import NFECounter
-from harness.runner import EpisodeJob, episode_context, make_row
+from harness.runner import EpisodeJob, make_row
 from results.store import RunDir
 
 TARGET_PERCENT = 3.0  # Meta-World

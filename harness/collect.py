@@ -34,12 +34,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from adapters.base import EpisodeSpec, TaskSpec
+from harness.backends.local import episode_context
 from harness.config import ResolvedRun
 from harness.episode import run_episode
 from harness.errors import UsageError
 from harness.manifest import environment, now
 from harness.nfe import NFECounter
-from harness.runner import episode_context
 from policies.observations import cameras_of, png, unpng
 
 STEPS = "steps.parquet"
