@@ -93,7 +93,15 @@ def load_config_file(path: str) -> dict[str, Any]:
     p = Path(path)
     if not p.is_file():
         raise UsageError(f"config file {path!r} does not exist")
-    return _read_toml(p.read_text(), path)
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UsageError(
+            f"config file {path!r} is not UTF-8 text (byte {exc.start}); TOML files are UTF-8"
+        ) from None
+    except OSError as exc:
+        raise UsageError(f"config file {path!r} cannot be read: {exc.strerror or exc}") from None
+    return _read_toml(text, path)
 
 
 def _positive_int(value: Any, what: str, allow_zero: bool = False) -> int:
@@ -108,7 +116,12 @@ def _positive_int(value: Any, what: str, allow_zero: bool = False) -> int:
 def build_config(data: dict[str, Any]) -> RunConfig:
     """Typed config from merged TOML/flag data; type and range errors are UsageErrors."""
     policies = []
-    for i, entry in enumerate(data.get("policy", [])):
+    entries = data.get("policy", [])
+    if not isinstance(entries, (list, tuple)):
+        raise UsageError(
+            f"policy must be a list of [[policy]] tables (name, params), got {type(entries).__name__} {entries!r}"
+        )
+    for i, entry in enumerate(entries):
         if isinstance(entry, PolicyChoice):
             policies.append(entry)
             continue
@@ -127,8 +140,10 @@ def build_config(data: dict[str, Any]) -> RunConfig:
     if not isinstance(suite, str) or not suite:
         raise UsageError("no suite given; pass --suite NAME (see `dvla-harness list suites`)")
     tasks = data.get("tasks", ())
-    if isinstance(tasks, str) or not all(isinstance(t, (str, int)) for t in tasks):
-        raise UsageError("tasks must be a list of task names or indices")
+    if not isinstance(tasks, (list, tuple)) or not all(
+        isinstance(t, (str, int)) and not isinstance(t, bool) for t in tasks
+    ):
+        raise UsageError(f"tasks must be a list of task names or indices, got {tasks!r}")
     episodes = data.get("episodes_per_task")
     if episodes is not None:
         episodes = _positive_int(episodes, "--episodes-per-task")

@@ -22,6 +22,7 @@ from harness.config import ResolvedRun
 from harness.errors import HarnessError, UsageError
 from harness.manifest import build_manifest, now
 from results.lock import RunLock, RunLockedError
+from results.manifest_check import RESUME_FIELDS
 from results.store import ResultsFileError, RunDir
 
 
@@ -149,7 +150,7 @@ def open_run(
         check_output(out, resume, overwrite)  # another process may have written it meanwhile
     if resume:
         try:
-            manifest = run_dir.read_manifest()
+            manifest = run_dir.read_manifest(required=RESUME_FIELDS)
             recorded = run_dir.read_episodes()
         except ResultsFileError as exc:
             raise UsageError(f"--resume: {exc}") from None

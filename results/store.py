@@ -39,6 +39,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from results.lock import LOCK, RunLock
+from results.manifest_check import ManifestError, check_manifest
 from results.schema import (
     COLUMN_NAMES,
     EPISODE_KEY,
@@ -284,13 +285,18 @@ class RunDir:
     def write_manifest(self, manifest: Mapping[str, Any]) -> None:
         atomic_write(self.manifest_path, (json.dumps(manifest, indent=2) + "\n").encode())
 
-    def read_manifest(self) -> dict[str, Any]:
+    def read_manifest(self, required: tuple[str, ...] = ()) -> dict[str, Any]:
+        """The manifest, checked (results.manifest_check); `required`: fields it must have."""
         if not self.is_run():
             raise ResultsFileError(f"{self.path}: not a run folder (no {MANIFEST})")
         try:
-            return json.loads(self.manifest_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ResultsFileError(f"{self.manifest_path}: invalid JSON ({exc})") from None
+            data = json.loads(self.manifest_path.read_bytes())
+            return check_manifest(data, self.manifest_path, required)
+        except (ValueError, RecursionError) as exc:  # JSON, UTF-8, ManifestError
+            detail = (
+                str(exc) if isinstance(exc, ManifestError) else f"{self.manifest_path}: invalid JSON ({exc})"
+            )
+            raise ResultsFileError(detail) from None
 
     def log_event(self, event: str, **fields: Any) -> None:
         record = {"time": time.time(), "event": event, **fields}

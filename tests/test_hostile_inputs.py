@@ -106,3 +106,99 @@ def test_a_parameter_given_twice_in_one_policy_string_is_an_error(cli, tmp_path)
     )  # fmt: skip
     assert code == 2 and "'seed' is given twice" in err
     assert not (tmp_path / "run").exists()
+
+
+# --- malformed configs and manifests: one line, exit 2, nothing written ----------------
+
+MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--episodes-per-task", "1", "--quiet"]
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b'suite = "metaworld/mt1/reach-v3"\n# caf\xe9 in Latin-1\n', "is not UTF-8 text (byte 38)"),
+        (b'suite = "metaworld/mt1/reach-v3"\ntasks = 5\n', "tasks must be a list of task names or indices, got 5"),
+        (b'suite = "metaworld/mt1/reach-v3"\ntasks = [true]\n', "tasks must be a list"),
+        (b'suite = "metaworld/mt1/reach-v3"\npolicy = 5\n', "policy must be a list of [[policy]] tables"),
+        (b'suite = "metaworld/mt1/reach-v3"\npolicy = {name = "random"}\n', "policy must be a list"),
+    ],
+)
+def test_a_malformed_config_file_is_one_line_and_exit_2(cli, tmp_path, content, message):
+    config = tmp_path / "bad.toml"
+    config.write_bytes(content)
+    code, _, err = cli("run", "--config", str(config), "--out", str(tmp_path / "run"), "--quiet")
+    assert code == 2 and message in err and "Traceback" not in err
+    assert err.count("\n") == 1 and not (tmp_path / "run").exists()
+
+
+def test_an_output_folder_that_cannot_be_created_is_exit_2(cli, tmp_path):
+    code, _, err = cli(*MT1, "--out", "/proc/dvla-harness-test/run")
+    assert code == 2 and "cannot create output folder '/proc/dvla-harness-test/run'" in err
+    assert err.count("\n") == 1
+
+
+def test_overwrite_through_a_symlinked_run_folder_is_exit_2_and_deletes_nothing(cli, tmp_path):
+    out, link = tmp_path / "run", tmp_path / "link"
+    assert cli(*MT1, "--out", str(out))[0] == 0
+    link.symlink_to(out)
+    before = sorted(p.name for p in out.iterdir())
+    code, _, err = cli(*MT1, "--out", str(link), "--overwrite")
+    assert code == 2 and "is a symbolic link" in err and err.count("\n") == 1
+    assert sorted(p.name for p in out.iterdir()) == before
+
+
+def _edit_manifest(edit):
+    def apply(path):
+        manifest = json.loads(path.read_text())
+        path.write_text(json.dumps(edit(manifest)))
+
+    return apply
+
+
+@pytest.mark.parametrize(
+    ("spoil", "message"),
+    [
+        (lambda p: p.write_text("[1, 2]"), "not a run manifest (a JSON object), got a list"),
+        (lambda p: p.write_text('"running"'), "not a run manifest (a JSON object), got a string"),
+        (lambda p: p.write_bytes(b"\xff\xfe{}"), "invalid JSON"),
+        (lambda p: p.write_text("[" * 100_000 + "]" * 100_000), "invalid JSON"),
+        (_edit_manifest(lambda m: m | {"environment": "x"}), "field 'environment' must be an object"),
+        (_edit_manifest(lambda m: m | {"suite": {"name": 5}}), "field 'suite.name' must be a string"),
+        (_edit_manifest(lambda m: m | {"policies": [5]}), "field 'policies' entry 0 must be an object"),
+        (
+            _edit_manifest(lambda m: m | {"calibration": {"start": {"passes_per_s": "fast"}}}),
+            "field 'calibration.start.passes_per_s' must be a number",
+        ),
+    ],
+)
+def test_a_manifest_that_is_not_the_object_the_harness_writes_is_refused_by_every_reader(
+    cli, tmp_path, spoil, message
+):
+    good, bad = tmp_path / "good", tmp_path / "bad"
+    for out in (good, bad):
+        assert cli(*MT1, "--out", str(out))[0] == 0
+    spoil(bad / "manifest.json")
+    before = {p.name: p.read_bytes() for p in bad.iterdir()}
+    for argv in (
+        ["show", str(bad)],
+        [*MT1, "--out", str(bad), "--resume"],
+        ["leaderboard", str(bad)],
+        ["gate", "--baseline", str(good), "--candidate", str(bad)],
+        ["gate", "--baseline", str(bad), "--candidate", str(good)],
+    ):
+        code, _, err = cli(*argv)
+        assert code == 2 and message in err and err.count("\n") == 1, (argv, err)
+    assert {p.name: p.read_bytes() for p in bad.iterdir()} == before
+
+
+def test_a_manifest_lacking_a_field_is_read_for_what_it_says_and_refused_for_resume(cli, tmp_path):
+    out = tmp_path / "run"
+    assert cli(*MT1, "--out", str(out))[0] == 0
+    _edit_manifest(lambda m: {k: v for k, v in m.items() if k not in ("suite", "run_id", "resumed_at")})(
+        out / "manifest.json"
+    )
+    code, text, err = cli("show", str(out))
+    assert code == 0 and "run ? (finished), suite metaworld/mt1/reach-v3, 1 episodes" in text
+    assert cli("leaderboard", str(out))[0] == 0
+    code, _, err = cli(*MT1, "--out", str(out), "--resume")
+    assert code == 2 and "lacks field 'run_id'" in err and err.count("\n") == 1

@@ -34,12 +34,14 @@ def cmd_show(args: argparse.Namespace) -> int:
         episodes = run_dir.read_episodes()
     except ResultsFileError as exc:
         raise UsageError(str(exc)) from None
-    env = manifest.get("environment", {})
+    env = manifest.get("environment") or {}
+    # a manifest lacking a field says less about the run; the rows still say what ran
+    suite = (manifest.get("suite") or {}).get("name") or ", ".join(sorted(set(episodes["suite"]))) or "?"
     status = manifest.get("status")
     if status == "running" and not _writer_alive(run_dir.path):
         status = "interrupted or killed: no process is writing it; finish it with --resume"
     console.print(
-        f"run {manifest.get('run_id')} ({status}), suite {manifest['suite']['name']}, "
+        f"run {manifest.get('run_id', '?')} ({status or 'status unknown'}), suite {suite}, "
         f"{len(episodes)} episodes; started {manifest.get('started_at')}; "
         f"{env.get('cpu')}, GPU {env.get('gpu') or 'none'}; git {env.get('git_commit') or 'n/a'}"
     )
