@@ -39,6 +39,7 @@ from results.pairing import (
     GateInputError as GateInputError,  # raised from here; callers catch it by this name
 )
 from results.runs import Run
+from results.simulator_versions import suspect as simulator_suspect
 
 
 def mcnemar_drop_p(drops: int, gains: int) -> float:
@@ -117,10 +118,15 @@ class GateResult:
     not_comparable: tuple[tuple[str, str], ...] = field(default=())
     reference: str = ""  # the label of the reference pair, whose ratio is 1 by definition
     warnings: tuple[str, ...] = field(default=())  # runs whose speed figures are unreliable
+    # The runs' simulator versions differ (results/simulator_versions.py): '' or the sentence
+    # naming them, put first among the failures when success drops.
+    simulator_suspect: str = ""
 
     @property
     def failures(self) -> list[str]:
         out = list(self.raised)
+        if self.simulator_suspect and any(t.success_regressed for t in self.tasks):
+            out.insert(0, f"success: first suspect: {self.simulator_suspect}")
         for t in self.tasks:
             if t.success_regressed:
                 out.append(
@@ -394,7 +400,8 @@ def _machine_notes(manifests: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
-    """`gate` on two loaded runs: thread counts, CPUs and calibration drift from their manifests."""
+    """`gate` on two loaded runs: thread counts, CPUs, calibration drift and simulator
+    versions from their manifests."""
     manifests = {"baseline": baseline.manifest, "candidate": candidate.manifest}
     skipped = options.pop("speed_skipped", "") or _speed_comparable(manifests)
     result = gate(baseline.episodes, candidate.episodes, speed_skipped=skipped, **options)
@@ -404,4 +411,14 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
         if run.speed_warning
     )
     notes = result.notes + tuple(_machine_notes(manifests))
-    return dataclasses.replace(result, notes=notes, warnings=warnings)
+    suspect = simulator_suspect(manifests)
+    moved = [t for t in result.tasks if t.task == "ALL" and (t.drops or t.gains)]
+    if suspect and moved and not any(t.success_regressed for t in result.tasks):
+        notes = (f"success moved ({_moves(moved)}); first suspect: {suspect}", *notes)
+    elif suspect and not moved:
+        notes = (suspect, *notes)
+    return dataclasses.replace(result, notes=notes, warnings=warnings, simulator_suspect=suspect)
+
+
+def _moves(tasks: list[TaskDiff]) -> str:
+    return "; ".join(f"{t.pair}: {t.drops} drops, {t.gains} gains" for t in tasks)

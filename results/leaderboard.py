@@ -26,6 +26,7 @@ from rich.table import Table
 
 from results.published import observation_regime, privileged_label
 from results.runs import Run, combined_episodes, dedupe_episodes, speed_warning
+from results.simulator_versions import suspect as simulator_suspect
 from results.summary import wilson_interval
 
 DEFAULT_BASELINE = "bidirectional"
@@ -281,15 +282,11 @@ def speedups(items: Sequence[Timed], baseline: str) -> tuple[list[tuple[float | 
 
 
 def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
-    """What in a manifest changes scores: simulator and mujoco versions, rendering."""
+    """What in a manifest besides simulator versions changes scores: rendering. (Versions
+    are results/simulator_versions.py's, named first as one warning.)"""
     env = manifest.get("environment") or {}
     suite = manifest.get("suite") or {}
-    sims = dict(suite.get("simulator_packages") or {})
-    out = {f"{name} version": v for name, v in sims.items()}
-    out.setdefault("mujoco version", (env.get("packages") or {}).get("mujoco"))
-    if not sims:  # a manifest without the suite's own list: every simulator installed
-        out |= {f"{name} version": v for name, v in (env.get("simulators") or {}).items() if v is not None}
-    out["render backend"] = suite.get("render_backend")
+    out: dict[str, Any] = {"render backend": suite.get("render_backend")}
     # a suite that renders nothing is not touched by MUJOCO_GL (older manifests recorded
     # the variable as import order left it); harness.manifest.mujoco_gl records this now
     unrendered = str(suite.get("render_backend") or "").startswith("none")
@@ -298,8 +295,10 @@ def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _provenance_warnings(runs: Sequence[str], provenance: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    warnings = []
     known = {r: _scoring_provenance(provenance[r]) for r in runs if provenance.get(r)}
+    # first: a version difference alone flips outcomes, so it is the first thing to rule out
+    versions = simulator_suspect({r: provenance[r] for r in runs if provenance.get(r)})
+    warnings = [f"{versions}; rule that out first where success differs between rows"] if versions else []
     warnings += [
         f"{r}: speed figures unreliable (tokens/s, Hz, speedups): {speed_warning(provenance[r])}"
         for r in runs

@@ -197,7 +197,7 @@ def test_warnings_on_mujoco_render_backend_and_episode_count_differences(tmp_pat
     b = write_run(tmp_path / "b", episodes("fast_dvla", FAST, "fast000001", [1, 0]), other)
     (board,) = leaderboards([load_run(a), load_run(b)])
     text = "\n".join(board.warnings)
-    assert f"runs differ in mujoco version: 3.3.0 ({a}); 3.2.7 ({b})" in text
+    assert board.warnings[0].startswith(f"simulator versions differ (mujoco 3.3.0 ({a}) vs 3.2.7 ({b})): ")
     assert "runs differ in render backend" in text and "egl" in text
     assert "episode counts differ between rows: bidirectional 3, fast_dvla 2" in text
     (same,) = leaderboards([load_run(a)])
