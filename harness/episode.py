@@ -43,6 +43,9 @@ class EpisodeOutcome:
     traceback: str | None = None
     # With record_traces: per chunk, slot 0's trace plus "chunk" and "step" (env steps before it).
     traces: list[dict[str, Any]] | None = None
+    # Where it ran (the `host` and `worker_id` columns), set by the backend that ran it.
+    host: str = ""
+    worker_id: str = ""
 
 
 # Beyond any action space a simulator clips to: a policy's arithmetic went wrong, and the

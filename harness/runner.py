@@ -15,7 +15,7 @@ from typing import Any
 import gymnasium as gym
 
 from adapters.base import EpisodeSpec, TaskSpec
-from harness.backends.local import execute_local
+from harness.backends import Execution, execute, record_execution
 from harness.config import PolicyRun, ResolvedRun
 from harness.episode import EpisodeOutcome
 from harness.errors import HarnessError, UsageError
@@ -144,6 +144,8 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "loop_hz": out.steps / out.wall_clock_s if out.wall_clock_s > 0 else None,
         "failure_reason": out.failure_reason,
         "started_at": out.started_at,
+        "host": out.host,
+        "worker_id": out.worker_id,
     }
 
 
@@ -170,6 +172,7 @@ def run(
     retry_failed: bool = False,
     progress: Callable[[int, int], Any] | None = None,
     traces: bool = False,
+    execution: Execution | None = None,
 ) -> RunReport:
     """Evaluate `resolved` into `out`. `progress(total, skipped)` returns a per-episode callback.
 
@@ -187,7 +190,17 @@ def run(
         envs = preflight(resolved, planned)
         try:
             return _run_planned(
-                resolved, out, planned, envs, resume, overwrite, retry_failed, progress, traces, lock
+                resolved,
+                out,
+                planned,
+                envs,
+                resume,
+                overwrite,
+                retry_failed,
+                progress,
+                traces,
+                lock,
+                execution,
             )
         finally:
             while envs:  # the run stopped before its episodes took them over
@@ -207,6 +220,7 @@ def _run_planned(
     progress: Callable[[int, int], Any] | None,
     traces: bool,
     lock: RunLock,
+    execution: Execution | None = None,
 ) -> RunReport:
     try:
         run_dir, run_id, recorded = open_run(resolved, out, resume, overwrite, lock)
@@ -246,7 +260,9 @@ def _run_planned(
             tick(outcome.success)
 
     try:
-        execute_local(resolved, jobs, on_done, traces, envs)
+        execution = execution or Execution()
+        on_worker = record_execution(run_dir, execution)  # backend and workers, per session
+        execute(resolved, jobs, on_done, traces, envs, execution, on_worker)
     except KeyboardInterrupt:
         report.interrupted = True
         _finish(run_dir, "interrupted", report)

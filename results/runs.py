@@ -34,6 +34,20 @@ class Run:
             return ""
         return f"{env.get('host')} | {env.get('cpu')} | GPU {env.get('gpu') or 'none'}"
 
+    def row_machines(self) -> pd.Series | str:
+        """Each row's machine: the run's, except rows a Ray worker ran on another node
+        (their `host` column), which get that node's own, so no speedup pairs them with
+        rows timed elsewhere."""
+        own = self.machine
+        if "host" not in self.episodes or not own:
+            return own
+        run_host = (self.manifest.get("environment") or {}).get("host")
+        hosts = self.episodes["host"]
+        elsewhere = hosts.notna() & (hosts != run_host)
+        if not elsewhere.any():
+            return own
+        return hosts.where(elsewhere, "").map(lambda h: f"{h} | node of a Ray cluster" if h else own)
+
     @property
     def label(self) -> str:
         return str(self.path)
@@ -119,7 +133,7 @@ def combined_episodes(runs: Iterable[Run]) -> pd.DataFrame:
     through here, so they all count the same episodes. An episode found in several runs
     (a copied or resumed folder given twice) on one machine counts once, its latest
     write; how many were dropped is in `df.attrs["duplicates"]`."""
-    frames = [r.episodes.assign(run=r.label, machine=r.machine) for r in runs]
+    frames = [r.episodes.assign(run=r.label, machine=r.row_machines()) for r in runs]
     df, dropped = dedupe_episodes(pd.concat(frames, ignore_index=True))
     df.attrs["duplicates"] = dropped
     return df

@@ -106,6 +106,23 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     Column("started_at", _TS, "UTC", "Wall-clock time the episode started."),
+    Column(
+        "host",
+        pa.string(),
+        "",
+        "Host name of the machine the episode ran on (a Ray cluster's rows name their node); "
+        "speedups pair rows of one host. Null in rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "worker_id",
+        pa.string(),
+        "",
+        "Which worker ran it: `main` (the writing process, --workers 1), `local-K` (the K-th "
+        "worker process started, replacements included), `ray-K` (the K-th Ray actor). Null in "
+        "rows written before it was recorded.",
+        nullable=True,
+    ),
 )
 
 COLUMN_NAMES = tuple(c.name for c in COLUMNS)

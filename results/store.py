@@ -181,7 +181,10 @@ def read_table(path: Path) -> pa.Table:
         raise ResultsFileError(
             f"{path}: schema version {version.decode()}, but this dvla-harness reads version {SCHEMA_VERSION}"
         )
-    return table
+    for field in arrow_schema():  # nullable columns added since the file was written: null
+        if field.nullable and field.name not in table.column_names:
+            table = table.append_column(field, pa.nulls(len(table), field.type))
+    return table.select([n for n in COLUMN_NAMES if n in table.column_names])
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
@@ -152,3 +153,73 @@ TINY_TRAIN = {
     "ffn": 64,
     "bins": 64,
 }
+
+
+# Faults a worker can be made to suffer at chosen episodes (tests of harness/backends/).
+FAULTS = ("exit", "sigkill", "segfault", "hang")
+
+
+def suffer(kind: str) -> None:
+    """Die (or hang) the way a worker does when a simulator or the kernel ends it."""
+    import ctypes
+    import os
+    import signal
+
+    if kind == "exit":
+        os._exit(3)
+    elif kind == "sigkill":
+        os.kill(os.getpid(), signal.SIGKILL)  # what the out-of-memory killer sends
+    elif kind == "segfault":
+        ctypes.string_at(0)  # reads address 0: SIGSEGV, as a simulator's bad pointer
+    elif kind == "hang":
+        time.sleep(3600)
+    else:
+        raise ValueError(f"unknown fault {kind!r}; choose one of {', '.join(FAULTS)}")
+
+
+class FaultPolicy(ChunkPolicy):
+    """ChunkPolicy that suffers `faults[episode_index]` when that episode starts (keep
+    episode 0 clean: the runner warms policies up on it in the writing process).
+
+    A fault written "KIND:once" strikes only the first time its episode starts (a file
+    in the folder `marks` remembers it across worker processes), so a retry succeeds.
+    """
+
+    def __init__(self, faults: dict[int, str], marks: str | None = None, chunk: int = 2, delay: float = 0.0):
+        super().__init__(chunk=chunk, delay=delay)
+        self.faults, self.marks = faults, marks
+
+    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
+        super().reset(episodes)
+        ep = episodes[0]
+        kind = self.faults.get(ep.episode_index)
+        if kind is None:
+            return
+        kind, _, once = kind.partition(":")
+        if once:
+            from pathlib import Path
+
+            assert self.marks is not None, "a KIND:once fault needs a marks folder"
+
+            mark = Path(self.marks) / f"{ep.task}-{ep.episode_index}"
+            if mark.exists():
+                return
+            mark.touch()
+        suffer(kind)
+
+
+@dataclass(frozen=True)
+class FakeBuild:
+    """Builds the fake run in a worker process (an Execution's `rebuild`): picklable,
+    so a spawned process or a Ray actor makes the same ResolvedRun as the test."""
+
+    faults: tuple[tuple[int, str], ...] = ()
+    marks: str | None = None
+    episodes: int = 3
+    tasks: int = 1
+    succeed_at: int | None = 5
+    delay: float = 0.0  # seconds per policy call
+
+    def __call__(self) -> ResolvedRun:
+        policy = FaultPolicy(dict(self.faults), self.marks, delay=self.delay)
+        return fake_resolved(policy, episodes=self.episodes, tasks=self.tasks, succeed_at=self.succeed_at)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import traceback
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -18,6 +19,9 @@ if TYPE_CHECKING:
     from harness.config import ResolvedRun
     from harness.runner import EpisodeJob
 
+HOST = socket.gethostname()  # the `host` column: where an episode ran
+IN_PROCESS = "main"  # the `worker_id` of episodes run by the process that writes the run
+
 
 def episode_context(suite: str, task: TaskSpec, spec: EpisodeSpec, env: gym.Env) -> EpisodeContext:
     return EpisodeContext(
@@ -33,7 +37,14 @@ def episode_context(suite: str, task: TaskSpec, spec: EpisodeSpec, env: gym.Env)
     )
 
 
-def failed_outcome(exc: BaseException) -> EpisodeOutcome:
+def failure_outcome(
+    reason: str,
+    started_at: datetime | None = None,
+    trace: str | None = None,
+    host: str = "",
+    worker_id: str = "",
+) -> EpisodeOutcome:
+    """The outcome of an episode that did not run to an end: nothing counted, a reason."""
     return EpisodeOutcome(
         success=False,
         steps=0,
@@ -43,10 +54,62 @@ def failed_outcome(exc: BaseException) -> EpisodeOutcome:
         policy_time_s=0.0,
         env_time_s=0.0,
         wall_clock_s=0.0,
-        started_at=datetime.now(UTC),
-        failure_reason=f"{type(exc).__name__}: {exc}",
-        traceback=traceback.format_exc(),
+        started_at=started_at or datetime.now(UTC),
+        failure_reason=reason,
+        traceback=trace,
+        host=host,
+        worker_id=worker_id,
     )
+
+
+def failed_outcome(exc: BaseException) -> EpisodeOutcome:
+    return failure_outcome(f"{type(exc).__name__}: {exc}", trace=traceback.format_exc())
+
+
+class EpisodeRunner:
+    """Runs one episode at a time with the envs and NFE counters of one process.
+
+    A task's env is kept for its next episode and closed when another task's episode
+    comes (a LIBERO env holds ~0.5 GB; ninety open at once would not fit), and rebuilt
+    after an episode that failed (its state is suspect). Used by the in-process backend
+    and by every worker of the pool and Ray backends, so an episode runs the same way
+    wherever it runs.
+    """
+
+    def __init__(self, resolved: ResolvedRun, traces: bool = False, envs: dict[str, gym.Env] | None = None):
+        self.resolved, self.traces = resolved, traces
+        self.envs = {} if envs is None else envs
+        self.counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
+
+    def run(self, job: EpisodeJob) -> EpisodeOutcome:
+        envs, resolved = self.envs, self.resolved
+        for name in [n for n in envs if n != job.task.name]:
+            envs.pop(name).close()
+        try:
+            if job.task.name not in envs:
+                envs[job.task.name] = resolved.suite.make_env(job.task)
+        except Exception as exc:
+            return failed_outcome(exc)
+        env = envs[job.task.name]
+        context = episode_context(resolved.suite.name, job.task, job.spec, env)
+        outcome = run_episode(
+            env,
+            job.policy.policy,
+            self.counters[id(job.policy)],
+            context,
+            job.spec,
+            resolved.config.replan_every,
+            record_traces=self.traces,
+        )
+        if outcome.failure_reason is not None:
+            envs.pop(job.task.name).close()  # its state is suspect: rebuild next time
+        return outcome
+
+    def close(self) -> None:
+        while self.envs:
+            self.envs.popitem()[1].close()
+        for counter in self.counters.values():
+            counter.close()
 
 
 def execute_local(
@@ -58,38 +121,13 @@ def execute_local(
 ) -> None:
     """Run `jobs` in this process, in order, handing each outcome to `on_done`.
 
-    Jobs come task by task, so a task's env is closed when the next task starts: a
-    LIBERO env holds ~0.5 GB, and ninety of them open at once would not fit. `envs`
-    (already built, by task name) are used and closed like the ones built here.
+    `envs` (already built, by task name) are used and closed like the ones built here.
     """
-    envs = {} if envs is None else envs
-    counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
+    runner = EpisodeRunner(resolved, traces, envs)
     try:
         for job in jobs:
-            for name in [n for n in envs if n != job.task.name]:
-                envs.pop(name).close()
-            try:
-                if job.task.name not in envs:
-                    envs[job.task.name] = resolved.suite.make_env(job.task)
-            except Exception as exc:
-                on_done(job, failed_outcome(exc))
-                continue
-            env = envs[job.task.name]
-            context = episode_context(resolved.suite.name, job.task, job.spec, env)
-            outcome = run_episode(
-                env,
-                job.policy.policy,
-                counters[id(job.policy)],
-                context,
-                job.spec,
-                resolved.config.replan_every,
-                record_traces=traces,
-            )
-            if outcome.failure_reason is not None:
-                envs.pop(job.task.name).close()  # its state is suspect: rebuild next time
+            outcome = runner.run(job)
+            outcome.host, outcome.worker_id = HOST, IN_PROCESS
             on_done(job, outcome)
     finally:
-        while envs:
-            envs.popitem()[1].close()
-        for counter in counters.values():
-            counter.close()
+        runner.close()

@@ -102,6 +102,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "(for `dvla-harness plot decoding-order`)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from harness.backends.options import add_backend_arguments
+
+    add_backend_arguments(p)
     from harness.threads import DEFAULT_THREADS_PER_WORKER, parse_threads
 
     p.add_argument(
@@ -158,6 +161,7 @@ def execute_run(
     again: the command that continues an interrupted run ({out} is filled in); labels:
     display names per policy_config_id for the summary (a sweep's grid points).
     """
+    from harness.backends.options import execution_from_args
     from harness.runner import run
     from harness.threads import apply_threads
     from results.render import summary_table
@@ -165,6 +169,7 @@ def execute_run(
 
     apply_threads(args.threads)  # again, now that torch is loaded: its inter-op threads too
 
+    execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     out = Path(args.out) if args.out else None
     if out is None:
         from datetime import UTC, datetime
@@ -182,6 +187,7 @@ def execute_run(
             retry_failed=args.retry_failed,
             progress=start,
             traces=args.traces,
+            execution=execution,
         )
     episodes = report.run_dir.read_episodes()
     if labels and len(episodes):

@@ -1,0 +1,189 @@
+"""`--workers N` on the local backend: N worker processes on this machine.
+
+Workers are started with multiprocessing's `spawn` context: a fresh interpreter, since
+torch's thread pools and MuJoCo's GL state do not survive a fork of a process that has
+started them. Each worker rebuilds the run's policies and suite from the config (a
+built policy is not sent between processes), sets its own torch/BLAS threads, and then
+runs the episodes it is sent with the same `EpisodeRunner` as the in-process backend.
+
+Each worker talks to the parent over its own pipe, not a shared queue: a worker killed
+mid-write (SIGKILL, a segfault) can then leave at most a cut message on its own pipe,
+which reads as end-of-file, never a lock held forever that would stall the others.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import signal
+from functools import partial
+from multiprocessing import connection, get_context
+from typing import TYPE_CHECKING, Any
+
+from harness.backends.local import HOST, EpisodeRunner
+from harness.backends.schedule import Event, JobId, index_jobs
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from harness.backends import Execution
+    from harness.config import ResolvedRun
+
+_PR_SET_PDEATHSIG = 1
+
+
+def rebuild_from_config(config: Any) -> ResolvedRun:
+    """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`)."""
+    from harness.config import resolve
+
+    return resolve(config)
+
+
+def worker_threads(execution: Execution) -> int:
+    """Threads per worker: --threads, else the default share (harness/threads.py)."""
+    from harness.threads import default_threads
+
+    return execution.threads or default_threads(execution.workers)
+
+
+def lost_reason(exitcode: int | None) -> str:
+    """Why a worker process is gone, in words (the failure row's reason if it stays gone)."""
+    if exitcode is None:
+        return "stopped answering"
+    if exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        if name == "SIGKILL":
+            return "killed by SIGKILL (the out-of-memory killer, or a kill)"
+        if name == "SIGSEGV":
+            return "crashed with SIGSEGV (a segmentation fault)"
+        return f"killed by {name}"
+    return f"exited with status {exitcode}"
+
+
+def _die_with_parent() -> None:
+    """Linux: the kernel sends SIGKILL to this worker if the parent dies (a SIGKILLed
+    parent cannot stop its workers itself; --resume re-runs what they held)."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
+def worker_main(
+    conn: Any,
+    worker_id: str,
+    rebuild: Callable[[], ResolvedRun],
+    threads: int | None,
+    workers: int,
+    traces: bool,
+) -> None:
+    """A worker's life: set threads, build, say ready, run episodes until told to stop."""
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the parent, which stops us
+    from harness.threads import apply_threads, threads_record
+
+    apply_threads(threads, workers)  # before the policies load torch
+    try:
+        resolved = rebuild()
+        jobs = index_jobs(resolved)
+        runner = EpisodeRunner(resolved, traces)
+    except BaseException as exc:
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    apply_threads(threads, workers)  # again with torch loaded: its inter-op threads too
+    conn.send(("ready", {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()))
+    try:
+        while True:
+            try:
+                jid = conn.recv()
+            except EOFError:
+                break  # the parent is gone
+            if jid is None:
+                break
+            outcome = runner.run(jobs[jid])
+            outcome.host, outcome.worker_id = HOST, worker_id
+            conn.send(("done", (jid, outcome)))
+    finally:
+        runner.close()
+
+
+class ProcessWorkers:
+    """The `Workers` of harness/backends/schedule.py as spawned processes."""
+
+    def __init__(self, resolved: ResolvedRun, execution: Execution, traces: bool):
+        self.context = get_context("spawn")
+        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.threads, self.asked = worker_threads(execution), execution.threads
+        self.workers, self.traces = execution.workers, traces
+        self.procs: dict[int, Any] = {}
+        self.conns: dict[int, Any] = {}
+        self.started = 0
+
+    def start(self, slot: int) -> str:
+        worker_id = f"local-{self.started}"
+        self.started += 1
+        mine, theirs = self.context.Pipe()
+        args = (theirs, worker_id, self.rebuild, self.asked, self.workers, self.traces)
+        proc = self.context.Process(target=worker_main, args=args, name=f"dvla-{worker_id}", daemon=True)
+        proc.start()
+        theirs.close()
+        self.procs[slot], self.conns[slot] = proc, mine
+        return worker_id
+
+    def submit(self, slot: int, job: JobId) -> None:
+        try:
+            self.conns[slot].send(job)
+        except OSError:
+            pass  # the worker is gone: its sentinel says so at the next wait
+
+    def _drain(self, slot: int, events: list[Event]) -> bool:
+        """Read what the slot's worker sent; False when its pipe is closed or cut."""
+        conn = self.conns[slot]
+        try:
+            while conn.poll():
+                kind, payload = conn.recv()
+                events.append(Event(slot, kind, payload))
+        except (EOFError, OSError):
+            return False
+        return True
+
+    def _forget(self, slot: int) -> Any:
+        proc = self.procs.pop(slot)
+        self.conns.pop(slot).close()
+        return proc
+
+    def wait(self, timeout: float) -> list[Event]:
+        waiting = {conn: slot for slot, conn in self.conns.items()}
+        waiting |= {proc.sentinel: slot for slot, proc in self.procs.items()}
+        events: list[Event] = []
+        lost = set()
+        for ready in connection.wait(list(waiting), timeout):
+            slot = waiting[ready]
+            if slot in lost or slot not in self.procs:
+                continue
+            alive = self._drain(slot, events)
+            if not alive or not self.procs[slot].is_alive():
+                proc = self._forget(slot)
+                proc.join(5)
+                lost.add(slot)
+                events.append(Event(slot, "lost", lost_reason(proc.exitcode)))
+        return events
+
+    def kill(self, slot: int) -> None:
+        if slot in self.procs:
+            proc = self._forget(slot)
+            proc.kill()
+            proc.join(5)
+
+    def shutdown(self) -> None:
+        for conn in self.conns.values():
+            with contextlib.suppress(OSError):
+                conn.send(None)
+        for slot in list(self.procs):
+            proc = self._forget(slot)
+            proc.join(2)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(5)

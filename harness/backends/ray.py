@@ -1,0 +1,193 @@
+"""`--backend ray`: the run's episodes on Ray actors, on this machine or a cluster.
+
+Each worker is a Ray actor (`EpisodeActor`) that rebuilds the run's policies and suite
+from the config, as a pool worker does, and runs one episode per call. Ray moves the
+calls and results, places the actors (`num_cpus` = the worker's torch threads,
+`num_gpus` = --ray-num-gpus, so a policy that decodes on a GPU lands on a GPU node), and
+reports a lost actor as `RayActorError`; the scheduler (harness/backends/schedule.py)
+then resubmits the episode to a fresh actor, as it does for a lost process. The actors
+are made with `max_restarts=0`: a restarted actor would run the lost call again by
+itself, without the per-episode retry count the failure rows need.
+
+`--ray-address auto|HOST:PORT` joins a running cluster (every node needs dvla-harness
+and the suite's extra installed); without it a local Ray is started with this machine's
+cores and stopped at the end.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import os
+import socket
+import sys
+import time
+from functools import partial
+from typing import TYPE_CHECKING, Any
+
+from harness.backends.pool import rebuild_from_config, worker_threads
+from harness.backends.schedule import Event, JobId, index_jobs
+from harness.errors import UsageError
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from harness.backends import Execution
+    from harness.config import ResolvedRun
+
+RAY_FIX = "pip install 'dvla-harness[ray]'"
+CONNECT_TIMEOUT_S = 5.0
+
+
+def check_ray_installed() -> None:
+    if importlib.util.find_spec("ray") is None:
+        raise UsageError(f"--backend ray needs the ray package, which is not installed: {RAY_FIX}")
+
+
+def _probe(address: str) -> None:
+    """Refuse a HOST:PORT nothing answers on, in seconds (ray.init would retry for minutes)."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise UsageError(f"--ray-address {address!r}: expected auto or HOST:PORT (e.g. 10.0.0.5:6379)")
+    try:
+        with socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        raise UsageError(
+            f"--ray-address {address}: cannot reach a Ray cluster there ({exc}); start one with "
+            f"`ray start --head --port {port}` on that machine, or leave --ray-address out for a local Ray"
+        ) from None
+
+
+def connect(execution: Execution) -> None:
+    """Join the cluster or start a local Ray, refusing (exit 2) what cannot be had; called
+    before anything is written."""
+    check_ray_installed()
+    import ray
+
+    if ray.is_initialized():
+        return
+    address = execution.ray_address
+    if address not in (None, "auto"):
+        _probe(address)
+    options: dict[str, Any] = {"logging_level": logging.ERROR, "log_to_driver": False}
+    if address is None:
+        # workers import the project and the test plugins the way this process does
+        path = os.pathsep.join(p for p in [os.getcwd(), *sys.path] if p and os.path.isdir(p))
+        options |= {
+            "num_cpus": os.cpu_count() or 1,
+            "include_dashboard": False,
+            "runtime_env": {"env_vars": {"PYTHONPATH": path}},
+        }
+    try:
+        ray.init(address=address, **options)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        where = f"at {address}" if address else "locally"
+        hint = "start one with `ray start --head`, or leave --ray-address out for a local Ray"
+        raise UsageError(f"--backend ray: cannot start or join Ray {where} ({exc}); {hint}") from None
+
+
+class EpisodeActor:
+    """A Ray worker: the run rebuilt once, then one episode per `run` call."""
+
+    def __init__(
+        self, worker_id: str, rebuild: Callable[[], ResolvedRun], threads: int, workers: int, traces: bool
+    ):
+        from harness.backends.local import HOST, EpisodeRunner
+        from harness.threads import apply_threads, threads_record
+
+        self.worker_id, self.host, self.error = worker_id, HOST, ""
+        apply_threads(threads, workers)
+        try:
+            resolved = rebuild()
+            self.jobs = index_jobs(resolved)
+            self.runner = EpisodeRunner(resolved, traces)
+        except Exception as exc:  # said by ready(), not as a dead actor retried in vain
+            self.error = f"{type(exc).__name__}: {exc}"
+            return
+        apply_threads(threads, workers)
+        self.record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
+
+    def ready(self) -> tuple[str, Any]:
+        return ("error", self.error) if self.error else ("ready", self.record)
+
+    def run(self, jid: JobId) -> tuple[str, Any]:
+        outcome = self.runner.run(self.jobs[jid])
+        outcome.host, outcome.worker_id = self.host, self.worker_id
+        return "done", (jid, outcome)
+
+    def close(self) -> None:
+        if not self.error:
+            self.runner.close()
+
+
+class RayWorkers:
+    """The `Workers` of harness/backends/schedule.py as Ray actors."""
+
+    def __init__(self, resolved: ResolvedRun, execution: Execution, traces: bool):
+        import ray
+
+        connect(execution)
+        self.ray = ray
+        self.owns_ray = execution.ray_address is None
+        self.threads, self.asked = worker_threads(execution), execution.threads
+        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.workers, self.traces = execution.workers, traces
+        self.actor_class = ray.remote(EpisodeActor).options(
+            num_cpus=self.threads, num_gpus=execution.ray_num_gpus, max_restarts=0, max_task_retries=0
+        )
+        self.actors: dict[int, Any] = {}
+        self.refs: dict[Any, tuple[int, Any]] = {}  # object ref -> (slot, the actor it came from)
+        self.started = 0
+
+    def start(self, slot: int) -> str:
+        worker_id = f"ray-{self.started}"
+        self.started += 1
+        actor = self.actor_class.remote(worker_id, self.rebuild, self.asked, self.workers, self.traces)
+        self.actors[slot] = actor
+        self.refs[actor.ready.remote()] = (slot, actor)
+        return worker_id
+
+    def submit(self, slot: int, job: JobId) -> None:
+        actor = self.actors[slot]
+        self.refs[actor.run.remote(job)] = (slot, actor)
+
+    def wait(self, timeout: float) -> list[Event]:
+        if not self.refs:
+            time.sleep(timeout)
+            return []
+        ready, _ = self.ray.wait(list(self.refs), num_returns=1, timeout=timeout)
+        events = []
+        for ref in ready:
+            slot, actor = self.refs.pop(ref)
+            if self.actors.get(slot) is not actor:
+                continue  # from an actor already replaced
+            try:
+                kind, payload = self.ray.get(ref)
+            except self.ray.exceptions.RayActorError as exc:
+                self.kill(slot)
+                reason = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else type(exc).__name__
+                events.append(Event(slot, "lost", f"Ray actor died ({reason})"))
+                continue
+            except self.ray.exceptions.RayError as exc:
+                events.append(Event(slot, "error", f"{type(exc).__name__}: {exc}"))
+                continue
+            events.append(Event(slot, kind, payload))
+        return events
+
+    def kill(self, slot: int) -> None:
+        actor = self.actors.pop(slot, None)
+        if actor is not None:
+            self.refs = {r: v for r, v in self.refs.items() if v[1] is not actor}
+            self.ray.kill(actor, no_restart=True)
+
+    def shutdown(self) -> None:
+        for slot in list(self.actors):
+            actor = self.actors[slot]
+            try:
+                self.ray.get(actor.close.remote(), timeout=10)
+            except Exception:
+                pass  # closing envs is a courtesy; the actor is killed either way
+            self.kill(slot)
+        if self.owns_ray:
+            self.ray.shutdown()

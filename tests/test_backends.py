@@ -1,0 +1,223 @@
+"""Worker processes and Ray actors: the same rows as one process, and faults survived.
+
+Faults are real: a worker process really gets SIGKILL, a segfault (a read of address 0),
+an exit, or hangs (tests/fakes.py FaultPolicy), on the physics-free fake suite.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from harness.backends import Execution
+from harness.backends.local import HOST
+from harness.backends.schedule import Event, job_id, schedule
+from harness.runner import plan, run
+from tests.fakes import FakeBuild
+
+REPO = Path(__file__).resolve().parent.parent
+TIMING = {
+    "policy_time_s",
+    "env_time_s",
+    "overhead_s",
+    "wall_clock_s",
+    "tokens_per_s",
+    "control_hz",
+    "loop_hz",
+}
+WHERE = {"run_id", "started_at", "host", "worker_id"}
+HAS_RAY = importlib.util.find_spec("ray") is not None
+
+
+def _rows(report):
+    df = report.run_dir.read_episodes()
+    return df.sort_values(["task", "episode_index", "policy"]).reset_index(drop=True)
+
+
+def _same_results(a, b) -> None:
+    columns = [c for c in a.columns if c not in TIMING | WHERE]
+    assert a[columns].equals(b[columns])
+
+
+def test_workers_give_the_rows_of_one_process_and_say_where_they_ran(tmp_path):
+    build = FakeBuild(episodes=3, tasks=2)
+    alone = run(build(), tmp_path / "one")
+    pooled = run(build(), tmp_path / "two", execution=Execution(workers=2, rebuild=build))
+    a, b = _rows(alone), _rows(pooled)
+    assert len(b) == 6 and b["failure_reason"].isna().all()
+    _same_results(a, b)
+    assert set(a["worker_id"]) == {"main"} and set(b["worker_id"]) == {"local-0", "local-1"}
+    assert set(a["host"]) == set(b["host"]) == {HOST}
+    # a task's episodes stay with one worker
+    assert b.groupby("task")["worker_id"].nunique().eq(1).all()
+    session = pooled.run_dir.read_manifest()["execution"][-1]
+    assert session["backend"] == "local" and session["workers"] == 2
+    workers = session["worker_threads"]
+    assert sorted(w["worker_id"] for w in workers) == ["local-0", "local-1"]
+    assert all(w["threads"] == 1 and w["workers"] == 2 and w["pid"] != os.getpid() for w in workers)
+
+
+def test_lost_workers_episodes_are_rerun_then_recorded_as_failures(tmp_path):
+    # episode 1 is killed once only, so its retry succeeds; 2 and 3 die every time
+    build = FakeBuild(
+        faults=((1, "sigkill:once"), (2, "segfault"), (3, "exit")), marks=str(tmp_path), episodes=5
+    )
+    report = run(build(), tmp_path / "r", execution=Execution(workers=2, max_retries=1, rebuild=build))
+    rows = _rows(report).set_index("episode_index")
+    assert len(rows) == 5 and report.executed == 5
+    assert rows.loc[[0, 1, 4], "success"].all()
+    assert rows.loc[2, "failure_reason"].startswith("worker lost: crashed with SIGSEGV")
+    assert rows.loc[3, "failure_reason"] == "worker lost: exited with status 3 (tried 2 times)"
+    events = [json.loads(line) for line in (tmp_path / "r" / "events.jsonl").read_text().splitlines()]
+    assert sum(e["event"] == "episode_failed" for e in events) == 2
+    # workers started: the first, then one per loss (1 + 2 + 2)
+    assert len(report.run_dir.read_manifest()["execution"][-1]["worker_threads"]) == 6
+
+
+def test_segfault_is_retried_on_a_fresh_worker_until_it_passes(tmp_path):
+    build = FakeBuild(faults=((1, "segfault:once"),), marks=str(tmp_path), episodes=2)
+    report = run(build(), tmp_path / "r", execution=Execution(workers=2, rebuild=build))
+    rows = _rows(report)
+    assert rows["success"].all() and rows["worker_id"].tolist() == ["local-0", "local-1"]
+
+
+def test_an_episode_past_the_timeout_is_a_timeout_row_and_its_worker_replaced(tmp_path):
+    build = FakeBuild(faults=((1, "hang"),), episodes=3)
+    execution = Execution(workers=1, episode_timeout=3.0, rebuild=build)
+    start = time.monotonic()
+    report = run(build(), tmp_path / "r", execution=execution)
+    assert time.monotonic() - start < 60
+    rows = _rows(report).set_index("episode_index")
+    assert rows.loc[1, "failure_reason"] == "timeout: ran past --episode-timeout 3 s"
+    assert rows.loc[[0, 2], "success"].all()
+    assert rows.loc[0, "worker_id"] == rows.loc[1, "worker_id"] == "local-0"
+    assert rows.loc[2, "worker_id"] == "local-1"
+
+
+class _Scripted:
+    """A transport whose worker returns episode 0 twice (as a lost worker's late result
+    and its re-run would), then the rest."""
+
+    def __init__(self):
+        self.sent: list = []
+        self.events: list[Event] = [Event(0, "ready", {"host": "h", "worker_id": "w"})]
+
+    def start(self, slot):
+        return "w"
+
+    def submit(self, slot, job):
+        self.sent.append(job)
+        self.events.append(Event(slot, "done", (job, f"outcome of {job}")))
+        if len(self.sent) == 1:
+            self.events.append(Event(slot, "done", (job, "again")))
+
+    def wait(self, timeout):
+        events, self.events = self.events, []
+        return events
+
+    def kill(self, slot):
+        pass
+
+    def shutdown(self):
+        pass
+
+
+def test_an_episode_returned_twice_is_handed_on_once():
+    jobs = plan(FakeBuild(episodes=3)())
+    done = []
+    schedule(jobs, _Scripted(), Execution(workers=1), lambda job, out: done.append((job_id(job), out)), print)
+    assert [j for j, _ in done] == [job_id(j) for j in jobs]
+    assert "again" not in [out for _, out in done]
+
+
+KILL_SCRIPT = """
+import sys
+from pathlib import Path
+from harness.backends import Execution
+from harness.runner import run
+from tests.fakes import FakeBuild
+
+if __name__ == "__main__":
+    build = FakeBuild(episodes=6, tasks=2, delay=0.15)
+    run(build(), Path(sys.argv[1]), execution=Execution(workers=2, rebuild=build))
+"""
+
+
+def _running(pid: int) -> bool:
+    """Alive and not a zombie waiting to be reaped."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "State:\tZ" not in status
+
+
+def test_parent_sigkill_then_resume_records_each_episode_once(tmp_path):
+    out = tmp_path / "r"
+    script = tmp_path / "go.py"
+    script.write_text(KILL_SCRIPT)
+    env = os.environ | {"PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, str(script), str(out)], cwd=REPO, env=env)
+    pending = out / "pending.jsonl"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if pending.is_file() and len(pending.read_text().splitlines()) >= 3:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    first = len({tuple(json.loads(line).values()) for line in pending.read_text().splitlines()})
+    assert 3 <= first < 12
+    pids = [
+        w["pid"] for w in json.loads((out / "manifest.json").read_text())["execution"][-1]["worker_threads"]
+    ]
+    time.sleep(1.0)  # the kernel ends the workers with their parent (PR_SET_PDEATHSIG)
+    assert not [pid for pid in pids if _running(pid)]
+    build = FakeBuild(episodes=6, tasks=2)
+    # resumed with another worker count: that is not a config difference
+    report = run(build(), out, resume=True, execution=Execution(workers=1))
+    assert report.skipped == first and report.executed == 12 - first
+    assert len(report.run_dir.read_episodes()) == 12
+    sessions = report.run_dir.read_manifest()["execution"]
+    assert [s["workers"] for s in sessions] == [2, 1]
+
+
+@pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
+def test_ray_actors_give_the_same_rows_and_survive_a_kill_and_a_hang(tmp_path):
+    once = ((1, "sigkill:once"), (2, "hang:once"))  # in each of the two tasks
+    build = FakeBuild(faults=once, marks=str(tmp_path), episodes=4, tasks=2)
+    execution = Execution(backend="ray", workers=2, episode_timeout=5.0, rebuild=build)
+    report = run(build(), tmp_path / "r", execution=execution)
+    rows = _rows(report)
+    assert len(rows) == 8
+    hung = rows[rows["episode_index"] == 2]
+    assert hung["failure_reason"].eq("timeout: ran past --episode-timeout 5 s").all()
+    others = rows[rows["episode_index"] != 2]
+    assert others["success"].all() and others["worker_id"].str.startswith("ray-").all()
+    clean = run(FakeBuild(episodes=4, tasks=2)(), tmp_path / "clean")
+    expected = _rows(clean)[lambda d: d["episode_index"] != 2]
+    _same_results(expected.reset_index(drop=True), others.reset_index(drop=True))
+    session = report.run_dir.read_manifest()["execution"][-1]
+    assert session["backend"] == "ray" and len(session["worker_threads"]) >= 4
+
+
+def test_rows_a_ray_node_ran_are_that_nodes_machine(tmp_path):
+    from results.runs import combined_episodes, load_run
+
+    report = run(FakeBuild(episodes=2, tasks=2)(), tmp_path / "r")
+    loaded = load_run(report.run_dir.path)
+    episodes = loaded.episodes.copy()
+    episodes.loc[episodes["task"] == "count1", "host"] = "node-b"
+    df = combined_episodes([type(loaded)(loaded.path, loaded.manifest, episodes)])
+    machines = df.groupby("task")["machine"].unique()
+    assert machines["count"][0] == loaded.machine
+    assert machines["count1"][0] == "node-b | node of a Ray cluster"
