@@ -19,7 +19,15 @@ from collections.abc import Sequence
 from typing import Any
 
 from harness.console import console, err_console
-from harness.errors import EXIT_HARNESS, EXIT_STATUS_HELP, EXIT_USAGE, HarnessError, UsageError
+from harness.errors import (
+    EXIT_HARNESS,
+    EXIT_INTERRUPTED,
+    EXIT_STATUS_HELP,
+    EXIT_USAGE,
+    HarnessError,
+    InterruptedWhileSaving,
+    UsageError,
+)
 
 __all__ = ["build_parser", "console", "entry", "err_console", "main"]
 
@@ -69,6 +77,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except HarnessError as exc:
         print(f"dvla-harness {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_HARNESS
+    except InterruptedWhileSaving as exc:
+        print(f"dvla-harness {args.command}: {exc}", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def entry() -> Any:

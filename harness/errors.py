@@ -24,3 +24,10 @@ class UsageError(ValueError):
 class HarnessError(RuntimeError):
     """The harness could not do its job (an I/O error on the run folder, a full disk);
     one line and exit status 3. Rows recorded before it are kept."""
+
+
+class InterruptedWhileSaving(KeyboardInterrupt):
+    """Ctrl-C (again) while a run compacts its rows or writes its manifest: the run stops
+    at once (exit 130), and the message says what is safe. Every write there is atomic
+    (a temporary file renamed into place), and pending.jsonl is removed only after
+    episodes.parquet holds its rows, so no recorded episode is lost."""

@@ -8,6 +8,7 @@ cannot be written gives a `UsageError` (exit 2), a failed write a `HarnessError`
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import os
 import shutil
@@ -18,9 +19,10 @@ from typing import Any
 
 import pandas as pd
 
-from harness.config import ResolvedRun
+from harness.config import ResolvedRun, build_config
 from harness.errors import HarnessError, UsageError
 from harness.manifest import build_manifest, now
+from harness.resume import adopt_recorded_params, changed_checkpoints, config_changes, config_data
 from results.lock import RunLock, RunLockedError
 from results.manifest_check import RESUME_FIELDS
 from results.store import ResultsFileError, RunDir
@@ -76,39 +78,6 @@ def check_path(out: Path, resume: bool, overwrite: bool) -> None:
         raise UsageError(f"output folder {str(out)!r} is not writable (no write access to {str(ancestor)!r})")
 
 
-def _config_diff(old: dict[str, Any], new: dict[str, Any]) -> str:
-    keys = sorted(set(old) | set(new))
-    return "; ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k))
-
-
-def _changed_checkpoints(
-    manifest: dict[str, Any], recorded: pd.DataFrame, resolved: ResolvedRun
-) -> list[str]:
-    """Policies whose checkpoint file now has other content than when the run recorded it.
-
-    The config names a checkpoint by path; what was evaluated is its content, so a file
-    replaced at the same path is another model, and resuming would put two models' rows
-    under one policy label."""
-    known: dict[tuple[str, str], set[str]] = {}
-    for p in manifest.get("policies") or []:
-        if isinstance(p, dict) and p.get("checkpoint_sha256"):
-            known.setdefault((p.get("name"), p.get("params")), set()).add(p["checkpoint_sha256"])
-    if len(recorded):
-        cols = ["policy", "policy_params", "checkpoint_sha256"]
-        for name, params, digest in recorded[cols].drop_duplicates().itertuples(index=False):
-            if isinstance(digest, str) and digest:
-                known.setdefault((name, params), set()).add(digest)
-    changes = []
-    for p in resolved.policies:
-        old = sorted(known.get((p.spec.name, p.params_json), set()) - {p.checkpoint_sha256})
-        if old:
-            changes.append(
-                f"policy {p.spec.name}: checkpoint {p.checkpoint!r} had sha256 {old[0][:12]} "
-                f"and now has {(p.checkpoint_sha256 or 'none')[:12]}"
-            )
-    return changes
-
-
 def io_error(folder: Path, doing: str, exc: OSError) -> HarnessError:
     """One line for a failed write to the run folder; a full disk says so, with the free space."""
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -154,12 +123,13 @@ def open_run(
             recorded = run_dir.read_episodes()
         except ResultsFileError as exc:
             raise UsageError(f"--resume: {exc}") from None
-        if manifest.get("config_fingerprint") != resolved.config.fingerprint():
-            diff = _config_diff(manifest.get("config", {}), resolved.config.to_dict())
+        changes, extended = config_changes(manifest, resolved)
+        if changes:
             raise UsageError(
-                f"--resume: {str(out)!r} belongs to a different config ({diff}); "
+                f"--resume: {str(out)!r} belongs to a different config ({'; '.join(changes)}); "
                 "use another --out, or --overwrite to replace it"
             )
+        notices = adopt_recorded_params(manifest, recorded, resolved)
         suites = sorted(set(recorded["suite"]) - {resolved.suite.name}) if len(recorded) else []
         if suites:
             raise UsageError(
@@ -167,7 +137,7 @@ def open_run(
                 f"{resolved.suite.name!r} (a changed default, e.g. LIBERO's seeding); resuming would "
                 "mix the two. Name the old one in --suite, or use another --out"
             )
-        changed = _changed_checkpoints(manifest, recorded, resolved)
+        changed = changed_checkpoints(manifest, recorded, resolved)
         if changed:
             raise UsageError(
                 f"--resume: {'; '.join(changed)}; the run's rows came from the old file, so "
@@ -177,8 +147,13 @@ def open_run(
     if resume:
         manifest["resumed_at"].append(now())
         manifest["status"] = "running"
+        if extended is not None:
+            _extend(run_dir, manifest, extended)
         run_dir.write_manifest(manifest)
         run_dir.log_event("run_resumed", recorded=len(recorded))
+        for notice in notices:
+            _say(notice)
+            run_dir.log_event("policy_params_matched_at_defaults", notice=notice)
         return run_dir, manifest["run_id"], recorded
     if overwrite and not run_dir.is_empty():
         run_dir.remove_recorded()  # only what the harness wrote: check_output refused others
@@ -187,6 +162,28 @@ def open_run(
     run_dir.write_manifest(build_manifest(resolved, run_id))
     run_dir.log_event("run_started", run_id=run_id)
     return run_dir, run_id, pd.DataFrame()
+
+
+def _extend(run_dir: RunDir, manifest: dict[str, Any], counts: tuple[int | None, int | None]) -> None:
+    """Record that a resumed run now covers more episodes per task (harness.resume says
+    why that is safe): the manifest's config says the new count, and the change is kept."""
+    before, after = counts
+    config = build_config(config_data(manifest["config"]))
+    manifest["config"]["episodes_per_task"] = after
+    manifest["config_fingerprint"] = dataclasses.replace(config, episodes_per_task=after).fingerprint()
+    manifest.setdefault("extended", []).append({"at": now(), "episodes_per_task": [before, after]})
+    run_dir.log_event("run_extended", episodes_per_task=[before, after])
+    shown = "the whole protocol" if after is None else f"{after} episodes per task"
+    _say(
+        f"--resume: extending the run from {before} to {shown}; the recorded episodes are kept "
+        "(an episode is fixed by its index in the protocol) and only the new ones run"
+    )
+
+
+def _say(line: str) -> None:
+    from harness.console import err_console
+
+    err_console.print(line, markup=False, highlight=False, soft_wrap=True)
 
 
 def _take_over(run_dir: RunDir, lock: RunLock) -> None:

@@ -18,7 +18,7 @@ from adapters.base import EpisodeSpec, TaskSpec
 from harness.backends import Execution, execute, record_execution
 from harness.config import PolicyRun, ResolvedRun
 from harness.episode import EpisodeOutcome
-from harness.errors import HarnessError, UsageError
+from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.manifest import now, record_end_calibration
 from harness.run_folder import acquire, check_output, check_path, io_error, open_run
 from results.lock import RunLock
@@ -282,18 +282,31 @@ def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None 
     """Compact the rows and record how the run ended; each step is tried even if one
     before it failed (a full disk), and the first failure is raised as a HarnessError."""
     failure: HarnessError | None = None
+    stopped = InterruptedWhileSaving(
+        f"{run_dir.path}: interrupted while saving; every recorded episode is safe (in "
+        "pending.jsonl until episodes.parquet holds it); continue with --resume"
+    )
+    interrupted = False
     try:
         run_dir.compact()
     except OSError as exc:
         failure = io_error(run_dir.path, "compacting pending.jsonl into episodes.parquet", exc)
         status, reason = "failed", reason or str(failure)
+    except KeyboardInterrupt:  # Ctrl-C again: say how it ended (quick), then stop
+        interrupted, status = True, "interrupted"
     try:
         manifest = run_dir.read_manifest()
-        record_end_calibration(manifest, status)
+        try:
+            if not interrupted:
+                record_end_calibration(manifest, status)  # seconds of measuring
+        except KeyboardInterrupt:
+            interrupted, status = True, "interrupted"
         manifest.update(status=status, finished_at=now())
         run_dir.write_manifest(manifest)
     except OSError as exc:
         failure = failure or io_error(run_dir.path, "writing manifest.json", exc)
+    except KeyboardInterrupt:
+        raise stopped from None
     try:
         extra = {"reason": reason} if reason else {}
         run_dir.log_event("run_" + status, executed=report.executed, failed=report.failed, **extra)
@@ -301,3 +314,5 @@ def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None 
         pass  # the structured log is the least of it
     if failure is not None:
         raise failure
+    if interrupted:
+        raise stopped

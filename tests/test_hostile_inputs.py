@@ -110,14 +110,26 @@ def test_a_parameter_given_twice_in_one_policy_string_is_an_error(cli, tmp_path)
 
 # --- malformed configs and manifests: one line, exit 2, nothing written ----------------
 
-MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--episodes-per-task", "1", "--quiet"]
+MT1 = [
+    "run",
+    "--suite",
+    "metaworld/mt1/reach-v3",
+    "--policy",
+    "random",
+    "--episodes-per-task",
+    "1",
+    "--quiet",
+]
 
 
 @pytest.mark.parametrize(
     ("content", "message"),
     [
         (b'suite = "metaworld/mt1/reach-v3"\n# caf\xe9 in Latin-1\n', "is not UTF-8 text (byte 38)"),
-        (b'suite = "metaworld/mt1/reach-v3"\ntasks = 5\n', "tasks must be a list of task names or indices, got 5"),
+        (
+            b'suite = "metaworld/mt1/reach-v3"\ntasks = 5\n',
+            "tasks must be a list of task names or indices, got 5",
+        ),
         (b'suite = "metaworld/mt1/reach-v3"\ntasks = [true]\n', "tasks must be a list"),
         (b'suite = "metaworld/mt1/reach-v3"\npolicy = 5\n', "policy must be a list of [[policy]] tables"),
         (b'suite = "metaworld/mt1/reach-v3"\npolicy = {name = "random"}\n', "policy must be a list"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -100,3 +101,123 @@ def test_sigterm_stops_cleanly_and_compacts(tmp_path):
     assert not (out / "pending.jsonl").exists()
     rows = pq.read_table(out / "episodes.parquet").num_rows
     assert 2 <= rows < 10
+
+
+# --- resume that users can type (issue 21) ----------------------------------------------
+
+MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--quiet"]
+
+
+def _rows(out):
+    return RunDir(out).read_episodes().sort_values("episode_index").reset_index(drop=True)
+
+
+def test_resume_with_no_other_flags_continues_the_recorded_config_of_any_run(cli, tmp_path):
+    out = tmp_path / "run"
+    code, _, err = cli(
+        *MT1, "--tasks", "0", "--policy", "random:seed=3", "--episodes-per-task", "2", "--out", str(out)
+    )
+    assert code == 0, err
+    before = _rows(out)
+    code, _, err = cli("run", "--out", str(out), "--resume", "--quiet")  # not the embedded default's config
+    assert code == 0, err
+    assert _rows(out)["started_at"].tolist() == before["started_at"].tolist()  # nothing ran again
+
+
+def test_flags_restating_the_recorded_config_are_no_difference_and_a_real_one_is_named_alone(cli, tmp_path):
+    out, config = tmp_path / "run", tmp_path / "run.toml"
+    config.write_text(
+        'suite = "metaworld/mt1/reach-v3"\ntasks = [0]\nepisodes_per_task = 1\n'
+        '[[policy]]\nname = "random"\nparams = {seed = 3}\n'
+    )
+    assert cli("run", "--config", str(config), "--out", str(out), "--quiet")[0] == 0
+    # a task by name instead of index, a parameter as a flag's string instead of TOML's int
+    code, _, err = cli(
+        *MT1, "--tasks", "reach-v3", "--policy", "random:seed=3", "--out", str(out), "--resume"
+    )
+    assert code == 0, err
+    code, _, err = cli("run", "--out", str(out), "--resume", "--policy", "random:seed=4", "--quiet")
+    assert code == 2 and "belongs to a different config (policies: " in err and err.count("\n") == 1
+    for key in ("tasks", "suite", "episodes_per_task", "replan_every", "split"):
+        assert f"{key}:" not in err
+
+
+def test_more_episodes_per_task_extend_a_finished_run_and_fewer_are_refused(cli, tmp_path):
+    out = tmp_path / "run"
+    assert cli(*MT1, "--policy", "random", "--episodes-per-task", "2", "--out", str(out))[0] == 0
+    first = _rows(out)
+    code, _, err = cli("run", "--out", str(out), "--resume", "--episodes-per-task", "4", "--quiet")
+    assert code == 0 and "extending the run from 2 to 4 episodes per task" in err
+    rows = _rows(out)
+    assert rows["episode_index"].tolist() == [0, 1, 2, 3] and set(rows["run_id"]) == set(first["run_id"])
+    assert rows["started_at"][:2].tolist() == first["started_at"].tolist()  # the first two were kept
+    manifest = RunDir(out).read_manifest()
+    assert manifest["config"]["episodes_per_task"] == 4 and manifest["extended"][0]["episodes_per_task"] == [
+        2,
+        4,
+    ]
+    code, _, err = cli("run", "--out", str(out), "--resume", "--quiet")  # the recorded config is now 4
+    assert (
+        code == 0
+        and "extending" not in err
+        and _rows(out)["started_at"].tolist() == rows["started_at"].tolist()
+    )
+    code, _, err = cli("run", "--out", str(out), "--resume", "--episodes-per-task", "3", "--quiet")
+    assert code == 2 and "episodes_per_task: 4 -> 3 (fewer than recorded" in err
+
+
+def test_a_policy_upgrade_adding_a_defaulted_parameter_does_not_run_recorded_episodes_again(
+    cli, tmp_path, monkeypatch
+):
+    import dataclasses
+
+    import policies.registry
+    from policies.scripted import RANDOM, RandomParams, RandomPolicy
+
+    @dataclasses.dataclass(frozen=True)
+    class OldRandomParams:  # the package before it gained chunk_length (default 1)
+        seed: int = policies.registry.param(0, "seed", low=0)
+
+    old = dataclasses.replace(
+        RANDOM, params=OldRandomParams, build=lambda p: RandomPolicy(RandomParams(seed=p.seed))
+    )
+    upgraded = policies.registry.all_policies()
+    monkeypatch.setattr(policies.registry, "all_policies", lambda: upgraded | {"random": old})
+    out = tmp_path / "run"
+    assert cli(*MT1, "--policy", "random", "--episodes-per-task", "2", "--out", str(out))[0] == 0
+    recorded = _rows(out)
+    assert recorded["policy_params"].unique().tolist() == ['{"seed":0}']
+
+    monkeypatch.undo()  # upgraded: random now has chunk_length=1
+    code, _, err = cli("run", "--out", str(out), "--resume", "--episodes-per-task", "3", "--quiet")
+    assert code == 0, err
+    assert "policy 'random' has parameters its recorded rows predate (chunk_length=1)" in err
+    rows = _rows(out)
+    assert rows["started_at"][:2].tolist() == recorded["started_at"].tolist()  # not run again
+    assert len(rows) == 3 and rows["policy_config_id"].nunique() == 1 and rows["policy_params"].nunique() == 1
+    assert any(
+        e["event"] == "policy_params_matched_at_defaults" for e in map(json.loads, open(out / "events.jsonl"))
+    )
+    # a value other than the default is another configuration
+    code, _, err = cli("run", "--out", str(out), "--resume", "--policy", "random:chunk_length=2", "--quiet")
+    assert code == 2 and "belongs to a different config (policies:" in err
+
+
+def test_ctrl_c_while_compacting_stops_in_one_line_and_loses_no_row(cli, tmp_path, monkeypatch):
+    import results.store
+
+    out = tmp_path / "run"
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt  # the second Ctrl-C, while episodes.parquet is written
+
+    monkeypatch.setattr(results.store.pq, "write_table", interrupted)
+    code, _, err = cli(*MT1, "--policy", "random", "--episodes-per-task", "3", "--out", str(out))
+    assert code == 130 and err.count("\n") == 1 and "Traceback" not in err
+    assert "interrupted while saving; every recorded episode is safe" in err and "--resume" in err
+    assert RunDir(out).read_manifest()["status"] == "interrupted"
+    assert sorted(p.name for p in out.iterdir()) == ["events.jsonl", "manifest.json", "pending.jsonl"]
+    assert len(RunDir(out).read_episodes()) == 3
+    monkeypatch.undo()
+    code, _, err = cli("run", "--out", str(out), "--resume", "--quiet")
+    assert code == 0 and pq.read_table(out / "episodes.parquet").num_rows == 3

@@ -119,12 +119,15 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace):
     from harness.config import build_config, default_config_data, load_config_file, parse_policy_arg
+    from harness.resume import recorded_config_data
 
-    data = default_config_data()
+    # --resume continues the folder's recorded config; flags change it (and are checked)
+    recorded = recorded_config_data(Path(args.out)) if args.resume and args.out else None
+    data = default_config_data() if recorded is None else recorded
     overrides = load_config_file(args.config) if args.config else {}
     if args.suite:
         overrides["suite"] = args.suite
-    if overrides.get("suite", data["suite"]) != data["suite"]:
+    if recorded is None and overrides.get("suite", data["suite"]) != data["suite"]:
         # The default's task subset and episode count are the main job's, not the protocol's.
         data.pop("tasks", None)
         data.pop("episodes_per_task", None)

@@ -1,0 +1,205 @@
+"""What `--resume` continues, and what a resumed run must match.
+
+`dvla-harness run --out DIR --resume` with no other flags continues the config recorded in
+DIR/manifest.json (not the embedded default); flags override it, and the result must
+evaluate the same thing. Configs are compared by what they evaluate, not how they were
+typed: tasks by the names they resolve to (an index and a name are one task), policies
+by their validated parameters (`seed=1` from a flag and `seed = 1` from TOML are one),
+and the order of either does not matter.
+
+Two differences are not refused:
+
+- More episodes per task than recorded (or the whole protocol) extends the run. An
+  episode is fixed by its index in the protocol (its seed and initial state do not depend
+  on how many are run), so the first 10 of 50 are the first 10 of 10: the recorded rows
+  stay and only the new indices run. Fewer is refused, since a run folder is never cut
+  short.
+- A policy that gained a parameter since the rows were recorded (a package upgrade),
+  at that parameter's default: the rows are taken as made at the default, which is what
+  a defaulted parameter promises, instead of running every episode again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from harness.config import ResolvedRun, build_config
+from harness.errors import UsageError
+from policies.registry import PolicyParamError, UnknownPolicyError, get_policy, params_json, parse_params
+from results.store import ResultsFileError, RunDir
+
+
+def recorded_config_data(out: Path) -> dict[str, Any] | None:
+    """The config recorded in OUT's manifest, as config data for flags to override; None
+    when OUT is not a run folder (check_output refuses it later, with the reason)."""
+    run_dir = RunDir(out)
+    if not run_dir.is_run():
+        return None
+    try:
+        config = run_dir.read_manifest(required=("config",))["config"]
+    except ResultsFileError as exc:
+        raise UsageError(f"--resume: {exc}") from None
+    data = {
+        key: config[key]
+        for key in ("suite", "tasks", "episodes_per_task", "replan_every", "split")
+        if key in config
+    }
+    if "policies" in config:
+        data["policy"] = config["policies"]
+    try:
+        build_config(dict(data))
+    except UsageError as exc:
+        raise UsageError(
+            f"--resume: the config recorded in {run_dir.manifest_path} is not valid: {exc}"
+        ) from None
+    return data
+
+
+def config_data(config: Mapping[str, Any]) -> dict[str, Any]:
+    """A manifest's recorded config (RunConfig.to_dict) as config data (TOML keys)."""
+    keys = ("suite", "tasks", "episodes_per_task", "replan_every", "split")
+    data = {key: config[key] for key in keys if key in config}
+    if "policies" in config:
+        data["policy"] = config["policies"]
+    return data
+
+
+def _policy_identity(entry: Any) -> str:
+    """A config's policy entry as what it evaluates: the name and validated parameters."""
+    name = entry.get("name") if isinstance(entry, Mapping) else getattr(entry, "name", None)
+    raw = entry.get("params", {}) if isinstance(entry, Mapping) else getattr(entry, "params", {})
+    try:
+        return f"{name}:{params_json(parse_params(get_policy(str(name)), raw))}"
+    except (UnknownPolicyError, PolicyParamError, TypeError):
+        return f"{name}:{json.dumps(raw, sort_keys=True, default=str)}"
+
+
+def _shown(value: Any) -> str:
+    return json.dumps(value, default=str)
+
+
+def config_changes(
+    manifest: Mapping[str, Any], resolved: ResolvedRun
+) -> tuple[list[str], tuple[int | None, int | None] | None]:
+    """(the differences that refuse the resume, "key: recorded -> now" each; (recorded,
+    new) episodes_per_task when the run is extended, else None)."""
+    old, new = manifest["config"], resolved.config
+    changes = []
+    if old.get("suite") != new.suite:
+        changes.append(f"suite: {_shown(old.get('suite'))} -> {_shown(new.suite)}")
+    recorded_tasks = (manifest.get("suite") or {}).get("tasks")
+    tasks = [t.name for t in resolved.tasks]
+    if recorded_tasks is None:  # a manifest without the resolved names: the config's
+        recorded_tasks, tasks = [str(t) for t in old.get("tasks") or []], list(new.tasks)
+    if sorted(map(str, recorded_tasks)) != sorted(tasks):
+        changes.append(f"tasks: {_shown(recorded_tasks)} -> {_shown(tasks)}")
+    recorded_policies = sorted(_policy_identity(p) for p in old.get("policies") or [])
+    if recorded_policies != sorted(_policy_identity(p) for p in new.policies):
+        shown = [dataclasses.asdict(p) for p in new.policies]
+        changes.append(f"policies: {_shown(old.get('policies'))} -> {_shown(shown)}")
+    for key, default in (("replan_every", 0), ("split", "eval")):  # absent from older manifests
+        if old.get(key, default) != getattr(new, key):
+            changes.append(f"{key}: {_shown(old.get(key, default))} -> {_shown(getattr(new, key))}")
+    extended = None
+    before, after = old.get("episodes_per_task"), new.episodes_per_task
+    counts = [(_count(before, t.episodes), _count(after, t.episodes)) for t in resolved.tasks]
+    if any(b > a for b, a in counts):
+        changes.append(
+            f"episodes_per_task: {_shown(before)} -> {_shown(after)} (fewer than recorded: a run "
+            "folder is never cut short; `show` and `leaderboard` read it as it is)"
+        )
+    elif any(b < a for b, a in counts):
+        extended = (before, after)
+    return changes, extended
+
+
+def _count(n: Any, episodes: tuple) -> int:
+    return len(episodes) if n is None else min(int(n), len(episodes))
+
+
+def adopt_recorded_params(
+    manifest: Mapping[str, Any], recorded: pd.DataFrame, resolved: ResolvedRun
+) -> list[str]:
+    """Match rows recorded before a policy gained a defaulted parameter; returns one
+    notice per such policy.
+
+    A row's key holds the policy's full parameters, so after an upgrade that adds one the
+    recorded rows would all look like another configuration and run again. When a
+    recorded parameter set lacks only keys whose current value is their default, this
+    run continues under the recorded parameters and config id (its new rows join the
+    old ones as one configuration)."""
+    seen: dict[str, dict[str, str]] = {}  # policy -> recorded params JSON -> config id
+    for p in manifest.get("policies") or []:
+        if isinstance(p.get("params"), str):
+            seen.setdefault(str(p.get("name")), {})[p["params"]] = str(p.get("config_id") or "")
+    if len(recorded):
+        cols = ["policy", "policy_params", "policy_config_id"]
+        for name, params, config_id in recorded[cols].drop_duplicates().itertuples(index=False):
+            seen.setdefault(name, {}).setdefault(params, config_id)
+    notices = []
+    for run in resolved.policies:
+        known = seen.get(run.spec.name, {})
+        if not known or run.params_json in known:
+            continue
+        for params, config_id in known.items():
+            added = _added_at_default(params, run.params_json, run.spec.params)
+            if added:
+                notices.append(
+                    f"--resume: policy {run.spec.name!r} has parameters its recorded rows predate "
+                    f"({', '.join(f'{k}={v!r}' for k, v in added.items())}); this run uses their "
+                    f"defaults, so the rows count as made with them and new rows keep the recorded "
+                    f"parameters (policy_config_id {config_id})"
+                )
+                run.params_json, run.config_id = params, config_id
+                break
+    return notices
+
+
+def _added_at_default(recorded: str, current: str, params_cls: type) -> dict[str, Any]:
+    """The parameters `current` has beyond `recorded`, if every other value is equal and
+    each added one is at its default; else {}."""
+    try:
+        old, new = json.loads(recorded), json.loads(current)
+        defaults = json.loads(params_json(params_cls()))
+    except (ValueError, TypeError):
+        return {}
+    if not isinstance(old, dict) or not set(old) < set(new):
+        return {}
+    if any(old[k] != new[k] for k in old):
+        return {}
+    added = {k: new[k] for k in sorted(set(new) - set(old))}
+    return added if all(k in defaults and defaults[k] == v for k, v in added.items()) else {}
+
+
+def changed_checkpoints(
+    manifest: Mapping[str, Any], recorded: pd.DataFrame, resolved: ResolvedRun
+) -> list[str]:
+    """Policies whose checkpoint file now has other content than when the run recorded it.
+
+    The config names a checkpoint by path; what was evaluated is its content, so a file
+    replaced at the same path is another model, and resuming would put two models' rows
+    under one policy label."""
+    known: dict[tuple[str, str], set[str]] = {}
+    for p in manifest.get("policies") or []:
+        if p.get("checkpoint_sha256"):
+            known.setdefault((p.get("name"), p.get("params")), set()).add(p["checkpoint_sha256"])
+    if len(recorded):
+        cols = ["policy", "policy_params", "checkpoint_sha256"]
+        for name, params, digest in recorded[cols].drop_duplicates().itertuples(index=False):
+            if isinstance(digest, str) and digest:
+                known.setdefault((name, params), set()).add(digest)
+    changes = []
+    for p in resolved.policies:
+        old = sorted(known.get((p.spec.name, p.params_json), set()) - {p.checkpoint_sha256})
+        if old:
+            changes.append(
+                f"policy {p.spec.name}: checkpoint {p.checkpoint!r} had sha256 {old[0][:12]} "
+                f"and now has {(p.checkpoint_sha256 or 'none')[:12]}"
+            )
+    return changes
