@@ -221,3 +221,40 @@ def test_rows_a_ray_node_ran_are_that_nodes_machine(tmp_path):
     machines = df.groupby("task")["machine"].unique()
     assert machines["count"][0] == loaded.machine
     assert machines["count1"][0] == "node-b | node of a Ray cluster"
+
+
+MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--episodes-per-task", "1"]
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--workers", "0"], "--workers must be at least 1, got 0; 1 runs in this process"),
+        (["--max-retries", "-1"], "--max-retries must be 0 or more, got -1"),
+        (["--episode-timeout", "0"], "--episode-timeout must be a positive number of seconds, got 0"),
+        (["--ray-address", "auto"], "--ray-address and --ray-num-gpus apply to --backend ray"),
+        (
+            ["--backend", "ray", "--ray-address", "127.0.0.1:1"],
+            "--ray-address 127.0.0.1:1: cannot reach a Ray cluster there",
+        ),
+        (["--backend", "ray", "--ray-address", "nowhere"], "expected auto or HOST:PORT"),
+    ],
+)
+def test_bad_backend_flags_exit_2_and_write_nothing(cli, tmp_path, monkeypatch, flags, message):
+    if "--backend" in flags and not HAS_RAY:
+        pytest.skip("ray is not installed: its address is checked after the package")
+    monkeypatch.chdir(tmp_path)
+    code, _out, err = cli(*MT1, *flags, "--out", str(tmp_path / "out"))
+    assert code == 2 and message in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ray_backend_without_ray_names_the_extra(cli, tmp_path, monkeypatch):
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a)
+    )
+    monkeypatch.chdir(tmp_path)
+    code, _out, err = cli(*MT1, "--backend", "ray", "--out", str(tmp_path / "out"))
+    assert code == 2 and "pip install 'dvla-harness[ray]'" in err
+    assert list(tmp_path.iterdir()) == []
