@@ -21,7 +21,8 @@ examples:
   dvla-harness run --suite metaworld/mt10 --policy scripted --episodes-per-task 10 --out runs/demo
   dvla-harness run --suite metaworld/mt1/reach-v3 --policy random:seed=3 --episodes-per-task 2
   dvla-harness run --suite metaworld/mt10 --policy fast_dvla --policy bidirectional --traces
-  dvla-harness run --out runs/demo --resume          # finish an interrupted run
+  dvla-harness run --out runs/demo --resume          # finish an interrupted run (its recorded config)
+  dvla-harness run --out runs/demo --resume --episodes-per-task 50   # extend it: only the new episodes run
 
 one process writes a run folder at a time (OUT/writer.lock names it); a second run,
 --resume, --overwrite or sweep on it is refused while it runs
@@ -87,7 +88,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     mode.add_argument(
         "--resume",
         action="store_true",
-        help="run only the episodes OUT does not have yet; refuses a folder made by another config",
+        help="run only the episodes OUT does not have yet, of the config OUT recorded (other flags "
+        "are optional); refuses flags that change what is evaluated, except a larger "
+        "--episodes-per-task, which extends the run",
     )
     mode.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     p.add_argument(
