@@ -15,7 +15,9 @@ from __future__ import annotations
 import argparse
 import sys
 import traceback
+import warnings
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from harness.console import console, err_console
@@ -30,6 +32,15 @@ from harness.errors import (
 )
 
 __all__ = ["build_parser", "console", "entry", "err_console", "main"]
+
+PACKAGE_ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("adapters", "harness", "policies", "results")  # dvla-harness's own, beside each other
+
+
+def _ours(filename: str) -> bool:
+    path = Path(filename).resolve()
+    return path.is_relative_to(PACKAGE_ROOT) and path.relative_to(PACKAGE_ROOT).parts[0] in PACKAGES
+
 
 EXAMPLES = """\
 examples:
@@ -69,6 +80,17 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    default_show = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
+        """The harness's own warnings (a checkpoint's dtype converted on load) as one line;
+        a library's keep Python's form, with the line of code that raised them."""
+        if _ours(filename) and issubclass(category, UserWarning):
+            print(f"dvla-harness {args.command}: warning: {message}", file=sys.stderr)
+        else:
+            default_show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
     try:
         return args.func(args)
     except UsageError as exc:
@@ -80,6 +102,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InterruptedWhileSaving as exc:
         print(f"dvla-harness {args.command}: {exc}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        warnings.showwarning = default_show
 
 
 def entry() -> Any:

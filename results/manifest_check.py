@@ -46,6 +46,7 @@ FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "speed_reliable": (bool,),
     "speed_warning": (str,),
     "traces": (bool,),
+    "extended": (list,),  # --resume with more episodes per task (harness/resume.py)
 }
 # what `--resume` reads and writes back
 RESUME_FIELDS = ("run_id", "config", "suite", "policies", "resumed_at", "status")

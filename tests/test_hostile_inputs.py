@@ -214,3 +214,18 @@ def test_a_manifest_lacking_a_field_is_read_for_what_it_says_and_refused_for_res
     assert cli("leaderboard", str(out))[0] == 0
     code, _, err = cli(*MT1, "--out", str(out), "--resume")
     assert code == 2 and "lacks field 'run_id'" in err and err.count("\n") == 1
+
+
+def test_the_cli_states_a_dtype_conversion_in_one_line(cli, tmp_path):
+    good = make_checkpoint(tmp_path / "good.safetensors", "bidirectional")
+    half = {k: v.half() if v.is_floating_point() else v for k, v in load_file(str(good)).items()}
+    path = _rewrite(good, tmp_path / "half.safetensors", tensors=half)
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3", "--policy", f"bidirectional:checkpoint={path}",
+        "--episodes-per-task", "1", "--out", str(tmp_path / "run"), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    line = (
+        f"dvla-harness run: warning: {path}: weights stored as torch.float16, converted to float32 on load\n"
+    )
+    assert err == line

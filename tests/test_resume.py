@@ -189,11 +189,13 @@ def test_a_policy_upgrade_adding_a_defaulted_parameter_does_not_run_recorded_epi
     assert recorded["policy_params"].unique().tolist() == ['{"seed":0}']
 
     monkeypatch.undo()  # upgraded: random now has chunk_length=1
-    code, _, err = cli("run", "--out", str(out), "--resume", "--episodes-per-task", "3", "--quiet")
+    code, _, err = cli(*MT1, "--policy", "random", "--episodes-per-task", "2", "--out", str(out), "--resume")
     assert code == 0, err
+    assert _rows(out)["started_at"].tolist() == recorded["started_at"].tolist()  # none ran again
     assert "policy 'random' has parameters its recorded rows predate (chunk_length=1)" in err
+    code, _, err = cli("run", "--out", str(out), "--resume", "--episodes-per-task", "3", "--quiet")
     rows = _rows(out)
-    assert rows["started_at"][:2].tolist() == recorded["started_at"].tolist()  # not run again
+    assert code == 0 and rows["started_at"][:2].tolist() == recorded["started_at"].tolist()
     assert len(rows) == 3 and rows["policy_config_id"].nunique() == 1 and rows["policy_params"].nunique() == 1
     assert any(
         e["event"] == "policy_params_matched_at_defaults" for e in map(json.loads, open(out / "events.jsonl"))
