@@ -3,7 +3,7 @@
 `dvla-harness run --out DIR --resume` with no other flags continues the config recorded in
 DIR/manifest.json (not the embedded default); flags override it, and the result must
 evaluate the same thing. Configs are compared by what they evaluate, not how they were
-typed: tasks by the names they resolve to (an index and a name are one task), policies
+typed: the suite and its tasks by the names they resolve to (an index and a name are one task), policies
 by their validated parameters (`seed=1` from a flag and `seed = 1` from TOML are one),
 and the order of either does not matter.
 
@@ -91,8 +91,19 @@ def config_changes(
     new) episodes_per_task when the run is extended, else None)."""
     old, new = manifest["config"], resolved.config
     changes = []
-    if old.get("suite") != new.suite:
+    # the suite by the name it resolved to (its options spelled out), so that naming the
+    # recorded protocol in --suite after a default changed is the same suite
+    recorded_suite = (manifest.get("suite") or {}).get("name")
+    if recorded_suite is None and old.get("suite") != new.suite:
         changes.append(f"suite: {_shown(old.get('suite'))} -> {_shown(new.suite)}")
+    elif recorded_suite is not None and recorded_suite != resolved.suite.name:
+        hint = (
+            " (the same --suite now resolves to another protocol, e.g. a changed default such as "
+            "LIBERO's seeding; name the recorded one in --suite)"
+            if old.get("suite") == new.suite
+            else ""
+        )
+        changes.append(f"suite: {_shown(recorded_suite)} -> {_shown(resolved.suite.name)}{hint}")
     recorded_tasks = (manifest.get("suite") or {}).get("tasks")
     tasks = [t.name for t in resolved.tasks]
     if recorded_tasks is None:  # a manifest without the resolved names: the config's

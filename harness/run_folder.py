@@ -129,7 +129,6 @@ def open_run(
                 f"--resume: {str(out)!r} belongs to a different config ({'; '.join(changes)}); "
                 "use another --out, or --overwrite to replace it"
             )
-        notices = adopt_recorded_params(manifest, recorded, resolved)
         suites = sorted(set(recorded["suite"]) - {resolved.suite.name}) if len(recorded) else []
         if suites:
             raise UsageError(
@@ -137,6 +136,7 @@ def open_run(
                 f"{resolved.suite.name!r} (a changed default, e.g. LIBERO's seeding); resuming would "
                 "mix the two. Name the old one in --suite, or use another --out"
             )
+        notices = adopt_recorded_params(manifest, recorded, resolved)
         changed = changed_checkpoints(manifest, recorded, resolved)
         if changed:
             raise UsageError(

@@ -1,7 +1,9 @@
-"""A run killed with SIGKILL loses at most the episode in flight and resumes exactly."""
+"""A run killed with SIGKILL loses at most the episode in flight and resumes exactly;
+--resume continues the recorded config, extends it, and survives a policy upgrade."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -11,8 +13,12 @@ import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
+import pytest
 
+from harness.errors import UsageError
+from harness.runner import run
 from results.store import RunDir
+from tests.fakes import ChunkPolicy, fake_resolved
 
 REPO = Path(__file__).resolve().parent.parent
 ARGS = [
@@ -169,8 +175,6 @@ def test_more_episodes_per_task_extend_a_finished_run_and_fewer_are_refused(cli,
 def test_a_policy_upgrade_adding_a_defaulted_parameter_does_not_run_recorded_episodes_again(
     cli, tmp_path, monkeypatch
 ):
-    import dataclasses
-
     import policies.registry
     from policies.scripted import RANDOM, RandomParams, RandomPolicy
 
@@ -223,3 +227,27 @@ def test_ctrl_c_while_compacting_stops_in_one_line_and_loses_no_row(cli, tmp_pat
     monkeypatch.undo()
     code, _, err = cli("run", "--out", str(out), "--resume", "--quiet")
     assert code == 0 and pq.read_table(out / "episodes.parquet").num_rows == 3
+
+
+def test_a_suite_default_that_changed_is_named_and_naming_the_recorded_protocol_resumes(tmp_path):
+    """The suite is compared by the name it resolved to: the same --suite resolving to
+    another protocol (LIBERO's seeding default) is refused with the fix, and naming the
+    recorded protocol explicitly is the same suite."""
+
+    def resolving_to(name: str, config_suite: str, episodes: int):
+        resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=episodes)
+        resolved.suite = dataclasses.replace(resolved.suite, name=name)
+        resolved.config = dataclasses.replace(resolved.config, suite=config_suite)
+        return resolved
+
+    out = tmp_path / "run"
+    run(resolving_to("fake/countdown:seeding=old", "fake/countdown", 2), out)
+    with pytest.raises(
+        UsageError,
+        match=r"suite: \"fake/countdown:seeding=old\" -> \"fake/countdown:seeding=new\" \(the same --suite now resolves to another protocol",
+    ):
+        run(resolving_to("fake/countdown:seeding=new", "fake/countdown", 3), out, resume=True)
+    report = run(
+        resolving_to("fake/countdown:seeding=old", "fake/countdown:seeding=old", 3), out, resume=True
+    )
+    assert (report.skipped, report.executed) == (2, 1)
