@@ -21,6 +21,7 @@ from harness.episode import EpisodeOutcome
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.manifest import now, record_end_calibration
 from harness.run_folder import acquire, check_output, check_path, io_error, open_run
+from harness.warmup import record_warm_up, warm_up_run
 from results.lock import RunLock
 from results.schema import EPISODE_KEY
 from results.store import RunDir
@@ -260,6 +261,8 @@ def _run_planned(
             tick(outcome.success)
 
     try:
+        # one-off costs (first calls, lazy init) paid here, outside the rows (harness/warmup.py)
+        record_warm_up(run_dir, warm_up_run(resolved, jobs, envs))
         execution = execution or Execution()
         on_worker = record_execution(run_dir, execution)  # backend and workers, per session
         execute(resolved, jobs, on_done, traces, envs, execution, on_worker)

@@ -56,7 +56,7 @@ def test_each_episode_is_durable_before_the_next_starts(tmp_path):
             super().reset(episodes)
 
     run(fake_resolved(Watching(chunk=2), episodes=4), out)
-    assert seen_parts == [0, 1, 2, 3]
+    assert seen_parts == [0, 0, 1, 2, 3]  # the warm-up's reset (harness/warmup.py), then one per episode
 
 
 def test_resume_runs_only_missing_episodes_and_retry_failed_reruns_failures(tmp_path):
@@ -136,14 +136,14 @@ def test_a_run_that_stops_before_its_episodes_closes_the_pre_flight_env(tmp_path
 
 def test_a_policy_calling_sys_exit_fails_its_episode_and_the_run_goes_on(tmp_path):
     class Exits(ChunkPolicy):
-        episodes = 0
+        episode = -1
 
         def reset(self, episodes):
             super().reset(episodes)
-            self.episodes += 1
+            self.episode = episodes[0].episode_index
 
         def act(self, observations):
-            if self.episodes == 2:
+            if self.episode == 1:
                 raise SystemExit(3)
             return super().act(observations)
 
