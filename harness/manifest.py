@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.config import ResolvedRun
+from harness.device import device_record
 from harness.threads import threads_record
 from policies.dvla import checkpoint_fields
 
@@ -268,6 +269,7 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
                 "checkpoint_sha256": p.checkpoint_sha256,
                 # what training fixed (recipe, noise_schedule, block_size): plot axes and hues
                 "checkpoint_fields": checkpoint_fields(p.checkpoint) if p.checkpoint else {},
+                "device": getattr(p.policy, "device", None),  # None: no model to place
             }
             for p in resolved.policies
         ],
@@ -275,6 +277,7 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
         "calibration": start_calibration(),
         # torch's CPU threads: asked for (--threads, OMP_NUM_THREADS or the default) and in use
         "threads": threads_record(),
+        "device": device_record(),  # run --device: asked for, used, the GPU
         "command": sys.argv,
         "started_at": now(),
         "finished_at": None,

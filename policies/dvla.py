@@ -234,28 +234,45 @@ class DVLAPolicy:
     """A checkpointed action-token model decoded by one of the decoders."""
 
     def __init__(self, params: Any, pattern: str, decode: Callable[..., Any]):
-        from policies.checkpoint import CheckpointError, load
-
         if not Path(params.checkpoint).is_file():
             raise ValueError(
                 f"checkpoint {params.checkpoint!r} does not exist; pass checkpoint=PATH or a "
                 f"shipped set ({', '.join(shipped_sets())}); train one with `dvla-harness train`"
             )
+        self.params = params
+        self._pattern = pattern
+        self._decode = decode
+        self._instructions: list[str] = []
+        self._load("cpu")
+
+    def _load(self, device: str) -> None:
+        from policies.checkpoint import CheckpointError, load
+
         try:
-            self.ckpt = load(params.checkpoint)
+            self.ckpt = load(self.params.checkpoint)
         except CheckpointError as exc:
             raise ValueError(str(exc)) from None
         got = self.ckpt.model.cfg.pattern
-        if got != pattern:
-            raise ValueError(f"{params.checkpoint}: a {got} model; this decoder needs a {pattern} model")
-        self._set_block_size(getattr(params, "block_size", 0))
-        from policies.kernels import pack_linears
+        if got != self._pattern:
+            raise ValueError(
+                f"{self.params.checkpoint}: a {got} model; this decoder needs a {self._pattern} model"
+            )
+        self._set_block_size(getattr(self.params, "block_size", 0))
+        if device == "cpu":
+            from policies.kernels import pack_linears
 
-        pack_linears(self.ckpt.model)  # decoding's small passes, ~2x faster on a CPU
+            pack_linears(self.ckpt.model)  # decoding's small passes, ~2x faster on a CPU
+        else:
+            self.ckpt.model = self.ckpt.model.to(device)
         self.model = self.ckpt.model
-        self.params = params
-        self._decode = decode
-        self._instructions: list[str] = []
+        self.device = device
+
+    def to_device(self, device: str) -> None:
+        """Decode on `device` ('cpu', 'cuda') from now on (`run --device`). The model is
+        loaded again from its checkpoint: CPU-packed linears (policies/kernels.py) do not
+        move to a GPU."""
+        if device != self.device:
+            self._load(device)
 
     def _set_block_size(self, block_size: int) -> None:
         """Decode with another block size than training used: the attention mask and the
@@ -304,10 +321,11 @@ class DVLAPolicy:
         if self.model.cfg.cameras:
             images = torch.from_numpy(
                 np.stack([[o[cam] for cam in self.model.cfg.cameras] for o in observations])
-            )
+            ).to(self.device)
+        words, state = words.to(self.device), state.to(self.device)  # no copy on the CPU
         with torch.inference_mode():
             decoded = self._decode(self.model, words, state, self.params, images)
-        actions = self.ckpt.tokenizer.decode(decoded.tokens.numpy())
+        actions = self.ckpt.tokenizer.decode(decoded.tokens.cpu().numpy())  # waits for the GPU
         return ChunkBatch(
             actions=actions,
             action_tokens=int(decoded.tokens.numel()),

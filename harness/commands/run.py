@@ -118,6 +118,15 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         f"{DEFAULT_THREADS_PER_WORKER}: more threads spin against other jobs on a busy machine; "
         "recorded in the manifest)",
     )
+    from harness.device import DEFAULT_DEVICE, DEVICES
+
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default=DEFAULT_DEVICE,
+        help="where model policies decode: cpu (default: what every baseline was measured on), "
+        "cuda (refused without a GPU), auto (cuda when a GPU is visible); recorded in the manifest",
+    )
 
 
 def config_from_args(args: argparse.Namespace):
@@ -148,13 +157,22 @@ def config_from_args(args: argparse.Namespace):
     return build_config(data)
 
 
+def prepare_compute(args: argparse.Namespace) -> None:
+    """Before the policies are built: torch's threads set before it does any work, and a
+    device that cannot be had refused (exit 2) before any model is loaded."""
+    from harness.device import resolve_device
+    from harness.threads import apply_threads
+
+    apply_threads(args.threads)
+    resolve_device(args.device)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from harness.config import resolve
-    from harness.threads import apply_threads
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed only makes sense with --resume")
-    apply_threads(args.threads)  # before the policies load torch
+    prepare_compute(args)
     resolved = resolve(config_from_args(args))
     return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
 
@@ -168,12 +186,14 @@ def execute_run(
     display names per policy_config_id for the summary (a sweep's grid points).
     """
     from harness.backends.options import execution_from_args
+    from harness.device import apply_device
     from harness.runner import run
     from harness.threads import apply_threads
     from results.render import summary_table
     from results.summary import summarize
 
     apply_threads(args.threads)  # again, now that torch is loaded: its inter-op threads too
+    apply_device(resolved.policies, args.device)
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     out = Path(args.out) if args.out else None

@@ -52,10 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from harness.commands.run import config_from_args, execute_run
+    from harness.commands.run import config_from_args, execute_run, prepare_compute
     from harness.config import load_config_file, resolve
     from harness.sweep import expand, parse_grid, point_label
-    from harness.threads import apply_threads
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed only makes sense with --resume")
@@ -63,7 +62,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         raise UsageError("sweep needs the policy to vary: --policy NAME (e.g. --policy fast_dvla)")
     grid = parse_grid(args.grid or [])
     config = expand(config_from_args(args), grid)
-    apply_threads(args.threads)  # before the policies load torch
+    prepare_compute(args)  # threads and device, before the policies load torch
     resolved = resolve(config)
     labels = {p.config_id: point_label(p.spec.name, _raw(p.params), grid) for p in resolved.policies}
     return execute_run(resolved, args, "the same `dvla-harness sweep` command with --resume", labels)
