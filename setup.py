@@ -3,16 +3,26 @@
 Everything else about the package is in pyproject.toml. An installed copy has no .git
 beside it, so `harness.manifest.git_commit()` reads harness/_build_info.json, which
 build_py writes into the built package (never into the source tree).
+
+setuptools builds in `build/` beside the sources, so a plain `pip install .` left a
+`build/` and a `dvla_harness.egg-info/` folder in the clone (issue 22); both default to
+temporary folders here, removed when the build ends (explicit `build_base` or
+`egg_base` options are kept as given).
 """
 
 from __future__ import annotations
 
+import atexit
 import json
+import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 from setuptools import setup
+from setuptools.command.build import build
 from setuptools.command.build_py import build_py
+from setuptools.command.egg_info import egg_info
 
 HERE = Path(__file__).resolve().parent
 BUILD_INFO = "_build_info.json"  # harness.manifest.BUILD_INFO
@@ -49,5 +59,28 @@ class BuildPyWithCommit(build_py):
             write_build_info(target, self.distribution.get_version())
 
 
+def scratch_dir() -> str:
+    """A temporary folder removed when the build process ends."""
+    path = tempfile.mkdtemp(prefix="dvla-harness-build-")
+    atexit.register(shutil.rmtree, path, True)
+    return path
+
+
+class BuildOutsideClone(build):
+    def finalize_options(self) -> None:
+        if self.build_base in (None, "build"):  # setuptools' default: inside the clone
+            self.build_base = scratch_dir()
+        super().finalize_options()
+
+
+class EggInfoOutsideClone(egg_info):
+    def finalize_options(self) -> None:
+        if self.egg_base is None:  # setuptools' default: the clone (dvla_harness.egg-info/)
+            self.egg_base = scratch_dir()
+        super().finalize_options()
+
+
 if __name__ == "__main__":  # how setuptools' build backend runs this file
-    setup(cmdclass={"build_py": BuildPyWithCommit})
+    setup(
+        cmdclass={"build": BuildOutsideClone, "build_py": BuildPyWithCommit, "egg_info": EggInfoOutsideClone}
+    )

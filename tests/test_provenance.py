@@ -58,13 +58,9 @@ def test_an_installed_copy_without_git_reads_the_commit_recorded_at_build(tmp_pa
     assert manifest_module.git_commit() is None
 
 
-def test_a_non_editable_build_carries_the_commit(tmp_path):
-    """What `pip install .` builds (without build isolation, so no network): the wheel's
-    harness package holds _build_info.json with the checkout's HEAD."""
-    commit = head()
-    extra = tmp_path / "build.cfg"  # keep setuptools' build folder out of the clone
-    extra.write_text(f"[build]\nbuild_base = {tmp_path / 'build'}\n")
-    out = subprocess.run(
+def pip_wheel(source: str, out: Path, cwd: Path, env: dict[str, str] | None = None) -> None:
+    """`pip wheel` without build isolation (no network) and without dependencies."""
+    done = subprocess.run(
         [
             sys.executable,
             "-m",
@@ -74,17 +70,27 @@ def test_a_non_editable_build_carries_the_commit(tmp_path):
             "--no-deps",
             "-q",
             "-w",
-            str(tmp_path),
-            str(REPO),
+            str(out),
+            source,
         ],
+        cwd=cwd,
         capture_output=True,
         text=True,
-        env={**os.environ, "DIST_EXTRA_CONFIG": str(extra)},
+        env=env,
         timeout=300,
     )
-    if out.returncode != 0 and "No module named pip" in out.stderr:
+    if done.returncode != 0 and "No module named pip" in done.stderr:
         pytest.skip("pip is not installed in this environment")
-    assert out.returncode == 0, out.stderr
+    assert done.returncode == 0, done.stderr
+
+
+def test_a_non_editable_build_carries_the_commit(tmp_path):
+    """What `pip install .` builds (without build isolation, so no network): the wheel's
+    harness package holds _build_info.json with the checkout's HEAD."""
+    commit = head()
+    extra = tmp_path / "build.cfg"  # keep setuptools' build folder out of the clone
+    extra.write_text(f"[build]\nbuild_base = {tmp_path / 'build'}\n")
+    pip_wheel(str(REPO), tmp_path, REPO, {**os.environ, "DIST_EXTRA_CONFIG": str(extra)})
     (wheel,) = tmp_path.glob("dvla_harness-*.whl")
     with zipfile.ZipFile(wheel) as zf:
         info = json.loads(zf.read("harness/_build_info.json"))
@@ -117,3 +123,17 @@ def test_a_state_run_records_no_renderer_and_old_runs_are_not_flagged_for_it(cli
     b = write_run(tmp_path / "b", episodes("fast_dvla", FAST, "fast000001", [1]), old)
     (board,) = leaderboards([load_run(a), load_run(b)])
     assert not any("MUJOCO_GL" in w for w in board.warnings), board.warnings
+
+
+def test_building_from_a_clone_leaves_no_build_folder_in_it(tmp_path):
+    """What a plain `pip install .` runs (a wheel build, here without build isolation, so
+    no network): setuptools' build/ and egg-info folders land outside the clone."""
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", str(REPO), str(clone)], check=True, timeout=120)
+    shutil.copy(REPO / "setup.py", clone / "setup.py")  # this checkout's hook, committed or not
+    pip_wheel(".", tmp_path, clone)
+    assert len(list(tmp_path.glob("dvla_harness-*.whl"))) == 1
+    left = subprocess.run(
+        ["git", "status", "--short", "--ignored"], cwd=clone, capture_output=True, text=True, check=True
+    ).stdout
+    assert left.strip() in ("", "M setup.py"), left  # no build/, no dvla_harness.egg-info/
