@@ -26,6 +26,21 @@ def calibrated(start: float, end: float | None = None) -> dict:
     return m
 
 
+def drifted_and_steady(tmp_path):
+    """Two run folders: one whose calibration halved during the run, one that held."""
+    drifted = write_run(
+        tmp_path / "busy",
+        episodes("bidirectional", BIDI, "bidi000001", [1, 1]),
+        calibrated(10_355.0, 5_192.0),
+    )
+    steady = write_run(
+        tmp_path / "idle",
+        episodes("fast_dvla", FAST, "fast000001", [1, 0]),
+        calibrated(10_000.0, 9_900.0),
+    )
+    return drifted, steady
+
+
 @pytest.mark.parametrize(
     ("end", "reliable"),
     [(10_000.0, True), (8_000.0, True), (12_400.0, True), (5_192.0, False), (13_000.0, False)],
@@ -55,16 +70,7 @@ def test_an_interrupted_run_is_not_judged_and_old_manifests_are_judged_from_thei
 
 
 def test_show_and_leaderboard_warn_once_about_a_drifted_run(cli, tmp_path):
-    drifted = write_run(
-        tmp_path / "busy",
-        episodes("bidirectional", BIDI, "bidi000001", [1, 1]),
-        calibrated(10_355.0, 5_192.0),
-    )
-    steady = write_run(
-        tmp_path / "idle",
-        episodes("fast_dvla", FAST, "fast000001", [1, 0]),
-        calibrated(10_000.0, 9_900.0),
-    )
+    drifted, steady = drifted_and_steady(tmp_path)
     code, out, _ = cli("show", str(drifted))
     lines = [line for line in out.splitlines() if line.startswith("warning:")]
     assert code == 0 and len(lines) == 1 and "speed figures of this run are unreliable" in lines[0]
@@ -87,3 +93,16 @@ def test_the_flag_written_in_a_manifest_is_what_counts(tmp_path):
     )
     assert json.loads((path / "manifest.json").read_text())["calibration"]["start"]["passes_per_s"] == 9_000.0
     assert "moved -67%" in load_run(path).speed_warning
+
+
+def test_paper_table_and_html_report_warn_about_a_drifted_run_as_leaderboard_does(cli, tmp_path):
+    drifted, steady = drifted_and_steady(tmp_path)
+    _, _, board_err = cli("leaderboard", str(drifted), str(steady))
+    (want,) = [line for line in board_err.splitlines() if "speed figures unreliable" in line]
+    assert want.endswith("the machine's load changed during the run")
+    for argv in (["paper-table"], ["html", "--out", str(tmp_path / "report")]):
+        code, _, err = cli("report", *argv, str(drifted), str(steady))
+        assert code == 0, err
+        assert [line for line in err.splitlines() if "speed figures unreliable" in line] == [want], argv
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert "speed figures unreliable" in page and "moved -50%" in page
