@@ -45,13 +45,7 @@ def recorded_config_data(out: Path) -> dict[str, Any] | None:
         config = run_dir.read_manifest(required=("config",))["config"]
     except ResultsFileError as exc:
         raise UsageError(f"--resume: {exc}") from None
-    data = {
-        key: config[key]
-        for key in ("suite", "tasks", "episodes_per_task", "replan_every", "split")
-        if key in config
-    }
-    if "policies" in config:
-        data["policy"] = config["policies"]
+    data = config_data(config)
     try:
         build_config(dict(data))
     except UsageError as exc:
