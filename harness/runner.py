@@ -147,6 +147,7 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "started_at": out.started_at,
         "host": out.host,
         "worker_id": out.worker_id,
+        "speed_reliable": None,  # the run's calibration verdict, set when it finishes (_finish)
     }
 
 
@@ -310,6 +311,13 @@ def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None 
         failure = failure or io_error(run_dir.path, "writing manifest.json", exc)
     except KeyboardInterrupt:
         raise stopped from None
+    if failure is None and not interrupted and "speed_reliable" in manifest:
+        try:  # the rows carry the run's verdict too, for whoever reads the Parquet alone
+            run_dir.stamp_rows("speed_reliable", manifest["speed_reliable"])
+        except OSError as exc:
+            failure = io_error(run_dir.path, "writing speed_reliable into episodes.parquet", exc)
+        except KeyboardInterrupt:  # the rewrite is atomic: the rows are as they were
+            raise stopped from None
     try:
         extra = {"reason": reason} if reason else {}
         run_dir.log_event("run_" + status, executed=report.executed, failed=report.failed, **extra)

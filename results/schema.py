@@ -123,6 +123,17 @@ COLUMNS: tuple[Column, ...] = (
         "rows written before it was recorded.",
         nullable=True,
     ),
+    Column(
+        "speed_reliable",
+        pa.bool_(),
+        "",
+        "False when the run's calibration moved beyond the tolerance between its start and end "
+        "(the machine's load changed; the manifest's speed_warning says how much): this row's "
+        "timings (policy_time_s, tokens_per_s, control_hz, ...) are not comparable. Set on every "
+        "row when the run finishes; null while it runs, after an interrupt, for runs without "
+        "torch policies, and in rows written before it was recorded.",
+        nullable=True,
+    ),
 )
 
 COLUMN_NAMES = tuple(c.name for c in COLUMNS)

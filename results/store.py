@@ -366,6 +366,18 @@ class RunDir:
         df = df.drop_duplicates(subset=list(EPISODE_KEY), keep="last")
         return df.reset_index(drop=True)[list(COLUMN_NAMES)]
 
+    def stamp_rows(self, column: str, value: Any) -> None:
+        """Set `column` to `value` in every row of episodes.parquet (atomically): a verdict
+        on the whole run known only at its end (calibration drift: speed_reliable)."""
+        path = self.path / EPISODES
+        if not path.is_file():
+            return
+        table = read_table(path)
+        index = table.schema.get_field_index(column)
+        field = table.schema.field(index)
+        table = table.set_column(index, field, pa.array([value] * len(table), field.type))
+        _write_table(path, table.replace_schema_metadata(arrow_schema().metadata))
+
     def compact(self) -> None:
         """Fold pending rows into episodes.parquet (atomically), then drop pending.jsonl."""
         handles, self._pending, self._traces = (self._pending, self._traces), None, None

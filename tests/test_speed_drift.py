@@ -106,3 +106,20 @@ def test_paper_table_and_html_report_warn_about_a_drifted_run_as_leaderboard_doe
         assert [line for line in err.splitlines() if "speed figures unreliable" in line] == [want], argv
     page = (tmp_path / "report" / "index.html").read_text()
     assert "speed figures unreliable" in page and "moved -50%" in page
+
+
+def test_a_drifted_run_marks_its_rows_and_a_steady_one_marks_them_reliable(monkeypatch, tmp_path):
+    import torch  # noqa: F401  runs are calibrated only when their policies loaded torch
+    from harness.runner import run
+    from results.store import RunDir
+    from tests.fakes import ChunkPolicy, fake_resolved
+
+    for name, speeds, want in (("busy", [10_000.0, 5_000.0], False), ("idle", [10_000.0, 9_800.0], True)):
+        readings = iter(speeds)
+        monkeypatch.setattr(
+            manifest_module, "measure_calibration", lambda r=readings: {"passes_per_s": next(r)}
+        )
+        run(fake_resolved(ChunkPolicy(chunk=2), episodes=3), tmp_path / name)
+        rows = RunDir(tmp_path / name).read_episodes()
+        assert len(rows) == 3 and rows["speed_reliable"].tolist() == [want] * 3
+        assert RunDir(tmp_path / name).read_manifest()["speed_reliable"] is want
