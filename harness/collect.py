@@ -34,6 +34,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from adapters.base import EpisodeSpec, TaskSpec
+from adapters.libero_states import InitialStateOverlap
 from harness.backends.local import episode_context
 from harness.config import ResolvedRun
 from harness.episode import run_episode
@@ -59,6 +60,13 @@ DEMO_COLUMNS = pa.schema(
 )
 
 
+# Per episode, for suites that draw fresh initial states (LIBERO's train split): the
+# sha256 of the flattened initial simulator state and its distance (m) to the nearest
+# evaluation state (adapters/libero_states.py). Columns only where the env reports them,
+# so other suites' folders stay byte for byte what they were.
+START_COLUMNS = {"initial_state_sha256": pa.string(), "initial_state_distance": pa.float64()}
+
+
 class RecordingEnv(gym.Wrapper):
     """Keeps (observation, action) pairs of the current episode; camera images as PNG."""
 
@@ -69,9 +77,17 @@ class RecordingEnv(gym.Wrapper):
         self.images: list[list[bytes]] = []  # per step, one PNG per camera
         self.actions: list[np.ndarray] = []
         self._last: Any = None
+        self.start: dict[str, Any] = {}  # the fresh initial state's hash and distance, if any
+        self.refused: InitialStateOverlap | None = None
 
     def reset(self, **kwargs):
-        obs, info = self.env.reset(**kwargs)
+        self.start, self.refused = {}, None
+        try:
+            obs, info = self.env.reset(**kwargs)
+        except InitialStateOverlap as exc:  # run_episode would make it one failed episode
+            self.refused = exc
+            raise
+        self.start = {k: info[k] for k in START_COLUMNS if k in info}
         self.observations, self.images, self.actions, self._last = [], [], [], obs
         return obs, info
 
@@ -127,6 +143,10 @@ class CollectReport:
     attempted: dict[str, int] = field(default_factory=dict)
     kept: dict[str, int] = field(default_factory=dict)
     steps: int = 0
+    # Per task, fresh initial states only: how many were drawn, and the smallest distance
+    # (m, largest object displacement) of any of them to an evaluation state.
+    fresh_states: dict[str, int] = field(default_factory=dict)
+    closest_to_evaluation: dict[str, float] = field(default_factory=dict)
     # Per task, where the env's state vector holds world positions (adapters/base.py);
     # training reads them for --state-features relative.
     state_positions: dict[str, list[int]] = field(default_factory=dict)
@@ -180,6 +200,9 @@ def collect(
                 outcome = run_episode(
                     env, policy_run.policy, counter, context, spec, resolved.config.replan_every
                 )
+                if env.refused is not None:
+                    raise UsageError(f"{task.name}: {env.refused}; nothing was written")
+                _note_start(report, task.name, env.start)
                 report.attempted[task.name] += 1
                 if outcome.success:
                     report.kept[task.name] += 1
@@ -193,10 +216,21 @@ def collect(
     if episode_id == 0:
         raise UsageError("no episode succeeded, so there is nothing to save; nothing was written")
     schema = DEMO_COLUMNS
+    if report.fresh_states:
+        for name, kind in START_COLUMNS.items():
+            schema = schema.append(pa.field(name, kind))
     for cam in cameras or []:
         schema = schema.append(pa.field(f"image_{cam}", pa.binary()))
     _write(resolved, out, pa.table(rows, schema=schema), report, cameras or [], action_noise)
     return report
+
+
+def _note_start(report: CollectReport, task: str, start: Mapping[str, Any]) -> None:
+    if "initial_state_distance" not in start:
+        return
+    report.fresh_states[task] = report.fresh_states.get(task, 0) + 1
+    distance = float(start["initial_state_distance"])
+    report.closest_to_evaluation[task] = min(report.closest_to_evaluation.get(task, distance), distance)
 
 
 def _state_positions(env: gym.Env) -> list[int]:
@@ -228,6 +262,9 @@ def _append_episode(
             ("action", action.tolist()),
         ):
             rows[name].append(value)
+    for name in START_COLUMNS:
+        if name in env.start:
+            rows.setdefault(name, []).extend([env.start[name]] * len(env.actions))
     for frames in env.images:
         for cam, data in zip(cameras, frames, strict=True):
             rows[f"image_{cam}"].append(data)
@@ -262,6 +299,16 @@ def _write(
         "observation_dim": len(table["observation"][0]),
         "action_dim": len(table["action"][0]),
         "state_positions": report.state_positions,
+        # Fresh initial states (LIBERO's train split): per task, how many were drawn and
+        # the closest any came to an evaluation state; none equals one (checked by hash).
+        "initial_states": {
+            task: {
+                "fresh": n,
+                "evaluation_overlap": 0,
+                "closest_to_evaluation_m": report.closest_to_evaluation[task],
+            }
+            for task, n in report.fresh_states.items()
+        },
         "cameras": cameras,
         "image_size": unpng(table[f"image_{cameras[0]}"][0].as_py()).shape[0] if cameras else 0,
         "steps_sha256": digest,

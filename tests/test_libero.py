@@ -210,6 +210,7 @@ def test_the_drawer_expert_narrows_its_fingers_with_a_fixed_count_then_holds(cli
     code, _, err = cli(
         "collect", "--suite", "libero/spatial", "--tasks", "4", "--policy", "libero_scripted",
         "--episodes-per-task", "1", "--out", str(out), "--quiet",
+        "--split", "eval",  # the evaluation states this was measured on
     )  # fmt: skip
     assert code == 0, err
     assert list(json.loads((out / "manifest.json").read_text())["episodes_kept"].values()) == [1]
@@ -230,6 +231,7 @@ def test_the_expert_lifts_in_the_step_its_grip_settles(cli, tmp_path, revision, 
     code, _, err = cli(
         "collect", "--suite", "libero/object", "--tasks", "5", "--policy",
         f"libero_scripted:revision={revision}", "--episodes-per-task", "1", "--out", str(out), "--quiet",
+        "--split", "eval",  # the evaluation states this was measured on
     )  # fmt: skip
     assert code == 0, err
     table = pq.read_table(out / "steps.parquet").to_pydict()
@@ -254,6 +256,7 @@ def test_the_expert_grasps_and_lets_go_once_its_hand_has_stopped(cli, tmp_path, 
     code, _, err = cli(
         "collect", "--suite", "libero/spatial", "--tasks", "6", "--policy",
         f"libero_scripted:revision={revision}", "--episodes-per-task", "2", "--out", str(out), "--quiet",
+        "--split", "eval",  # the evaluation states this was measured on
     )  # fmt: skip
     assert code == 0, err
     table = pq.read_table(out / "steps.parquet").to_pandas()

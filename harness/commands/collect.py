@@ -19,7 +19,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Run one policy through the ordinary episode loop and keep its successful "
             "episodes as demonstrations for `dvla-harness train` (format: "
             "docs/demonstrations.md). By default episodes come from the suite's train "
-            "split, which never shares a layout with evaluation."
+            "split, which never shares a layout with evaluation; for LIBERO that means fresh "
+            "initial states drawn from each task's BDDL distribution and checked against the "
+            "evaluation ones (suite option initial_states=fresh|evaluation, states_seed=N)."
         ),
         epilog="example:\n  dvla-harness collect --suite metaworld/mt10 --policy scripted --episodes-per-task 50 --out demos/mt10",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -83,4 +85,12 @@ def cmd_collect(args: argparse.Namespace) -> int:
         table.add_row(task, f"{report.kept[task]} / {attempted}")
     console.print(table)
     console.print(f"{sum(report.kept.values())} episodes, {report.steps} steps")
+    if report.fresh_states:
+        closest = min(report.closest_to_evaluation.values())
+        console.print(
+            f"initial states: {sum(report.fresh_states.values())} fresh draws from each task's BDDL "
+            f"distribution ({resolved.suite.name}); none equals an evaluation state (sha256 checked); "
+            f"the closest is {closest * 1000:.1f} mm from one (largest object displacement)",
+            soft_wrap=True,
+        )
     return 0
