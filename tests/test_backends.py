@@ -54,7 +54,8 @@ def test_workers_give_the_rows_of_one_process_and_say_where_they_ran(tmp_path):
     a, b = _rows(alone), _rows(pooled)
     assert len(b) == 6 and b["failure_reason"].isna().all()
     _same_results(a, b)
-    assert set(a["worker_id"]) == {"main"} and set(b["worker_id"]) == {"local-0", "local-1"}
+    # (a worker that starts first may take both tasks before the other is up)
+    assert set(a["worker_id"]) == {"main"} and set(b["worker_id"]) <= {"local-0", "local-1"}
     assert set(a["host"]) == set(b["host"]) == {HOST}
     # a task's episodes stay with one worker
     assert b.groupby("task")["worker_id"].nunique().eq(1).all()
