@@ -64,6 +64,8 @@ def test_workers_give_the_rows_of_one_process_and_say_where_they_ran(tmp_path):
     workers = session["worker_threads"]
     assert sorted(w["worker_id"] for w in workers) == ["local-0", "local-1"]
     assert all(w["threads"] == 1 and w["workers"] == 2 and w["pid"] != os.getpid() for w in workers)
+    # each worker warmed its policy up before its first timed episode
+    assert all([p["policy"] for p in w["warm_up"]["policies"]] == ["fake"] for w in workers)
 
 
 def test_lost_workers_episodes_are_rerun_then_recorded_as_failures(tmp_path):

@@ -6,7 +6,7 @@ import socket
 import traceback
 from collections.abc import Callable
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
@@ -16,6 +16,7 @@ from harness.nfe import NFECounter
 from policies.base import EpisodeContext
 
 if TYPE_CHECKING:
+    from harness.backends.schedule import JobId as EpisodeJobKey
     from harness.config import ResolvedRun
     from harness.runner import EpisodeJob
 
@@ -131,3 +132,18 @@ def execute_local(
             on_done(job, outcome)
     finally:
         runner.close()
+
+
+def start_worker(
+    resolved: ResolvedRun, traces: bool
+) -> tuple[EpisodeRunner, dict[EpisodeJobKey, EpisodeJob], Any]:
+    """A worker's runner, its episodes by key, and its warm-up record: each worker process
+    pays its policies' one-off costs (first calls, lazy init) before its first timed
+    episode, as the writing process does for its own (harness/warmup.py), on the run's
+    first task."""
+    from harness.backends.schedule import index_jobs
+    from harness.warmup import warm_up_run
+
+    runner = EpisodeRunner(resolved, traces)
+    jobs = index_jobs(resolved)
+    return runner, jobs, warm_up_run(resolved, list(jobs.values()), runner.envs)

@@ -21,8 +21,8 @@ from functools import partial
 from multiprocessing import connection, get_context
 from typing import TYPE_CHECKING, Any
 
-from harness.backends.local import HOST, EpisodeRunner
-from harness.backends.schedule import Event, JobId, index_jobs
+from harness.backends.local import HOST, start_worker
+from harness.backends.schedule import Event, JobId
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -86,14 +86,13 @@ def worker_main(
 
     apply_threads(threads, workers)  # before the policies load torch
     try:
-        resolved = rebuild()
-        jobs = index_jobs(resolved)
-        runner = EpisodeRunner(resolved, traces)
+        runner, jobs, warm_up = start_worker(rebuild(), traces)
     except BaseException as exc:
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
     apply_threads(threads, workers)  # again with torch loaded: its inter-op threads too
-    conn.send(("ready", {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()))
+    record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
+    conn.send(("ready", record | {"warm_up": warm_up}))
     try:
         while True:
             try:

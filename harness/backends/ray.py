@@ -26,7 +26,7 @@ from functools import partial
 from typing import TYPE_CHECKING, Any
 
 from harness.backends.pool import rebuild_from_config, worker_threads
-from harness.backends.schedule import Event, JobId, index_jobs
+from harness.backends.schedule import Event, JobId
 from harness.errors import UsageError
 
 if TYPE_CHECKING:
@@ -93,20 +93,19 @@ class EpisodeActor:
     def __init__(
         self, worker_id: str, rebuild: Callable[[], ResolvedRun], threads: int, workers: int, traces: bool
     ):
-        from harness.backends.local import HOST, EpisodeRunner
+        from harness.backends.local import HOST, start_worker
         from harness.threads import apply_threads, threads_record
 
         self.worker_id, self.host, self.error = worker_id, HOST, ""
         apply_threads(threads, workers)
         try:
-            resolved = rebuild()
-            self.jobs = index_jobs(resolved)
-            self.runner = EpisodeRunner(resolved, traces)
+            self.runner, self.jobs, warm_up = start_worker(rebuild(), traces)
         except Exception as exc:  # said by ready(), not as a dead actor retried in vain
             self.error = f"{type(exc).__name__}: {exc}"
             return
         apply_threads(threads, workers)
-        self.record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
+        record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
+        self.record = record | {"warm_up": warm_up}
 
     def ready(self) -> tuple[str, Any]:
         return ("error", self.error) if self.error else ("ready", self.record)
