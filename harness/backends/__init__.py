@@ -43,6 +43,8 @@ class Execution:
     rebuild: makes the ResolvedRun again inside each worker (policies and envs are not
     sent between processes); None rebuilds from the config with `harness.config.resolve`.
     threads: torch/BLAS threads per worker; None = `harness.threads.default_threads`.
+    device: --device for each worker's policies (harness/device.py); None leaves them
+      where they were built.
     """
 
     backend: str = "local"
@@ -52,6 +54,7 @@ class Execution:
     ray_address: str | None = None
     ray_num_gpus: float = 0.0
     threads: int | None = None
+    device: str | None = None
     rebuild: Callable[[], ResolvedRun] | None = None
 
     @property

@@ -81,6 +81,7 @@ def execution_from_args(args: argparse.Namespace) -> Execution:
         ray_address=args.ray_address,
         ray_num_gpus=args.ray_num_gpus,
         threads=getattr(args, "threads", None),
+        device=getattr(args, "device", None),
     )
     if backend == "ray":
         from harness.backends.ray import connect

@@ -33,11 +33,17 @@ if TYPE_CHECKING:
 _PR_SET_PDEATHSIG = 1
 
 
-def rebuild_from_config(config: Any) -> ResolvedRun:
-    """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`)."""
+def rebuild_from_config(config: Any, device: str | None = None) -> ResolvedRun:
+    """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`),
+    its policies moved to `device` as --device moved the writing process's."""
     from harness.config import resolve
 
-    return resolve(config)
+    resolved = resolve(config)
+    if device is not None:
+        from harness.device import apply_device
+
+        apply_device(resolved.policies, device)
+    return resolved
 
 
 def worker_threads(execution: Execution) -> int:
@@ -113,7 +119,7 @@ class ProcessWorkers:
 
     def __init__(self, resolved: ResolvedRun, execution: Execution, traces: bool):
         self.context = get_context("spawn")
-        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config, execution.device)
         self.threads, self.asked = worker_threads(execution), execution.threads
         self.workers, self.traces = execution.workers, traces
         self.procs: dict[int, Any] = {}

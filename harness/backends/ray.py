@@ -130,7 +130,7 @@ class RayWorkers:
         self.ray = ray
         self.owns_ray = execution.ray_address is None
         self.threads, self.asked = worker_threads(execution), execution.threads
-        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config, execution.device)
         self.workers, self.traces = execution.workers, traces
         self.actor_class = ray.remote(EpisodeActor).options(
             num_cpus=self.threads, num_gpus=execution.ray_num_gpus, max_restarts=0, max_task_retries=0
