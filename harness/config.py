@@ -29,7 +29,9 @@ from policies.registry import (
     parse_params,
 )
 
-CONFIG_KEYS = ("suite", "tasks", "episodes_per_task", "replan_every", "policy", "split")
+# batch_envs is how to execute (like --workers), read by `run` into its Execution: it is
+# not in RunConfig, so not in the fingerprint, and a resume may use another batch size.
+CONFIG_KEYS = ("suite", "tasks", "episodes_per_task", "replan_every", "policy", "split", "batch_envs")
 SPLITS = ("eval", "train")
 
 

@@ -46,6 +46,9 @@ class EpisodeOutcome:
     # Where it ran (the `host` and `worker_id` columns), set by the backend that ran it.
     host: str = ""
     worker_id: str = ""
+    # Environments stepped in lockstep with it, one policy call for them all (--batch-envs;
+    # the `batch_envs` column). 1: unbatched (run_episode).
+    batch_envs: int = 1
 
 
 # Beyond any action space a simulator clips to: a policy's arithmetic went wrong, and the
@@ -53,7 +56,7 @@ class EpisodeOutcome:
 ABSURD_ACTION = 1e6
 
 
-def _check_chunk(actions: np.ndarray, action_dim: int) -> None:
+def check_chunk(actions: np.ndarray, action_dim: int) -> None:
     if actions.ndim != 3 or actions.shape[0] != 1 or actions.shape[1] < 1:
         raise ValueError(
             f"policy returned actions of shape {actions.shape}; expected (1, chunk>=1, {action_dim})"
@@ -105,7 +108,7 @@ def run_episode(
             if traces is not None and batch.trace:
                 traces.append({**batch.trace[0], "chunk": chunks - 1, "step": steps})
             actions = np.asarray(batch.actions)
-            _check_chunk(actions, action_dim)
+            check_chunk(actions, action_dim)
             chunk = actions[0] if replan_every == 0 else actions[0, :replan_every]
             for action in chunk:
                 t = clock()

@@ -32,9 +32,9 @@ built inside `act` is forgotten with it) once the module's subtree holds paramet
 children added to a module after its first counted entry do not change its decision.
 
 Batches: a forward pass over a batch of K episodes' observations counts 1 for each of
-those K episodes: NFE is per episode, never divided by the batch. The runner calls
-policies with batch size 1 today; the batched decoders decode a whole batch in one pass
-per step, so each episode of a batch is charged the decoder's passes.
+those K episodes: NFE is per episode, never divided by the batch. With --batch-envs K
+(harness/batched.py) one `act_batch` call serves up to K episodes; the batched decoders
+decode it in one pass per step, and each episode the call served is charged every pass.
 
 Limitations. A model whose `forward` is called as `model.forward(...)` (not
 `model(...)`) runs no hook of its own, so each pass-starting child it calls counts as a

@@ -147,6 +147,7 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "started_at": out.started_at,
         "host": out.host,
         "worker_id": out.worker_id,
+        "batch_envs": out.batch_envs,
         "speed_reliable": None,  # the run's calibration verdict, set when it finishes (_finish)
     }
 

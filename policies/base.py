@@ -2,7 +2,9 @@
 
 Batched by design: `act` takes one observation per batch slot and returns one action
 chunk per slot, so a torch policy can decode several environments in one forward pass.
-The runner uses batch size 1 today.
+The runner calls `act` with batch size 1; `--batch-envs K` (harness/batched.py) steps K
+environments in lockstep and needs the optional `act_batch` below, because their episodes
+start and end at different times.
 
 What a policy reports about itself is limited to what only it can know (how many action
 tokens it decoded, an optional decode trace). Forward passes (NFE) and time are
@@ -68,3 +70,28 @@ class Policy(Protocol):
 # ValueError when the policy cannot act in a suite (a checkpoint trained on other
 # observations). The runner calls it once before it writes anything, so a mismatch is a
 # usage error (exit 2) instead of one failed row per episode.
+
+
+class BatchPolicy(Policy, Protocol):
+    """A policy that can serve episodes at different points of their run in one call.
+
+    `--batch-envs K` needs this (checked before anything is written): the K slots' episodes
+    start and end at different steps, and a slot whose action chunk is not used up needs no
+    call, so one call serves any subset of the running episodes. `reset([context])` is
+    still called once when each episode starts (checks, per-episode setup), but `act_batch`
+    must not depend on which episodes were reset last: what it needs per episode comes
+    from `episodes`, and nothing may carry over from one call to the next (a policy that
+    keeps per-episode state between chunks, such as a scripted expert's phase or a KV
+    cache kept across chunks, cannot declare it).
+    """
+
+    def act_batch(
+        self, episodes: Sequence[EpisodeContext], observations: Sequence[Observation]
+    ) -> ChunkBatch:
+        """One action chunk per (episode, observation) pair, in their order."""
+        ...
+
+
+def can_batch(policy: object) -> bool:
+    """Does `policy` declare `act_batch` (BatchPolicy), so --batch-envs K > 1 may use it?"""
+    return callable(getattr(policy, "act_batch", None))

@@ -307,6 +307,15 @@ class DVLAPolicy:
             self.check_spaces(ep.observation_space, ep.action_space)
         self._instructions = [ep.instruction for ep in episodes]
 
+    def act_batch(
+        self, episodes: Sequence[EpisodeContext], observations: Sequence[Observation]
+    ) -> ChunkBatch:
+        """Batched inference across environments (--batch-envs): the decoders keep nothing
+        between chunks (a KV cache lives inside one decode), so an episode's instruction is
+        all the per-episode state there is."""
+        self._instructions = [ep.instruction for ep in episodes]
+        return self.act(observations)
+
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
         import torch
 

@@ -38,7 +38,7 @@ from results.pairing import PAIR_KEY, ConfigPair, check_episodes_match, episode_
 from results.pairing import (
     GateInputError as GateInputError,  # raised from here; callers catch it by this name
 )
-from results.runs import Run
+from results.runs import Run, batch_sizes
 from results.simulator_versions import suspect as simulator_suspect
 
 
@@ -410,6 +410,15 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
         for side, run in (("baseline", baseline), ("candidate", candidate))
         if run.speed_warning
     )
+    sizes = {
+        side: batch_sizes(run.episodes) for side, run in (("baseline", baseline), ("candidate", candidate))
+    }
+    if len({size for side in sizes.values() for size in side}) > 1:
+        warnings += (
+            f"batch sizes differ (--batch-envs: baseline {sizes['baseline']}, candidate "
+            f"{sizes['candidate']}): the speed comparison sets batched against unbatched rows; run "
+            "both at one batch size",
+        )
     notes = result.notes + tuple(_machine_notes(manifests))
     suspect = simulator_suspect(manifests)
     moved = [t for t in result.tasks if t.task == "ALL" and (t.drops or t.gains)]

@@ -25,7 +25,7 @@ import pandas as pd
 from rich.table import Table
 
 from results.published import observation_regime, privileged_label
-from results.runs import Run, combined_episodes, dedupe_episodes, speed_warning
+from results.runs import Run, batch_sizes, combined_episodes, dedupe_episodes, speed_warning
 from results.simulator_versions import suspect as simulator_suspect
 from results.summary import wilson_interval
 
@@ -348,6 +348,12 @@ def _episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Map
     ):
         if df[column].nunique() > 1:
             warnings.append(f"rows differ in {what}: {sorted(map(str, df[column].unique()))}")
+    sizes = batch_sizes(df)
+    if len(sizes) > 1:
+        warnings.append(
+            f"rows ran at different batch sizes (--batch-envs {', '.join(map(str, sizes))}): speed "
+            "figures (tokens/s, Hz, speedups) are not comparable between them; compare speed within one"
+        )
     machines = df.groupby("policy_config_id")["machine"].nunique()
     for cid in machines[machines > 1].index:
         warnings.append(f"{labels[cid]} was measured on {machines[cid]} machines: one row per machine")

@@ -151,3 +151,11 @@ def dedupe_episodes(episodes: pd.DataFrame) -> tuple[pd.DataFrame, int]:
     kept = df.drop_duplicates([*EPISODE_KEY, "machine"], keep="last").reset_index(drop=True)
     kept.attrs["duplicates"] = episodes.attrs.get("duplicates", 0) + len(df) - len(kept)
     return kept, kept.attrs["duplicates"]
+
+
+def batch_sizes(df: pd.DataFrame) -> list[int]:
+    """The --batch-envs sizes of `df`'s rows; rows from before the column existed ran
+    unbatched (1)."""
+    if "batch_envs" not in df:
+        return [1] if len(df) else []
+    return sorted({int(b) for b in df["batch_envs"].fillna(1)})

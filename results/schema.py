@@ -124,6 +124,17 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     Column(
+        "batch_envs",
+        pa.int64(),
+        "",
+        "Environments stepped in lockstep with this episode, one policy call for all of them "
+        "(--batch-envs K); 1 = unbatched. NFE then counts each batched forward pass once for every "
+        "episode it served, and policy time is the call's time shared equally among them (see "
+        "'Batched inference'); speed figures compare only between rows of one batch size. Null in "
+        "rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
         "speed_reliable",
         pa.bool_(),
         "",

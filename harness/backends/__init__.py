@@ -6,7 +6,8 @@ every row; an executor only runs episodes and hands each outcome back to the run
 the episodes.
 
 - `local`, 1 worker (the default): this process, episodes one after another
-  (harness/backends/local.py).
+  (harness/backends/local.py), or K at a time in lockstep with --batch-envs K
+  (harness/batched.py).
 - `local`, N workers: N spawned processes (harness/backends/pool.py).
 - `ray`: N Ray actors, on this machine or a cluster (harness/backends/ray.py).
 
@@ -45,6 +46,8 @@ class Execution:
     threads: torch/BLAS threads per worker; None = `harness.threads.default_threads`.
     device: --device for each worker's policies (harness/device.py); None leaves them
       where they were built.
+    batch_envs: environments stepped in lockstep, one policy call for them all
+      (harness/batched.py); above 1 only in this process (--workers 1).
     """
 
     backend: str = "local"
@@ -55,6 +58,7 @@ class Execution:
     ray_num_gpus: float = 0.0
     threads: int | None = None
     device: str | None = None
+    batch_envs: int = 1
     rebuild: Callable[[], ResolvedRun] | None = None
 
     @property
@@ -70,6 +74,7 @@ class Execution:
             "episode_timeout_s": self.episode_timeout,
             "ray_address": self.ray_address,
             "ray_num_gpus": self.ray_num_gpus if self.backend == "ray" else None,
+            "batch_envs": self.batch_envs,
             "worker_threads": [],  # one entry per worker started, as each reports
         }
 
@@ -106,6 +111,11 @@ def execute(
     from harness.backends.local import execute_local
 
     execution = execution or Execution()
+    if execution.in_process and execution.batch_envs > 1:
+        from harness.batched import execute_batched
+
+        execute_batched(resolved, jobs, on_done, traces, envs, execution.batch_envs)
+        return
     if execution.in_process:
         execute_local(resolved, jobs, on_done, traces, envs)
         return

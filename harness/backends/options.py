@@ -45,6 +45,14 @@ def add_backend_arguments(p: argparse.ArgumentParser) -> None:
         "replaced (runs episodes in a worker process even with --workers 1)",
     )
     p.add_argument(
+        "--batch-envs",
+        type=int,
+        metavar="K",
+        help="step K environments of a task in lockstep and decode their observations in one policy "
+        "call (batched inference; this process only, policies that declare act_batch); default 1, "
+        "or the config's batch_envs",
+    )
+    p.add_argument(
         "--ray-address",
         metavar="auto|HOST:PORT",
         help="join a running Ray cluster (default: start a local Ray with this machine's cores)",
@@ -73,6 +81,10 @@ def execution_from_args(args: argparse.Namespace) -> Execution:
         raise UsageError("--ray-address and --ray-num-gpus apply to --backend ray; add it or drop them")
     if args.ray_num_gpus < 0:
         raise UsageError(f"--ray-num-gpus must be 0 or more, got {args.ray_num_gpus:g}")
+    batch_envs = getattr(args, "batch_envs", None)
+    batch_envs = 1 if batch_envs is None else batch_envs
+    if isinstance(batch_envs, bool) or not isinstance(batch_envs, int) or batch_envs < 1:
+        raise UsageError(f"--batch-envs must be an integer of at least 1, got {batch_envs!r}; 1 = unbatched")
     execution = Execution(
         backend=backend,
         workers=workers,
@@ -82,7 +94,13 @@ def execution_from_args(args: argparse.Namespace) -> Execution:
         ray_num_gpus=args.ray_num_gpus,
         threads=getattr(args, "threads", None),
         device=getattr(args, "device", None),
+        batch_envs=batch_envs,
     )
+    if batch_envs > 1 and not execution.in_process:
+        raise UsageError(
+            f"--batch-envs {batch_envs} runs in this process only; drop --workers/--backend ray/"
+            "--episode-timeout, or use --batch-envs 1 with them"
+        )
     if backend == "ray":
         from harness.backends.ray import connect
 

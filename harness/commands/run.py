@@ -57,7 +57,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--config",
         metavar="FILE",
-        help="TOML file with keys: suite, tasks, episodes_per_task, replan_every, [[policy]] name/params",
+        help="TOML file with keys: suite, tasks, episodes_per_task, replan_every, batch_envs, "
+        "[[policy]] name/params",
     )
     p.add_argument("--suite", help="suite name (see `dvla-harness list suites`)")
     p.add_argument(
@@ -137,6 +138,8 @@ def config_from_args(args: argparse.Namespace):
     recorded = recorded_config_data(Path(args.out)) if args.resume and args.out else None
     data = default_config_data() if recorded is None else recorded
     overrides = load_config_file(args.config) if args.config else {}
+    if getattr(args, "batch_envs", None) is None and "batch_envs" in overrides:
+        args.batch_envs = overrides["batch_envs"]  # how to execute, not what: not in RunConfig
     if args.suite:
         overrides["suite"] = args.suite
     if recorded is None and overrides.get("suite", data["suite"]) != data["suite"]:
@@ -196,6 +199,9 @@ def execute_run(
     apply_device(resolved.policies, args.device)
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
+    from harness.batched import check_batching
+
+    check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
     out = Path(args.out) if args.out else None
     if out is None:
         from datetime import UTC, datetime

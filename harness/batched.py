@@ -1,0 +1,342 @@
+"""Batched inference across environments (`--batch-envs K`): K envs of one task in lockstep.
+
+Each control step, every running slot executes one action of its chunk; the slots whose
+chunk is used up (a new episode, or the last action executed) are served by one
+`policy.act_batch` call for all of them, so a decoder runs one forward pass per step for
+up to K episodes. An episode that ends frees its slot at once for the next episode of
+the queue (same task, same policy), so the batch stays full until the queue runs dry.
+
+What each episode is charged, so that its row means what an unbatched row means:
+- NFE: every forward pass of a call counts 1 for each episode the call served (a pass
+  over K episodes is K episode-passes, never 1/K). An adaptive decoder (fast_dvla,
+  fast_dllm's threshold) runs until its slowest row is decoded, so a row may be charged
+  more passes than it needed alone: the passes it waited for.
+- Policy time: a call's time is shared equally among the slots it served.
+- Env time: the slot's own env.reset and env.step calls, timed one by one.
+- Wall clock: policy share + env time + an equal share of the loop's own bookkeeping in
+  each step among the slots running in it. The rows' wall clocks therefore add up to the
+  time the loop ran, and episodes/s = rows / sum(wall_clock_s) as for unbatched rows.
+- Tokens: a call's action_tokens split equally among its slots (the shipped decoders
+  decode the same number of tokens per row).
+
+Failures stay with their episode where they can: an env that raises, or an action of
+one slot that is non-finite or absurd, fails that slot's episode (its env is rebuilt for
+the next one); an exception from the policy call itself fails every episode that call
+served (which row caused it cannot be told). Only KeyboardInterrupt stops the loop.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from adapters.base import EpisodeSpec
+from harness.episode import EpisodeOutcome, check_chunk
+from harness.errors import UsageError
+from harness.nfe import NFECounter
+from policies.base import EpisodeContext, can_batch
+
+clock = time.perf_counter
+
+
+def check_batching(policies: Sequence[Any], batch_envs: int) -> None:
+    """Refuse (exit 2) a batch size below 1, or a policy that cannot batch when K > 1.
+
+    `policies`: the run's PolicyRun entries (spec name and built policy)."""
+    if batch_envs < 1:
+        raise UsageError(f"--batch-envs must be at least 1, got {batch_envs}; 1 steps one env at a time")
+    if batch_envs == 1:
+        return
+    for p in policies:
+        if not can_batch(p.policy):
+            raise UsageError(
+                f"policy {p.spec.name} cannot batch across environments (--batch-envs {batch_envs}): "
+                "it must declare act_batch(episodes, observations) and keep no per-episode state "
+                "between chunks (policies/base.py BatchPolicy); run it with --batch-envs 1"
+            )
+
+
+@dataclass
+class _Slot:
+    """One running episode: its env, its unexecuted actions and what it is charged."""
+
+    index: int  # position of its spec in the queue given to run_batched
+    spec: EpisodeSpec
+    context: EpisodeContext
+    started_at: datetime
+    obs: Any = None
+    actions: deque = field(default_factory=deque)
+    steps: int = 0
+    chunks: int = 0
+    nfe: int = 0
+    tokens: int = 0
+    policy_time: float = 0.0
+    env_time: float = 0.0
+    overhead: float = 0.0  # its share of the loop's own time (wall = policy + env + this)
+    success: bool = False
+    done: bool = False
+    failure: str | None = None
+    trace: str | None = None
+    traces: list[dict[str, Any]] | None = None
+
+    def fail(self, exc: BaseException) -> None:
+        self.failure, self.trace = f"{type(exc).__name__}: {exc}", traceback.format_exc()
+        self.success, self.done = False, True
+
+    def outcome(self, batch_envs: int) -> EpisodeOutcome:
+        return EpisodeOutcome(
+            success=self.success,
+            steps=self.steps,
+            chunks=self.chunks,
+            nfe_total=self.nfe,
+            action_tokens_total=self.tokens,
+            policy_time_s=self.policy_time,
+            env_time_s=self.env_time,
+            wall_clock_s=self.policy_time + self.env_time + self.overhead,
+            started_at=self.started_at,
+            failure_reason=self.failure,
+            traceback=self.trace,
+            traces=self.traces,
+            batch_envs=batch_envs,
+        )
+
+
+def _shares(total: int, parts: int) -> list[int]:
+    """`total` split into `parts` integers that differ by at most 1 and add up to it."""
+    base, extra = divmod(total, parts)
+    return [base + (i < extra) for i in range(parts)]
+
+
+class _Loop:
+    """The state of one batched queue: slots, envs, the policy and its NFE counter."""
+
+    def __init__(self, envs: list[gym.Env | None], make_env, policy, nfe, context_for, replan_every, traces):
+        self.envs, self.make_env, self.policy, self.nfe = envs, make_env, policy, nfe
+        self.context_for, self.replan_every, self.record_traces = context_for, replan_every, traces
+        self.finished: list[tuple[int, _Slot | EpisodeOutcome]] = []
+
+    def close_env(self, i: int) -> None:
+        env, self.envs[i] = self.envs[i], None
+        if env is not None:
+            env.close()
+
+    def start(self, i: int, index: int, spec: EpisodeSpec) -> _Slot | None:
+        """Begin episode `spec` in slot i (env built if needed, reset, policy reset); None
+        if it failed before its first step (its outcome is already in `finished`)."""
+        started_at, t0 = datetime.now(UTC), clock()
+        try:
+            if self.envs[i] is None:
+                self.envs[i] = self.make_env()
+        except Exception as exc:
+            slot = _Slot(index, spec, None, started_at)  # type: ignore[arg-type]
+            slot.fail(exc)
+            slot.overhead = clock() - t0
+            self.finished.append((index, slot))
+            return None
+        env = self.envs[i]
+        slot = _Slot(index, spec, self.context_for(spec, env), started_at)
+        slot.traces = [] if self.record_traces else None
+        try:
+            slot.obs, _ = env.reset(seed=spec.seed, options={"episode": spec})
+            t = clock()
+            slot.env_time += t - t0
+            self.nfe.take()
+            try:
+                with self.nfe.counting():
+                    self.policy.reset([slot.context])
+            finally:
+                slot.policy_time += clock() - t
+                slot.nfe += self.nfe.take()
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:
+            slot.fail(exc)
+        slot.overhead += clock() - t0 - slot.env_time - slot.policy_time
+        if slot.done:
+            self.finished.append((index, slot))
+            self.close_env(i)
+            return None
+        return slot
+
+    def act(self, slots: list[tuple[int, _Slot]]) -> float:
+        """One act_batch call for `slots` (their chunks are used up); returns its time."""
+        self.nfe.take()
+        t = clock()
+        try:
+            with self.nfe.counting():
+                batch = self.policy.act_batch([s.context for _, s in slots], [s.obs for _, s in slots])
+            actions = np.asarray(batch.actions)
+            if actions.ndim != 3 or actions.shape[0] != len(slots):
+                raise ValueError(
+                    f"policy returned actions of shape {actions.shape}; expected ({len(slots)}, chunk>=1, "
+                    "action_dim): one chunk per episode of the call"
+                )
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:
+            elapsed, passes = clock() - t, self.nfe.take()
+            for _, slot in slots:
+                slot.fail(exc)
+                slot.policy_time += elapsed / len(slots)
+                slot.nfe += passes
+            return elapsed
+        elapsed, passes = clock() - t, self.nfe.take()
+        tokens = _shares(int(batch.action_tokens), len(slots))
+        for row, (_, slot) in enumerate(slots):
+            slot.policy_time += elapsed / len(slots)
+            slot.nfe += passes
+            slot.tokens += tokens[row]
+            slot.chunks += 1
+            if slot.traces is not None and batch.trace:
+                slot.traces.append({**batch.trace[row], "chunk": slot.chunks - 1, "step": slot.steps})
+            try:
+                check_chunk(actions[row : row + 1], int(np.prod(slot.context.action_space.shape)))
+            except ValueError as exc:
+                slot.fail(exc)
+                continue
+            chunk = actions[row] if self.replan_every == 0 else actions[row, : self.replan_every]
+            slot.actions.extend(chunk)
+        return elapsed
+
+    def step(self, i: int, slot: _Slot) -> float:
+        """Execute slot i's next action; returns the env's time."""
+        t = clock()
+        try:
+            slot.obs, _, terminated, truncated, info = self.envs[i].step(slot.actions.popleft())
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:
+            slot.fail(exc)
+            elapsed = clock() - t
+            slot.env_time += elapsed
+            return elapsed
+        elapsed = clock() - t
+        slot.env_time += elapsed
+        slot.steps += 1
+        if info.get("success"):
+            slot.success = slot.done = True
+        elif terminated or truncated or slot.steps >= slot.context.max_steps:
+            slot.done = True
+        return elapsed
+
+
+def run_batched(
+    specs: Sequence[EpisodeSpec],
+    make_env: Callable[[], gym.Env],
+    policy: Any,
+    nfe: NFECounter,
+    context_for: Callable[[EpisodeSpec, gym.Env], EpisodeContext],
+    batch_envs: int,
+    replan_every: int = 0,
+    record_traces: bool = False,
+    envs: list[gym.Env | None] | None = None,
+) -> Iterator[tuple[int, EpisodeOutcome]]:
+    """Run every episode of `specs` (one task) with `batch_envs` slots; yields (position in
+    `specs`, outcome) as each episode ends, each exactly once.
+
+    envs: the slots' envs, reused and left open for the caller to close (a slot's env is
+    closed and rebuilt after an episode that failed; None entries are built with
+    make_env). Its length becomes `batch_envs`.
+    """
+    envs = [] if envs is None else envs
+    envs.extend([None] * (batch_envs - len(envs)))
+    loop = _Loop(envs, make_env, policy, nfe, context_for, replan_every, record_traces)
+    queue = deque(enumerate(specs))
+    slots: dict[int, _Slot] = {}
+
+    def fill(i: int) -> None:
+        while queue and i not in slots:
+            slot = loop.start(i, *queue.popleft())
+            if slot is not None:
+                slots[i] = slot
+
+    def flush() -> Iterator[tuple[int, EpisodeOutcome]]:
+        while loop.finished:
+            index, done = loop.finished.pop(0)
+            yield index, done.outcome(batch_envs) if isinstance(done, _Slot) else done
+
+    for i in range(batch_envs):
+        fill(i)
+    yield from flush()
+    while slots:
+        t0 = clock()
+        running = len(slots)
+        charged = 0.0
+        hungry = [(i, s) for i, s in sorted(slots.items()) if not s.actions]
+        if hungry:
+            charged += loop.act(hungry)
+        for i, slot in sorted(slots.items()):
+            if not slot.done and slot.actions:
+                charged += loop.step(i, slot)
+        overhead = (clock() - t0 - charged) / running
+        for slot in slots.values():
+            slot.overhead += overhead
+        for i in [i for i, s in sorted(slots.items()) if s.done]:
+            slot = slots.pop(i)
+            loop.finished.append((slot.index, slot))
+            if slot.failure is not None:
+                loop.close_env(i)  # its state is suspect: rebuilt for the next episode
+            fill(i)
+        yield from flush()
+
+
+def execute_batched(
+    resolved: Any,
+    jobs: Sequence[Any],
+    on_done: Callable[[Any, EpisodeOutcome], None],
+    traces: bool,
+    envs: dict[str, gym.Env],
+    batch_envs: int,
+) -> None:
+    """The in-process executor with --batch-envs K: each task's episodes, one policy after
+    another (a batch serves one policy), K envs of the task shared by its policies.
+
+    Policies are interleaved per task, not per episode as unbatched: their timing ratios
+    are still taken minutes apart at most, under the same load. `envs` (built by the
+    preflight, by task name) become slot 0 of their task.
+    """
+    from harness.backends.local import HOST, IN_PROCESS, episode_context
+
+    groups: dict[str, dict[str, list[Any]]] = {}
+    for job in jobs:
+        groups.setdefault(job.task.name, {}).setdefault(job.policy.config_id, []).append(job)
+    counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
+    suite = resolved.suite
+    try:
+        for task_jobs in groups.values():
+            task = next(iter(task_jobs.values()))[0].task
+            slot_envs: list[gym.Env | None] = [envs.pop(task.name, None)]
+            while envs:  # another task's env (a LIBERO env holds ~0.5 GB)
+                envs.popitem()[1].close()
+            try:
+                for policy_jobs in task_jobs.values():
+                    policy = policy_jobs[0].policy
+                    episodes = run_batched(
+                        [job.spec for job in policy_jobs],
+                        lambda task=task: suite.make_env(task),
+                        policy.policy,
+                        counters[id(policy)],
+                        lambda spec, env, task=task: episode_context(suite.name, task, spec, env),
+                        batch_envs,
+                        resolved.config.replan_every,
+                        traces,
+                        slot_envs,
+                    )
+                    for index, outcome in episodes:
+                        outcome.host, outcome.worker_id = HOST, IN_PROCESS
+                        on_done(policy_jobs[index], outcome)
+            finally:
+                for env in slot_envs:
+                    if env is not None:
+                        env.close()
+    finally:
+        for counter in counters.values():
+            counter.close()
