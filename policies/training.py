@@ -49,6 +49,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -79,6 +80,9 @@ class Demos:
     # task the manifests recorded them for; `positions()` says whether they are usable.
     state_positions: dict[str, tuple[int, ...]] = field(default_factory=dict)
     tasks: frozenset[str] = frozenset()
+    # Per folder, what the checkpoint's meta says it was trained on: suite (LIBERO's names
+    # `initial_states=fresh` when the starts were held out from evaluation), split, hash.
+    sources: list[dict[str, Any]] = field(default_factory=list)
 
     def positions(self) -> tuple[int, ...]:
         """The one set of state positions every task shares; raises saying why not."""
@@ -173,7 +177,19 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
         df["_noisy"].to_numpy(dtype=bool),
         positions,
         frozenset(df["task"].unique()),
+        [_source(m) for m in manifests],
     )
+
+
+def _source(manifest: dict[str, Any]) -> dict[str, Any]:
+    """A demonstrations folder as a checkpoint records it: which suite and split, and
+    whether its initial states were fresh draws checked against evaluation's (LIBERO)."""
+    return {
+        "suite": manifest.get("suite", ""),
+        "split": manifest.get("split", ""),
+        "steps_sha256": manifest.get("steps_sha256", ""),
+        "fresh_initial_states": bool(manifest.get("initial_states")),
+    }
 
 
 def _padded(rows: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
@@ -441,6 +457,7 @@ def train(
         "recipe": cfg.recipe,
         "train_config": asdict(cfg),
         "data_sha256": demos.sha256,
+        "data_sources": demos.sources,
         # Observation sizes the model was trained on; shorter ones were zero-padded.
         "state_dims": list(demos.state_dims),
         # Mean |action - detokenize(tokenize(action))| over the training actions (clipped to

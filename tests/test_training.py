@@ -27,6 +27,10 @@ def test_each_recipe_lowers_its_loss(demos, tmp_path, recipe):
     assert _mean(report.losses[-5:]) < 0.8 * _mean(report.losses[:5])
     ckpt = load(tmp_path / "m.safetensors")
     assert ckpt.meta["recipe"] == recipe and ckpt.meta["data_sha256"]
+    # what it was trained on, per folder: a Meta-World train split, no fresh LIBERO states
+    (source,) = ckpt.meta["data_sources"]
+    assert source["suite"].startswith("metaworld/") and source["split"] == "train"
+    assert source["steps_sha256"] == ckpt.meta["data_sha256"] and not source["fresh_initial_states"]
     assert 0 < ckpt.meta["tokenizer_round_trip_error"] < 2 / 63  # under one bin of the 64 here
     header = json.loads((tmp_path / "m.json").read_text())
     assert (
