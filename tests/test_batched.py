@@ -274,3 +274,20 @@ def test_shipped_bidirectional_decodes_the_same_episodes_batched(tmp_path):
     assert a[columns].equals(b[columns])
     assert set(a["batch_envs"]) == {1} and set(b["batch_envs"]) == {4}
     assert (b["nfe_total"] == 12 * b["chunks"]).all()  # 12 passes per chunk, each charged to every row
+
+
+def test_a_config_files_batch_envs_is_used_unless_the_flag_says_otherwise(tmp_path):
+    from harness.backends.options import execution_from_args
+    from harness.cli import build_parser
+    from harness.commands.run import config_from_args
+
+    config = tmp_path / "c.toml"
+    config.write_text('suite = "metaworld/mt10"\nbatch_envs = 4\n[[policy]]\nname = "fast_dvla"\n')
+    for flags, want in (([], 4), (["--batch-envs", "2"], 2)):
+        args = build_parser().parse_args(["run", "--config", str(config), *flags])
+        run_config = config_from_args(args)
+        assert execution_from_args(args).batch_envs == want
+        assert "batch_envs" not in run_config.to_dict()  # how to run, not what: not fingerprinted
+    plain = build_parser().parse_args(["run", "--suite", "metaworld/mt10", "--policy", "fast_dvla"])
+    config_from_args(plain)
+    assert execution_from_args(plain).batch_envs == 1

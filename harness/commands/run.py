@@ -21,6 +21,7 @@ examples:
   dvla-harness run --suite metaworld/mt10 --policy scripted --episodes-per-task 10 --out runs/demo
   dvla-harness run --suite metaworld/mt1/reach-v3 --policy random:seed=3 --episodes-per-task 2
   dvla-harness run --suite metaworld/mt10 --policy fast_dvla --policy bidirectional --traces
+  dvla-harness run --suite metaworld/mt10 --policy fast_dvla --batch-envs 8   # 8 envs, one batched decode per step
   dvla-harness run --out runs/demo --resume          # finish an interrupted run (its recorded config)
   dvla-harness run --out runs/demo --resume --episodes-per-task 50   # extend it: only the new episodes run
 
