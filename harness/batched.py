@@ -19,10 +19,12 @@ What each episode is charged, so that its row means what an unbatched row means:
 - Tokens: a call's action_tokens split equally among its slots (the shipped decoders
   decode the same number of tokens per row).
 
-Failures stay with their episode where they can: an env that raises, or an action of
-one slot that is non-finite or absurd, fails that slot's episode (its env is rebuilt for
-the next one); an exception from the policy call itself fails every episode that call
-served (which row caused it cannot be told). Only KeyboardInterrupt stops the loop.
+Failures stay with their episode: an env that raises, or an action of one slot that is
+non-finite or absurd, fails that slot's episode (its env is rebuilt for the next one).
+When the policy call itself raises, each episode it served is asked for again alone, so
+only the one whose observation makes the policy raise fails; the failed call's time and
+passes stay charged to all of them (they waited for it). Only KeyboardInterrupt stops
+the loop.
 """
 
 from __future__ import annotations
@@ -184,9 +186,12 @@ class _Loop:
         except BaseException as exc:
             elapsed, passes = clock() - t, self.nfe.take()
             for _, slot in slots:
-                slot.fail(exc)
                 slot.policy_time += elapsed / len(slots)
                 slot.nfe += passes
+                if len(slots) == 1:
+                    slot.fail(exc)
+            if len(slots) > 1:  # which episode raised? ask each alone (the failed call stays charged)
+                elapsed += sum(self.act([served]) for served in slots)
             return elapsed
         elapsed, passes = clock() - t, self.nfe.take()
         tokens = _shares(int(batch.action_tokens), len(slots))

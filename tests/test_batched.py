@@ -54,11 +54,18 @@ class BatchPolicy:
     """A batching policy: one pass of a torch module per call whatever the batch size;
     each action is the episode's index (so the env can tell slots apart); sleeps `delay`."""
 
-    def __init__(self, chunk: int = 3, delay: float = 0.0, nan_episode: int | None = None):
+    def __init__(
+        self,
+        chunk: int = 3,
+        delay: float = 0.0,
+        nan_episode: int | None = None,
+        raise_episode: int | None = None,
+    ):
         import torch
 
         self.net = torch.nn.Linear(1, 1)
         self.chunk, self.delay, self.nan_episode = chunk, delay, nan_episode
+        self.raise_episode = raise_episode
         self.calls: list[list[int]] = []  # the episode indices each call served
         self.resets: list[int] = []
 
@@ -75,12 +82,14 @@ class BatchPolicy:
             time.sleep(self.delay)
         with torch.no_grad():
             self.net(torch.zeros(len(episodes), 1))
+        self.calls.append([e.episode_index for e in episodes])
+        if any(e.episode_index == self.raise_episode for e in episodes):
+            raise RuntimeError(f"cannot decode episode {self.raise_episode}'s observation")
         index = np.array([e.episode_index for e in episodes], dtype=float)
         actions = np.repeat(index[:, None, None], self.chunk, axis=1).repeat(2, axis=2) / 100
         for row, e in enumerate(episodes):
             if e.episode_index == self.nan_episode:
                 actions[row, 0, 0] = np.nan
-        self.calls.append([e.episode_index for e in episodes])
         return ChunkBatch(actions=actions, action_tokens=len(episodes) * self.chunk * 2)
 
 
@@ -291,3 +300,17 @@ def test_a_config_files_batch_envs_is_used_unless_the_flag_says_otherwise(tmp_pa
     plain = build_parser().parse_args(["run", "--suite", "metaworld/mt10", "--policy", "fast_dvla"])
     config_from_args(plain)
     assert execution_from_args(plain).batch_envs == 1
+
+
+def test_a_policy_call_that_raises_fails_only_the_episode_that_made_it_raise():
+    policy = BatchPolicy(chunk=3, raise_episode=1)
+    out, _, _ = batched(policy, episodes=6, k=3)
+    by_index = dict(out)
+    assert sorted(by_index) == list(range(6))
+    assert [i for i, o in by_index.items() if o.failure_reason] == [1]
+    assert "cannot decode episode 1" in by_index[1].failure_reason and by_index[1].steps == 0
+    assert all(by_index[i].success and by_index[i].steps == length(i) for i in (0, 2, 3, 4, 5))
+    # the failed call [0, 1, 2] was followed by each episode alone; the others went on
+    assert policy.calls[:4] == [[0, 1, 2], [0], [1], [2]]
+    # its passes stay charged: episode 0 paid the failed call and its own retry
+    assert by_index[0].nfe_total == by_index[0].chunks + 1
