@@ -263,9 +263,9 @@ def _run_planned(
             tick(outcome.success)
 
     try:
-        # one-off costs (first calls, lazy init) paid here, outside the rows (harness/warmup.py)
-        record_warm_up(run_dir, warm_up_run(resolved, jobs, envs))
         execution = execution or Execution()
+        # one-off costs (first calls, lazy init) paid here, outside the rows (harness/warmup.py)
+        record_warm_up(run_dir, warm_up_run(resolved, jobs, envs, execution.batch_envs))
         on_worker = record_execution(run_dir, execution)  # backend and workers, per session
         execute(resolved, jobs, on_done, traces, envs, execution, on_worker)
     except KeyboardInterrupt:

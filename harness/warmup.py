@@ -31,8 +31,9 @@ from harness.manifest import now
 
 WARM_UP_DEFINITION = (
     "before the first timed episode of this process: per policy, reset on the first "
-    "task's first episode, then one act on a sample of its observation space (seed 0); "
-    "outside every row, its forward passes uncounted"
+    "task's first episode, then one act on a sample of its observation space (seed 0), "
+    "and with --batch-envs K one act_batch on K copies of it; outside every row, its "
+    "forward passes uncounted"
 )
 
 
@@ -44,9 +45,17 @@ def warm_up_observation(space: gym.Space) -> Any:
 
 
 def warm_up(
-    policies: Sequence[PolicyRun], suite: str, task: TaskSpec, spec: EpisodeSpec, env: gym.Env
+    policies: Sequence[PolicyRun],
+    suite: str,
+    task: TaskSpec,
+    spec: EpisodeSpec,
+    env: gym.Env,
+    batch_envs: int = 1,
 ) -> dict[str, Any]:
     """Call each policy once (reset, then act) and return the manifest's record of it.
+
+    batch_envs > 1 (--batch-envs): one act_batch over that many copies of the
+    observation too, so the batched shapes' first calls are paid here as well.
 
     A policy that raises here is recorded with the reason and left to its episodes,
     which record the same failure in their rows (a warm-up is no place to end a run).
@@ -60,6 +69,8 @@ def warm_up(
         try:
             p.policy.reset([context])
             p.policy.act([observation])
+            if batch_envs > 1:
+                p.policy.act_batch([context] * batch_envs, [observation] * batch_envs)
         except KeyboardInterrupt:
             raise  # Ctrl-C, SIGTERM: the user wants out
         except BaseException as exc:  # a policy's SystemExit too, as in an episode
@@ -75,7 +86,9 @@ def warm_up(
     return record
 
 
-def warm_up_run(resolved: Any, jobs: Sequence[Any], envs: dict[str, gym.Env]) -> dict[str, Any] | None:
+def warm_up_run(
+    resolved: Any, jobs: Sequence[Any], envs: dict[str, gym.Env], batch_envs: int = 1
+) -> dict[str, Any] | None:
     """Warm up the policies that have episodes in `jobs`, on the first job's task, with its
     env from `envs` (built and left there for the episodes to reuse if missing).
     None when there is nothing to run."""
@@ -92,7 +105,7 @@ def warm_up_run(resolved: Any, jobs: Sequence[Any], envs: dict[str, gym.Env]) ->
             }
     running = {id(job.policy) for job in jobs}
     policies = [p for p in resolved.policies if id(p) in running]
-    return warm_up(policies, resolved.suite.name, first.task, first.spec, envs[first.task.name])
+    return warm_up(policies, resolved.suite.name, first.task, first.spec, envs[first.task.name], batch_envs)
 
 
 def record_warm_up(run_dir: Any, record: dict[str, Any] | None) -> None:

@@ -71,9 +71,10 @@ class BatchPolicy:
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         self.resets += [e.episode_index for e in episodes]
+        self.episodes = episodes
 
-    def act(self, observations):  # the unbatched contract, unused by the batched loop
-        raise AssertionError("the batched loop calls act_batch")
+    def act(self, observations):  # the unbatched contract (the warm-up's first call)
+        return self.act_batch(self.episodes, observations)
 
     def act_batch(self, episodes: Sequence[EpisodeContext], observations) -> ChunkBatch:
         import torch
@@ -192,6 +193,8 @@ def test_runner_rows_record_the_batch_size_and_resume_may_change_it(tmp_path):
     assert (rows["nfe_total"] == rows["chunks"]).all()
     manifest = json.loads((out / "manifest.json").read_text())
     assert [s["batch_envs"] for s in manifest["execution"]] == [3]
+    # the warm-up paid a batch of 3's first call too, outside every row
+    assert policy.calls[:2] == [[0], [0, 0, 0]] and manifest["warm_up"][0]["policies"][0]["error"] is None
     # a larger protocol resumed unbatched: only the new episodes run, at batch size 1
     bigger = fake_resolved(ChunkPolicy(chunk=2), episodes=6, succeed_at=3, tasks=2)
     report = run(bigger, out, resume=True, execution=Execution(batch_envs=1))
