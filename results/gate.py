@@ -416,8 +416,8 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
     if len({size for side in sizes.values() for size in side}) > 1:
         warnings += (
             f"batch sizes differ (--batch-envs: baseline {sizes['baseline']}, candidate "
-            f"{sizes['candidate']}): the speed comparison sets batched against unbatched rows; run "
-            "both at one batch size",
+            f"{sizes['candidate']}): speed, and an adaptive decoder's NFE (a batched row is charged "
+            "the passes its batch ran), are compared across batch sizes; run both at one batch size",
         )
     notes = result.notes + tuple(_machine_notes(manifests))
     suspect = simulator_suspect(manifests)
