@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 
+from harness.commands.train import trained_on
 from policies.checkpoint import load
 from policies.losses import block_ratios
 from policies.recipes import NOISE_SCHEDULES, TrainConfig
@@ -31,6 +32,11 @@ def test_each_recipe_lowers_its_loss(demos, tmp_path, recipe):
     (source,) = ckpt.meta["data_sources"]
     assert source["suite"].startswith("metaworld/") and source["split"] == "train"
     assert source["steps_sha256"] == ckpt.meta["data_sha256"] and not source["fresh_initial_states"]
+    assert trained_on(ckpt.meta).endswith("train split (held-out starts)")
+    assert "evaluation's own starts" in trained_on({"data_sources": [{**source, "split": "eval"}]})
+    libero = {"suite": "libero/spatial", "split": "train", "fresh_initial_states": False}
+    assert "evaluation's own starts" in trained_on({"data_sources": [libero]})
+    assert "held-out" in trained_on({"data_sources": [{**libero, "fresh_initial_states": True}]})
     assert 0 < ckpt.meta["tokenizer_round_trip_error"] < 2 / 63  # under one bin of the 64 here
     header = json.loads((tmp_path / "m.json").read_text())
     assert (

@@ -226,6 +226,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from policies.checkpoint import load
 
     meta = load(out).meta
+    console.print(trained_on(meta))
     error = meta.get("tokenizer_round_trip_error")
     console.print(f"action tokenizer round-trip error on the training actions: {error:.5f} (mean |a - a'|)")
     worst = meta.get("tokenizer_worst_error") or []
@@ -237,3 +238,19 @@ def cmd_train(args: argparse.Namespace) -> int:
             "If they matter, train with --action-range full."
         )
     return 0
+
+
+def trained_on(meta: dict) -> str:
+    """One line naming the starts each demonstrations folder came from, printed where the
+    checkpoint is written: a LIBERO model trained on the evaluation's own initial states
+    scores on its training starts, and the user should not find that out later (issue 20)."""
+    parts = []
+    for source in meta.get("data_sources") or []:
+        held_out = source.get("fresh_initial_states") or (
+            not str(source.get("suite", "")).startswith("libero/") and source.get("split") == "train"
+        )
+        starts = "held-out starts" if held_out else "the evaluation's own starts"
+        parts.append(f"{source.get('suite')} {source.get('split')} split ({starts})")
+    return "trained on: " + (
+        "; ".join(parts) if parts else "unrecorded data (checkpoint predates data_sources)"
+    )
