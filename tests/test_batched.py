@@ -317,3 +317,31 @@ def test_a_policy_call_that_raises_fails_only_the_episode_that_made_it_raise():
     assert policy.calls[:4] == [[0, 1, 2], [0], [1], [2]]
     # its passes stay charged: episode 0 paid the failed call and its own retry
     assert by_index[0].nfe_total == by_index[0].chunks + 1
+
+
+def test_the_benchmark_tells_a_changed_episode_from_one_charged_more_passes():
+    import importlib.util
+    from pathlib import Path
+
+    import pandas as pd
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "batching.py"
+    spec = importlib.util.spec_from_file_location("batching_benchmark", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    base = pd.DataFrame(
+        {
+            "task": ["a"] * 3,
+            "episode_index": [0, 1, 2],
+            "success": [True, False, True],
+            "steps": [40, 500, 60],
+            "action_tokens_total": [256, 2016, 320],
+            "nfe_total": [80, 600, 100],
+        }
+    )
+    batched = base.copy()
+    batched.loc[1, "nfe_total"] = 640  # same actions, charged its batch's extra passes
+    batched.loc[2, ["success", "steps"]] = [False, 500]  # a flipped token changed the episode
+    got = bench.differences(base, batched)
+    assert got["episodes"] == 1 and got["same_actions_more_nfe"] == 1 and got["episodes_any"] == 2
+    assert got["success"] == 1 and got["nfe_total"] == 1
