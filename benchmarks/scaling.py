@@ -33,6 +33,7 @@ from harness.backends import Execution
 from harness.config import build_config, resolve
 from harness.runner import run
 from harness.threads import apply_threads
+from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
 
 WORKLOADS = {
     "libero": ("libero/spatial", "libero_scripted"),
@@ -44,10 +45,7 @@ MODES = {
     "ray x2": Execution(backend="ray", workers=2),
 }
 # Columns that say when, where or how fast, not what happened.
-NOT_RESULTS = {
-    "run_id", "started_at", "host", "worker_id", "policy_time_s", "env_time_s", "overhead_s",
-    "wall_clock_s", "tokens_per_s", "control_hz", "loop_hz",
-}  # fmt: skip
+NOT_RESULTS = TIMING_COLUMNS | PROVENANCE_COLUMNS
 KEY = ["task", "episode_index", "policy_config_id"]
 
 

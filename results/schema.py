@@ -149,6 +149,23 @@ COLUMNS: tuple[Column, ...] = (
 
 COLUMN_NAMES = tuple(c.name for c in COLUMNS)
 
+# Columns that say how fast an episode ran, measured on a machine under its load: they differ
+# between two runs of the same config, so comparisons of what happened leave them out.
+TIMING_COLUMNS = frozenset(
+    {
+        "policy_time_s",
+        "env_time_s",
+        "overhead_s",
+        "wall_clock_s",
+        "control_hz",
+        "loop_hz",
+        "tokens_per_s",
+        "speed_reliable",
+    }
+)
+# Columns that say when and where an episode ran, not what happened in it.
+PROVENANCE_COLUMNS = frozenset({"run_id", "started_at", "host", "worker_id"})
+
 # What identifies an episode across runs: resume skips rows with a known key, and
 # comparisons pair rows by it.
 EPISODE_KEY = (

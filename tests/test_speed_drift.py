@@ -110,6 +110,7 @@ def test_paper_table_and_html_report_warn_about_a_drifted_run_as_leaderboard_doe
 
 def test_a_drifted_run_marks_its_rows_and_a_steady_one_marks_them_reliable(monkeypatch, tmp_path):
     import torch  # noqa: F401  runs are calibrated only when their policies loaded torch
+
     from harness.runner import run
     from results.store import RunDir
     from tests.fakes import ChunkPolicy, fake_resolved

@@ -75,7 +75,7 @@ class Execution:
             "ray_address": self.ray_address,
             "ray_num_gpus": self.ray_num_gpus if self.backend == "ray" else None,
             "batch_envs": self.batch_envs,
-            "worker_threads": [],  # one entry per worker started, as each reports
+            "worker_threads": [],  # one entry per worker that reported ready (one still starting when the work ran out is not)
         }
 
 

@@ -94,22 +94,22 @@ def worker_main(
     try:
         runner, jobs, warm_up = start_worker(rebuild(), traces)
     except BaseException as exc:
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        with contextlib.suppress(OSError):
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
     apply_threads(threads, workers)  # again with torch loaded: its inter-op threads too
     record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
-    conn.send(("ready", record | {"warm_up": warm_up}))
     try:
+        conn.send(("ready", record | {"warm_up": warm_up}))
         while True:
-            try:
-                jid = conn.recv()
-            except EOFError:
-                break  # the parent is gone
+            jid = conn.recv()
             if jid is None:
                 break
             outcome = runner.run(jobs[jid])
             outcome.host, outcome.worker_id = HOST, worker_id
             conn.send(("done", (jid, outcome)))
+    except (EOFError, OSError):
+        pass  # the parent is gone or done: a worker still starting when the work ran out
     finally:
         runner.close()
 
