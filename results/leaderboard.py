@@ -168,7 +168,7 @@ def number_cell(value: float, fmt: str) -> Cell:
 # --- labels -----------------------------------------------------------------------
 
 
-def _defaults() -> dict[str, dict[str, Any]]:
+def registered_defaults() -> dict[str, dict[str, Any]]:
     """Registered parameter defaults, so labels show only what a row changed."""
     try:
         import dataclasses
@@ -195,7 +195,7 @@ def config_labels(episodes: pd.DataFrame) -> dict[str, str]:
     """policy_config_id -> 'policy (k=v, ...)' with the params that differ from the
     defaults or between configurations of the same policy; unique per configuration."""
     configs = episodes.drop_duplicates("policy_config_id")[["policy_config_id", "policy", "policy_params"]]
-    defaults = _defaults()
+    defaults = registered_defaults()
     parsed: dict[str, dict[str, Any]] = {}
     for cid, params in zip(configs["policy_config_id"], configs["policy_params"], strict=True):
         try:

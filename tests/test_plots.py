@@ -51,6 +51,30 @@ def test_the_frontier_keeps_what_nothing_beats_on_both_axes():
     assert plots._frontier(xs, ys, x_up=False, y_up=True) == [0]
 
 
+def test_labels_show_a_lone_configurations_non_default_parameters():
+    """A pareto plot of one fast_dvla at tau_conf=0.3 must not call it plain fast_dvla."""
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["a", "b", "c", "d"],
+            "policy": ["fast_dvla", "bidirectional", "bidirectional", "autoregressive"],
+            "policy_params": [
+                json.dumps({"tau_conf": 0.3}),
+                json.dumps({"steps": 12}),
+                json.dumps({"steps": 8}),
+                json.dumps({}),
+            ],
+        }
+    )
+    assert plots.config_labels(frame) == {
+        "a": "fast_dvla tau_conf=0.3",
+        "b": "bidirectional steps=12",
+        "c": "bidirectional steps=8",
+        "d": "autoregressive",
+    }
+    default = frame.iloc[:1].assign(policy_params=json.dumps({"tau_conf": 0.5}))
+    assert plots.config_labels(default) == {"a": "fast_dvla"}  # the default says nothing
+
+
 @pytest.mark.metaworld
 def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
     frame = plots.plot_frame(RunDir(sweep.path).read_episodes())
