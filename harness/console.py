@@ -9,7 +9,8 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from typing import Any
 
 from rich.console import Console
@@ -26,7 +27,16 @@ console = Console(width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
 
 
-def episode_progress(quiet: bool) -> tuple[Progress, Callable[[int, int], Callable[[bool], None]]]:
+def episode_progress(
+    quiet: bool,
+) -> tuple[AbstractContextManager[None], Callable[[int, int], Callable[[bool], None]]]:
+    """A display to wrap the work in, and `start(total, skipped)`, which shows the bar and
+    returns the per-episode tick.
+
+    The bar appears only once `start` is called: a live display stopped before it showed
+    anything still ends with an empty line, which would put a blank line before an error
+    raised while the run folder is being opened (an existing folder, a held lock).
+    """
     progress = Progress(
         TextColumn("[bold]episodes"),
         BarColumn(),
@@ -38,11 +48,21 @@ def episode_progress(quiet: bool) -> tuple[Progress, Callable[[int, int], Callab
         console=err_console,
         disable=quiet,
     )
-    state = {"done": 0, "ok": 0}
+    state = {"done": 0, "ok": 0, "shown": False}
+
+    @contextmanager
+    def display() -> Iterator[None]:
+        try:
+            yield
+        finally:
+            if state["shown"]:
+                progress.stop()
 
     def start(total: int, skipped: int) -> Callable[[bool], None]:
         if skipped:
             err_console.print(f"resuming: {skipped} episode(s) already recorded, {total} to run")
+        progress.start()
+        state["shown"] = True
         task_id = progress.add_task("episodes", total=total, success="success -")
 
         started = time.monotonic()
@@ -65,7 +85,7 @@ def episode_progress(quiet: bool) -> tuple[Progress, Callable[[int, int], Callab
 
         return tick
 
-    return progress, start
+    return display(), start
 
 
 def raise_interrupt(signum: int, frame: Any) -> None:

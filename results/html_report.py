@@ -182,9 +182,13 @@ def render_page(
     figures: bool = True,
     paper: Sequence[Block] = (),
 ) -> str:
+    # The same de-duplicated rows as the tables: an episode given twice counts once here too.
+    episodes = combined_episodes(runs)
+    duplicates = episodes.attrs.get("duplicates", 0)
+    twice = f" ({duplicates} duplicate row(s) of an episode given twice not counted)" if duplicates else ""
     sections = [f"<h1>{_e(title)}</h1>"]
     sections.append(
-        f'<p class="note">{len(runs)} run(s), {sum(len(r.episodes) for r in runs)} episodes. '
+        f'<p class="note">{len(runs)} run(s), {len(episodes)} episodes{twice}. '
         "Every number is computed from the runs' Parquet rows; click a column header to sort.</p>"
     )
     sections += [_board_html(b) for b in boards]
@@ -192,7 +196,7 @@ def render_page(
         sections.append("<h2>In the layout of Fast-dVLA's LIBERO table</h2>")
         sections += [_block_html(b) for b in paper]
     if figures:
-        sections.append("<h2>Figures</h2>" + _figures_html(combined_episodes(runs)))
+        sections.append("<h2>Figures</h2>" + _figures_html(episodes))
     sections.append("<h2>Provenance</h2>" + "".join(_provenance_html(r) for r in runs))
     return (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"

@@ -148,11 +148,19 @@ class RunLock:
         gone = "no longer runs" if not _pid_alive(pid) else "no longer holds it (its pid was reused)"
         return f"{self.folder}: taking over a stale writer lock ({describe_holder(self.stale)}): that process {gone}"
 
-    def release(self) -> None:
+    def release(self, keep_stale: bool = False) -> None:
+        """keep_stale: put back the record of the dead holder this lock was taken over from,
+        and leave the file, so that a process that held the lock only to tidy up (a reader
+        removing temporaries) does not take from the next writer the line saying that a
+        writer was killed."""
         if self._fd is None:
             return
         try:
-            self.path.unlink(missing_ok=True)  # still locked: nobody takes the old file
+            if keep_stale and self.stale is not None:
+                os.ftruncate(self._fd, 0)
+                os.pwrite(self._fd, (json.dumps(self.stale) + "\n").encode(), 0)
+            else:
+                self.path.unlink(missing_ok=True)  # still locked: nobody takes the old file
         finally:
             os.close(self._fd)
             self._fd = None

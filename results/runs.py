@@ -3,7 +3,8 @@
 A run is a run folder (manifest.json + episodes.parquet and/or pending.jsonl) or a bare
 episodes Parquet file, whose manifest is read from beside it when there is one. Every
 cross-run output starts here, so a missing, foreign or wrong-version file is refused in
-one place with one message.
+one place with one message, and temporary files a killed writer left are removed here
+(RunDir.remove_temporaries_unless_locked) as `run --resume` would.
 """
 
 from __future__ import annotations
@@ -103,6 +104,7 @@ def load_run(path: str | os.PathLike[str]) -> Run:
         run_dir = RunDir(p)
         if not run_dir.is_run():
             raise ResultsFileError(f"{p}: not a run folder (no {MANIFEST}; make one with `dvla-harness run`)")
+        run_dir.remove_temporaries_unless_locked()  # what a killed writer left
         manifest = run_dir.read_manifest()
         episodes = run_dir.read_episodes()
     elif p.is_file():
@@ -110,6 +112,8 @@ def load_run(path: str | os.PathLike[str]) -> Run:
             raise ResultsFileError(f"{p}: expected a run folder or an episodes .parquet file")
         episodes = read_table(p).to_pandas()[list(COLUMN_NAMES)]
         beside = p.parent / MANIFEST
+        if beside.is_file():
+            RunDir(p.parent).remove_temporaries_unless_locked()
         manifest = RunDir(p.parent).read_manifest() if beside.is_file() else {}
     else:
         raise ResultsFileError(f"{p}: no such run folder or file")

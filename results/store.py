@@ -28,6 +28,7 @@ import contextlib
 import json
 import os
 import re
+import sys
 import time
 from collections.abc import Iterable, Mapping
 from datetime import datetime
@@ -38,7 +39,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from results.lock import LOCK, RunLock
+from results.lock import LOCK, RunLock, RunLockedError
 from results.manifest_check import ManifestError, check_manifest
 from results.schema import (
     COLUMN_NAMES,
@@ -245,6 +246,31 @@ class RunDir:
         for p in self.temporaries():
             p.unlink(missing_ok=True)
             removed.append(p.name)
+        return removed
+
+    def remove_temporaries_unless_locked(self) -> list[str]:
+        """For the commands that only read a folder (show, leaderboard, gate, report, plot):
+        what a writer killed mid-compaction left is removed by whichever command opens the
+        folder next, not only by a writer. A live writer's temporary is the file it is about
+        to rename into place, so this takes the writer lock first and leaves everything alone
+        while another process holds it (or when the folder cannot be locked: read-only)."""
+        if not self.is_run() or not self.temporaries():
+            return []
+        lock = RunLock(self.path)
+        try:
+            lock.acquire()
+        except (RunLockedError, OSError):
+            return []
+        try:
+            removed = self.remove_temporaries()
+            if removed:
+                with contextlib.suppress(OSError):
+                    self.log_event("temporaries_removed", files=removed, command=sys.argv)
+        except OSError:
+            removed = []  # tidying up is not what the reader was asked for
+        finally:
+            with contextlib.suppress(OSError):
+                lock.release(keep_stale=True)  # the next writer still says one was killed
         return removed
 
     def remove_recorded(self) -> None:

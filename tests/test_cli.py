@@ -120,3 +120,23 @@ def test_listing_suites_does_not_import_simulators():
     code = "import sys; from harness.cli import main; main(['list','suites']); print('metaworld' in sys.modules, 'torch' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.stdout.strip().endswith("False False")
+
+
+def test_an_unforeseen_exception_prints_its_traceback_and_exits_3(monkeypatch, capsys):
+    """`entry` (the console script) turns a bug, anything but the harness's own errors,
+    into exit 3 (a harness error), never 1, which means some episode failed."""
+    import harness.commands.listing
+    from harness.cli import entry
+    from harness.errors import EXIT_HARNESS
+
+    def broken(args: object) -> int:
+        raise RuntimeError("a bug in a command")
+
+    monkeypatch.setattr(harness.commands.listing, "cmd_list", broken)
+    monkeypatch.setattr(sys, "argv", ["dvla-harness", "list", "suites"])
+    with pytest.raises(SystemExit) as exited:
+        entry()
+    assert exited.value.code == EXIT_HARNESS == 3
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "RuntimeError: a bug in a command" in err
+    assert err.rstrip().splitlines()[-1] == "dvla-harness: internal error (traceback above); exit status 3"

@@ -353,9 +353,11 @@ def test_numbers_come_from_the_parquet_rows(tmp_path):
 
 def test_every_output_counts_an_episode_given_twice_once(tmp_path):
     """A run folder and a copy of it (or a resumed folder given twice): leaderboard,
-    plots and reports all read through combined_episodes and count the same rows."""
+    plots and reports (the HTML page's header too) all read through combined_episodes and
+    count the same rows."""
     import shutil
 
+    from results.html_report import render_page
     from results.plots import pareto_plot, plot_frame
     from results.runs import combined_episodes
 
@@ -373,6 +375,8 @@ def test_every_output_counts_an_episode_given_twice_once(tmp_path):
     frame = plot_frame(combined)
     assert frame.groupby("policy").size().to_dict() == {"bidirectional": 3, "fast_dvla": 3}
     pareto_plot(frame, out=tmp_path / "p.png")
+    page = render_page(runs, [board], figures=False)
+    assert "2 run(s), 6 episodes (6 duplicate row(s) of an episode given twice not counted)." in page
 
 
 def test_paper_table_speedups_are_taken_within_each_suite(tmp_path):

@@ -4,8 +4,10 @@ line (exit 3), and housekeeping that deletes only what the harness wrote (issue 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
+import io
 import json
 import os
 import signal
@@ -21,6 +23,7 @@ import pytest
 import results.store
 from harness.errors import HarnessError, UsageError
 from harness.runner import run
+from results.lock import RunLock
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
 
@@ -231,6 +234,61 @@ def test_temporaries_left_by_a_kill_are_removed_by_the_next_writer(tmp_path):
     assert not any(p.exists() for p in left)
     removed = [e for e in _events(out) if e["event"] == "temporaries_removed"]
     assert removed and sorted(removed[0]["files"]) == sorted(p.name for p in left)
+
+
+def _left_by_a_kill(out: Path) -> list[Path]:
+    """A finished run plus the temporaries a writer killed mid-compaction leaves."""
+    run(fake_resolved(ChunkPolicy(2), 2), out)
+    left = [out / ".episodes.parquet.4242.tmp", out / ".manifest.json.4242.tmp"]
+    for p in left:
+        p.write_bytes(b"half")
+    return left
+
+
+@pytest.mark.parametrize(
+    "command",
+    [["show", "{out}"], ["leaderboard", "{out}"], ["gate", "--baseline", "{out}", "--candidate", "{out}"]],
+)
+def test_temporaries_left_by_a_kill_are_removed_by_a_command_that_only_reads(cli, tmp_path, command):
+    out = tmp_path / "run"
+    left = _left_by_a_kill(out)
+    code, _, err = cli(*(part.format(out=out) for part in command))
+    assert code == 0, err
+    assert not any(p.exists() for p in left)
+    removed = [e for e in _events(out) if e["event"] == "temporaries_removed"]
+    assert sorted(removed[0]["files"]) == sorted(p.name for p in left)
+    assert not (out / "writer.lock").exists()  # the lock taken to tidy up is gone again
+
+
+def test_a_live_writers_temporaries_are_kept_by_a_reader(cli, tmp_path):
+    out = tmp_path / "run"
+    left = _left_by_a_kill(out)
+    lock = RunLock(out)
+    lock.acquire()  # as a writer holds it while compacting (flock: per open file)
+    try:
+        assert cli("show", str(out))[0] == 0
+        assert all(p.read_bytes() == b"half" for p in left)
+        assert json.loads((out / "writer.lock").read_text())["pid"] == os.getpid()
+    finally:
+        lock.release()
+    assert not any(e["event"] == "temporaries_removed" for e in _events(out))
+
+
+def test_a_reader_tidying_up_leaves_a_killed_writers_stale_lock_for_the_next_writer(cli, tmp_path):
+    out = tmp_path / "run"
+    left = _left_by_a_kill(out)
+    dead = subprocess.Popen([sys.executable, "-c", ""])
+    dead.wait()
+    stale = {"pid": dead.pid, "host": socket.gethostname(), "started_at": "2026-01-01T00:00:00+00:00"}
+    (out / "writer.lock").write_text(json.dumps(stale) + "\n")
+    assert cli("show", str(out))[0] == 0
+    assert not any(p.exists() for p in left)
+    assert json.loads((out / "writer.lock").read_text()) == stale
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        run(fake_resolved(ChunkPolicy(2), 2), out, resume=True)
+    assert f"taking over a stale writer lock (pid {dead.pid} " in err.getvalue()
+    assert any(e["event"] == "stale_lock_taken_over" for e in _events(out))
 
 
 def test_overwrite_deletes_only_what_the_harness_wrote_and_refuses_other_files(tmp_path):

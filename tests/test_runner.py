@@ -154,6 +154,33 @@ def test_a_policy_calling_sys_exit_fails_its_episode_and_the_run_goes_on(tmp_pat
     assert json.loads((tmp_path / "run" / "manifest.json").read_text())["status"] == "finished"
 
 
+def test_a_policy_calling_sys_exit_through_the_cli_exits_1_with_a_finished_run(cli, tmp_path, monkeypatch):
+    """What a user sees: the run is not ended by the policy's exit status (3 here), but
+    finishes, with that episode a failure row and exit 1 (some episode failed)."""
+    from policies.scripted import RandomPolicy
+
+    act = RandomPolicy.act
+
+    def exits_in_episode_1(self: RandomPolicy, observations: object) -> object:
+        if self._episodes[0].episode_index == 1:  # not 0: the warm-up runs on episode 0
+            raise SystemExit(3)
+        return act(self, observations)
+
+    monkeypatch.setattr(RandomPolicy, "act", exits_in_episode_1)
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--episodes-per-task", "3",
+        "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 1, err
+    assert "1 episode(s) raised an exception" in err
+    assert json.loads((out / "manifest.json").read_text())["status"] == "finished"
+    df = RunDir(out).read_episodes().set_index("episode_index")
+    assert df.index.tolist() == [0, 1, 2]
+    assert df.loc[1, "failure_reason"] == "SystemExit: 3" and not df.loc[1, "success"]
+    assert df.loc[[0, 2], "failure_reason"].isna().all()
+
+
 def test_resume_refuses_rows_of_a_suite_the_config_no_longer_resolves_to(tmp_path):
     """A default that changes the suite's canonical name (LIBERO's seeding) must not let
     --resume add rows of the new protocol to a folder of the old one."""

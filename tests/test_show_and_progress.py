@@ -1,14 +1,19 @@
 """What a person reading a log or a killed run sees: progress lines without a terminal,
-and `show` telling a killed run from a running one."""
+errors without a blank line before them, and `show` telling a killed run from a running one."""
 
 from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
 from harness.console import episode_progress
+from policies.checkpoint import load, save
+from results.lock import RunLock
+from tests.test_dvla_policies import make_checkpoint
 
 pytestmark = pytest.mark.metaworld
 
@@ -32,6 +37,60 @@ def test_quiet_prints_no_progress_lines(capsys):
         for _ in range(10):
             tick(True)
     assert "episodes 10/10" not in capsys.readouterr().err
+
+
+MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1"]
+Cli = Callable[..., tuple[int, str, str]]
+Setup = Callable[[Cli, Path, pytest.FixtureRequest], list[str]]
+
+
+def _existing_folder(cli: Cli, out: Path, request: pytest.FixtureRequest) -> list[str]:
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    return [*MT1, "--policy", "random", "--out", str(out)]
+
+
+def _another_config(cli: Cli, out: Path, request: pytest.FixtureRequest) -> list[str]:
+    assert cli(*MT1, "--policy", "random", "--out", str(out), "--quiet")[0] == 0
+    return [*MT1, "--policy", "random:seed=1", "--out", str(out), "--resume"]
+
+
+def _lock_held(cli: Cli, out: Path, request: pytest.FixtureRequest) -> list[str]:
+    assert cli(*MT1, "--policy", "random", "--out", str(out), "--quiet")[0] == 0
+    lock = RunLock(out)
+    lock.acquire()  # flock is per open file: this process's own run is refused too
+    request.addfinalizer(lock.release)
+    return [*MT1, "--policy", "random", "--out", str(out), "--resume"]
+
+
+def _changed_checkpoint(cli: Cli, out: Path, request: pytest.FixtureRequest) -> list[str]:
+    ckpt = make_checkpoint(out.parent / "m.safetensors", "bidirectional")
+    args = [*MT1, "--policy", f"bidirectional:checkpoint={ckpt},steps=1", "--out", str(out)]
+    assert cli(*args, "--quiet")[0] == 0
+    other = load(ckpt)
+    other.meta = {"recipe": "another model"}
+    save(other, ckpt)
+    return [*args, "--resume"]
+
+
+@pytest.mark.parametrize(
+    ("setup", "says"),
+    [
+        (_existing_folder, "exists and is not empty"),
+        (_another_config, "belongs to a different config"),
+        (_lock_held, "being written by another process"),
+        (_changed_checkpoint, "had sha256"),
+    ],
+)
+def test_an_error_opening_the_run_folder_is_stderrs_first_line_with_the_progress_bar_on(
+    cli: Cli, tmp_path: Path, request: pytest.FixtureRequest, setup: Setup, says: str
+) -> None:
+    """Without --quiet (the progress display on), as a user types it."""
+    args = setup(cli, tmp_path / "run", request)
+    code, _, err = cli(*args)
+    assert code == 2
+    assert err.splitlines()[0].startswith("dvla-harness run: error: "), repr(err)
+    assert says in err.splitlines()[0] and len(err.splitlines()) == 1
 
 
 def test_show_calls_a_run_nobody_writes_interrupted_or_killed(cli, tmp_path):

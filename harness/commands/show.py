@@ -29,6 +29,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     from results.summary import summarize
 
     run_dir = RunDir(args.run_dir)
+    run_dir.remove_temporaries_unless_locked()  # what a killed writer left, as results.runs.load_run
     try:
         manifest = run_dir.read_manifest()
         episodes = run_dir.read_episodes()
