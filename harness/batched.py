@@ -25,6 +25,10 @@ When the policy call itself raises, each episode it served is asked for again al
 only the one whose observation makes the policy raise fails; the failed call's time and
 passes stay charged to all of them (they waited for it). Only KeyboardInterrupt stops
 the loop.
+
+The loop runs in the writing process (`execute_batched`) or inside each worker process
+and Ray actor (`BatchedRunner`, driven by harness/backends/local.py's `Worker`), so a
+row means the same wherever its batch ran.
 """
 
 from __future__ import annotations
