@@ -25,6 +25,10 @@ When the policy call itself raises, each episode it served is asked for again al
 only the one whose observation makes the policy raise fails; the failed call's time and
 passes stay charged to all of them (they waited for it). Only KeyboardInterrupt stops
 the loop.
+
+The loop runs in the writing process (`execute_batched`) or inside each worker process
+and Ray actor (`BatchedRunner`, driven by harness/backends/local.py's `Worker`), so a
+row means the same wherever its batch ran.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, TypeVar
 
 import gymnasium as gym
 import numpy as np
@@ -47,6 +51,7 @@ from harness.nfe import NFECounter
 from policies.base import EpisodeContext, can_batch
 
 clock = time.perf_counter
+T = TypeVar("T")
 
 
 def check_batching(policies: Sequence[Any], batch_envs: int) -> None:
@@ -233,6 +238,9 @@ class _Loop:
         return elapsed
 
 
+STARTED, STEPPED, DONE = "started", "stepped", "done"  # what batch_events yields
+
+
 def run_batched(
     specs: Sequence[EpisodeSpec],
     make_env: Callable[[], gym.Env],
@@ -251,25 +259,55 @@ def run_batched(
     closed and rebuilt after an episode that failed; None entries are built with
     make_env). Its length becomes `batch_envs`.
     """
+    events = batch_events(
+        specs, make_env, policy, nfe, context_for, batch_envs, replan_every, record_traces, envs
+    )
+    for kind, payload in events:
+        if kind == DONE:
+            yield payload
+
+
+def batch_events(
+    specs: Sequence[EpisodeSpec],
+    make_env: Callable[[], gym.Env],
+    policy: Any,
+    nfe: NFECounter,
+    context_for: Callable[[EpisodeSpec, gym.Env], EpisodeContext],
+    batch_envs: int,
+    replan_every: int = 0,
+    record_traces: bool = False,
+    envs: list[gym.Env | None] | None = None,
+) -> Iterator[tuple[str, Any]]:
+    """`run_batched` that also says when each episode starts and when each lockstep step
+    ends: (STARTED, position) before an episode's env is built or reset, (STEPPED, None)
+    after each step of the loop, (DONE, (position, outcome)) as an episode ends.
+
+    A worker process forwards these to the scheduler (harness/backends/schedule.py),
+    which must know which episodes a lost worker held (those it said had started) and
+    whether a batch still moves (--episode-timeout). The consumer's time between events
+    is charged to no episode, as a row's writing is not.
+    """
     envs = [] if envs is None else envs
     envs.extend([None] * (batch_envs - len(envs)))
     loop = _Loop(envs, make_env, policy, nfe, context_for, replan_every, record_traces)
     queue = deque(enumerate(specs))
     slots: dict[int, _Slot] = {}
 
-    def fill(i: int) -> None:
+    def fill(i: int) -> Iterator[tuple[str, Any]]:
         while queue and i not in slots:
-            slot = loop.start(i, *queue.popleft())
+            index, spec = queue.popleft()
+            yield STARTED, index
+            slot = loop.start(i, index, spec)
             if slot is not None:
                 slots[i] = slot
 
-    def flush() -> Iterator[tuple[int, EpisodeOutcome]]:
+    def flush() -> Iterator[tuple[str, Any]]:
         while loop.finished:
             index, done = loop.finished.pop(0)
-            yield index, done.outcome(batch_envs) if isinstance(done, _Slot) else done
+            yield DONE, (index, done.outcome(batch_envs) if isinstance(done, _Slot) else done)
 
     for i in range(batch_envs):
-        fill(i)
+        yield from fill(i)
     yield from flush()
     while slots:
         t0 = clock()
@@ -284,13 +322,95 @@ def run_batched(
         overhead = (clock() - t0 - charged) / running
         for slot in slots.values():
             slot.overhead += overhead
+        yield STEPPED, None
         for i in [i for i, s in sorted(slots.items()) if s.done]:
             slot = slots.pop(i)
             loop.finished.append((slot.index, slot))
             if slot.failure is not None:
                 loop.close_env(i)  # its state is suspect: rebuilt for the next episode
-            fill(i)
+            yield from fill(i)
         yield from flush()
+
+
+def batch_groups(items: Sequence[T], task: Callable[[T], str], policy: Callable[[T], str]) -> list[list[T]]:
+    """`items` (episodes in plan order) as batches: task by task in order of first
+    appearance, and within a task one group per policy (a batch serves one policy)."""
+    groups: dict[str, dict[str, list[T]]] = {}
+    for item in items:
+        groups.setdefault(task(item), {}).setdefault(policy(item), []).append(item)
+    return [group for by_policy in groups.values() for group in by_policy.values()]
+
+
+class BatchedRunner:
+    """Runs a task's episodes of one policy K at a time (`run_batched`), keeping the K envs
+    of the current task for its next policy's batch; used by the in-process executor and
+    by each worker process and Ray actor, so a batch runs the same way wherever it runs.
+
+    envs: open envs by task name, shared with an `EpisodeRunner` in a worker (and filled
+    by the warm-up or the preflight): the current task's env becomes slot 0, and `release`
+    puts it back, so a task never holds more than K envs at once (a LIBERO env holds
+    ~0.5 GB). counters: the process's NFE counters by id(PolicyRun), shared likewise.
+    """
+
+    def __init__(
+        self,
+        resolved: Any,
+        batch_envs: int,
+        traces: bool = False,
+        envs: dict[str, gym.Env] | None = None,
+        counters: dict[int, NFECounter] | None = None,
+    ):
+        self.resolved, self.batch_envs, self.traces = resolved, batch_envs, traces
+        self.envs = {} if envs is None else envs
+        self.own_counters = counters is None
+        self.counters = (
+            {id(p): NFECounter(p.policy) for p in resolved.policies} if counters is None else counters
+        )
+        self.task: str | None = None
+        self.slot_envs: list[gym.Env | None] = []
+
+    def release(self) -> None:
+        """Give the current task's slot 0 env back to `envs` and close the others."""
+        if self.task is not None and self.slot_envs and self.slot_envs[0] is not None:
+            if self.task in self.envs:
+                self.slot_envs[0].close()
+            else:
+                self.envs[self.task] = self.slot_envs[0]
+        for env in self.slot_envs[1:]:
+            if env is not None:
+                env.close()
+        self.task, self.slot_envs = None, []
+
+    def events(self, jobs: Sequence[Any]) -> Iterator[tuple[str, Any]]:
+        """`batch_events` over `jobs` (EpisodeJobs of one task and one policy); positions
+        index `jobs`, and each outcome carries this batch size."""
+        from harness.backends.local import episode_context
+
+        task, policy, suite = jobs[0].task, jobs[0].policy, self.resolved.suite
+        if task.name != self.task:
+            self.release()
+            for name in [n for n in self.envs if n != task.name]:
+                self.envs.pop(name).close()  # another task's env (a LIBERO env holds ~0.5 GB)
+            self.task, self.slot_envs = task.name, [self.envs.pop(task.name, None)]
+        yield from batch_events(
+            [job.spec for job in jobs],
+            lambda: suite.make_env(task),
+            policy.policy,
+            self.counters[id(policy)],
+            lambda spec, env: episode_context(suite.name, task, spec, env),
+            self.batch_envs,
+            self.resolved.config.replan_every,
+            self.traces,
+            self.slot_envs,
+        )
+
+    def close(self) -> None:
+        self.release()
+        while self.envs:
+            self.envs.popitem()[1].close()
+        if self.own_counters:
+            for counter in self.counters.values():
+                counter.close()
 
 
 def execute_batched(
@@ -308,40 +428,15 @@ def execute_batched(
     are still taken minutes apart at most, under the same load. `envs` (built by the
     preflight, by task name) become slot 0 of their task.
     """
-    from harness.backends.local import HOST, IN_PROCESS, episode_context
+    from harness.backends.local import HOST, IN_PROCESS
 
-    groups: dict[str, dict[str, list[Any]]] = {}
-    for job in jobs:
-        groups.setdefault(job.task.name, {}).setdefault(job.policy.config_id, []).append(job)
-    counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
-    suite = resolved.suite
+    runner = BatchedRunner(resolved, batch_envs, traces, envs)
     try:
-        for task_jobs in groups.values():
-            task = next(iter(task_jobs.values()))[0].task
-            slot_envs: list[gym.Env | None] = [envs.pop(task.name, None)]
-            while envs:  # another task's env (a LIBERO env holds ~0.5 GB)
-                envs.popitem()[1].close()
-            try:
-                for policy_jobs in task_jobs.values():
-                    policy = policy_jobs[0].policy
-                    episodes = run_batched(
-                        [job.spec for job in policy_jobs],
-                        lambda task=task: suite.make_env(task),
-                        policy.policy,
-                        counters[id(policy)],
-                        lambda spec, env, task=task: episode_context(suite.name, task, spec, env),
-                        batch_envs,
-                        resolved.config.replan_every,
-                        traces,
-                        slot_envs,
-                    )
-                    for index, outcome in episodes:
-                        outcome.host, outcome.worker_id = HOST, IN_PROCESS
-                        on_done(policy_jobs[index], outcome)
-            finally:
-                for env in slot_envs:
-                    if env is not None:
-                        env.close()
+        for group in batch_groups(jobs, lambda job: job.task.name, lambda job: job.policy.config_id):
+            for kind, payload in runner.events(group):
+                if kind == DONE:
+                    index, outcome = payload
+                    outcome.host, outcome.worker_id = HOST, IN_PROCESS
+                    on_done(group[index], outcome)
     finally:
-        for counter in counters.values():
-            counter.close()
+        runner.close()

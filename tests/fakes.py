@@ -191,7 +191,10 @@ class FaultPolicy(ChunkPolicy):
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         super().reset(episodes)
-        ep = episodes[0]
+        self.strike(episodes[0])
+
+    def strike(self, ep: EpisodeContext) -> None:
+        """Suffer the fault set for `ep`, if any (and not already suffered, for KIND:once)."""
         kind = self.faults.get(ep.episode_index)
         if kind is None:
             return
@@ -208,6 +211,42 @@ class FaultPolicy(ChunkPolicy):
         suffer(kind)
 
 
+class BatchFaultPolicy(FaultPolicy):
+    """FaultPolicy that declares act_batch (so --batch-envs K serves it): an episode's fault
+    strikes in the first call that decodes for it, so in a batch it takes down every
+    episode in flight. Chunks depend only on the episode (a batchable policy keeps no state
+    between calls), and one pass of a tiny torch module per call makes NFE counted."""
+
+    def __init__(self, faults: dict[int, str], marks: str | None = None, chunk: int = 2, delay: float = 0.0):
+        import torch
+
+        super().__init__(faults, marks, chunk=chunk, delay=delay)
+        self.net = torch.nn.Linear(1, 1)
+        self.episode: EpisodeContext | None = None
+        self.sizes: list[int] = []  # episodes decoded per call
+
+    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
+        self.episode = episodes[0]
+
+    def act(self, observations: Sequence[object]) -> ChunkBatch:
+        assert self.episode is not None
+        return self.act_batch([self.episode] * len(observations), observations)
+
+    def act_batch(self, episodes: Sequence[EpisodeContext], observations: Sequence[object]) -> ChunkBatch:
+        import torch
+
+        for ep in episodes:
+            self.strike(ep)
+        self.sizes.append(len(episodes))
+        if self.delay:
+            time.sleep(self.delay)
+        with torch.no_grad():
+            self.net(torch.zeros(len(episodes), 1))
+        index = np.array([ep.episode_index for ep in episodes], dtype=float) / 100
+        actions = np.repeat(index[:, None, None], self.chunk, axis=1).repeat(self.dim, axis=2)
+        return ChunkBatch(actions=actions, action_tokens=len(episodes) * self.chunk * self.dim)
+
+
 @dataclass(frozen=True)
 class FakeBuild:
     """Builds the fake run in a worker process (an Execution's `rebuild`): picklable,
@@ -219,7 +258,9 @@ class FakeBuild:
     tasks: int = 1
     succeed_at: int | None = 5
     delay: float = 0.0  # seconds per policy call
+    batch: bool = False  # a policy that declares act_batch (BatchFaultPolicy)
 
     def __call__(self) -> ResolvedRun:
-        policy = FaultPolicy(dict(self.faults), self.marks, delay=self.delay)
+        kind = BatchFaultPolicy if self.batch else FaultPolicy
+        policy = kind(dict(self.faults), self.marks, delay=self.delay)
         return fake_resolved(policy, episodes=self.episodes, tasks=self.tasks, succeed_at=self.succeed_at)

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 from harness.backends import Execution
-from harness.backends.local import HOST
-from harness.backends.schedule import Event, job_id, schedule
+from harness.backends.local import HOST, Worker
+from harness.backends.schedule import Event, JobId, job_id, schedule
 from harness.runner import plan, run
 from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
 from tests.fakes import FakeBuild
@@ -97,6 +97,98 @@ def test_an_episode_past_the_timeout_is_a_timeout_row_and_its_worker_replaced(tm
     assert rows.loc[2, "worker_id"] == "local-1"
 
 
+def test_batched_workers_give_the_rows_of_one_batched_process(tmp_path):
+    build = FakeBuild(episodes=5, tasks=2, batch=True)
+    alone = run(build(), tmp_path / "one", execution=Execution(batch_envs=3))
+    pooled = run(build(), tmp_path / "two", execution=Execution(workers=2, batch_envs=3, rebuild=build))
+    a, b = _rows(alone), _rows(pooled)
+    assert len(b) == 10 and b["failure_reason"].isna().all()
+    _same_results(a, b)
+    assert set(b["batch_envs"]) == {3} and set(b["worker_id"]) <= {"local-0", "local-1"}
+    assert (b["nfe_total"] == b["chunks"]).all()  # one pass per call, charged to each row it served
+    assert b.groupby("task")["worker_id"].nunique().eq(1).all()
+    assert pooled.run_dir.read_manifest()["execution"][-1]["batch_envs"] == 3
+    # --resume with a larger protocol runs only the new episodes, batched in the workers
+    bigger = FakeBuild(episodes=6, tasks=2, batch=True)
+    execution = Execution(workers=2, batch_envs=3, rebuild=bigger)
+    resumed = run(bigger(), tmp_path / "two", resume=True, execution=execution)
+    assert (resumed.skipped, resumed.executed) == (10, 2)
+    rows = _rows(resumed)
+    assert (
+        len(rows) == 12
+        and set(rows["batch_envs"]) == {3}
+        and not rows.duplicated(["task", "episode_index"]).any()
+    )
+
+
+def test_a_batched_worker_warms_up_at_the_batch_shape_and_reports_each_episode():
+    worker = Worker(FakeBuild(episodes=4, batch=True)(), False, "w-0", batch_envs=3, heartbeat_s=0.0)
+    policy = worker.runner.resolved.policies[0].policy
+    try:
+        assert policy.sizes == [1, 3]  # warm-up: one act, then one act_batch of 3
+        group = sorted(worker.jobs)
+        events = list(worker.run(group, alone=False))
+        started = [payload for kind, payload in events if kind == "started"]
+        done = {payload[0]: payload[1] for kind, payload in events if kind == "done"}
+        assert started == group and sorted(done) == group
+        assert [kind for kind, _ in events[:3]] == ["started"] * 3  # K slots filled first
+        assert "stepped" in [kind for kind, _ in events]  # the heartbeat (every step at 0 s)
+        for jid in group:  # an episode is reported started before it is reported done
+            assert events.index(("started", jid)) < next(
+                n for n, (kind, payload) in enumerate(events) if kind == "done" and payload[0] == jid
+            )
+        assert all(o.batch_envs == 3 and o.worker_id == "w-0" and o.host == HOST for o in done.values())
+        assert max(policy.sizes[2:]) == 3
+        quiet = Worker(FakeBuild(episodes=4, batch=True)(), False, "w-1", batch_envs=3)
+        assert "stepped" not in [
+            kind for kind, _ in quiet.run(group, alone=False)
+        ]  # no timeout: no heartbeat
+        quiet.close()
+        ((kind, (jid, outcome)),) = worker.run(group[:1], alone=True)  # re-run alone: unbatched
+        assert kind == "done" and jid == group[0] and outcome.batch_envs == 1 and outcome.success
+    finally:
+        worker.close()
+
+
+def test_a_batched_worker_lost_mid_batch_has_its_episodes_rerun_alone_none_twice(tmp_path):
+    # chunks of 2, success at step 5: episodes 0-2 end and are reported, 3-5 start, and
+    # the first decode for 3-5 kills the worker (episode 4's fault) with the three in flight
+    build = FakeBuild(faults=((4, "sigkill"),), episodes=7, batch=True)
+    execution = Execution(workers=2, batch_envs=3, max_retries=1, rebuild=build)
+    report = run(build(), tmp_path / "r", execution=execution)
+    rows = _rows(report).set_index("episode_index")
+    assert len(rows) == 7 and report.executed == 7 and rows.index.is_unique
+    # the batch's loss counted against none of them; alone, 4 was lost twice (tries: 1 + 1 retry)
+    assert rows.loc[4, "failure_reason"] == (
+        "worker lost: killed by SIGKILL (the out-of-memory killer, or a kill) (tried 2 times)"
+    )
+    assert rows.loc[[0, 1, 2, 3, 5, 6], "success"].all()
+    assert rows["batch_envs"].to_dict() == {0: 3, 1: 3, 2: 3, 3: 1, 4: 1, 5: 1, 6: 3}
+    clean = _rows(
+        run(FakeBuild(episodes=7, batch=True)(), tmp_path / "clean", execution=Execution(batch_envs=3))
+    )
+    ok = [0, 1, 2, 3, 5, 6]
+    a = clean.set_index("episode_index").loc[ok].drop(columns="batch_envs").reset_index()
+    _same_results(a, rows.loc[ok].drop(columns="batch_envs").reset_index())
+    # workers: the first, one after the batch was lost, one after each loss of 4 alone
+    assert len(report.run_dir.read_manifest()["execution"][-1]["worker_threads"]) == 4
+
+
+def test_a_stalled_batch_is_stopped_and_only_the_episode_that_hangs_times_out(tmp_path):
+    build = FakeBuild(faults=((4, "hang"),), episodes=6, batch=True)
+    execution = Execution(workers=1, batch_envs=3, episode_timeout=3.0, rebuild=build)
+    start = time.monotonic()
+    report = run(build(), tmp_path / "r", execution=execution)
+    assert time.monotonic() - start < 90
+    rows = _rows(report).set_index("episode_index")
+    assert len(rows) == 6 and rows.index.is_unique
+    assert rows.loc[4, "failure_reason"] == "timeout: ran past --episode-timeout 3 s"
+    assert rows.loc[[0, 1, 2, 3, 5], "success"].all()
+    assert rows["batch_envs"].to_dict() == {0: 3, 1: 3, 2: 3, 3: 1, 4: 1, 5: 1}
+    # the stalled batch's worker, then the one that ran 3 and hung on 4 alone, then 5's
+    assert rows.loc[[0, 3, 4, 5], "worker_id"].tolist() == ["local-0", "local-1", "local-1", "local-2"]
+
+
 class _Scripted:
     """A transport whose worker returns episode 0 twice (as a lost worker's late result
     and its re-run would), then the rest."""
@@ -108,7 +200,9 @@ class _Scripted:
     def start(self, slot):
         return "w"
 
-    def submit(self, slot, job):
+    def submit(self, slot, group, alone):
+        assert alone and len(group) == 1  # unbatched: one episode at a time
+        (job,) = group
         self.sent.append(job)
         self.events.append(Event(slot, "done", (job, f"outcome of {job}")))
         if len(self.sent) == 1:
@@ -131,6 +225,49 @@ def test_an_episode_returned_twice_is_handed_on_once():
     schedule(jobs, _Scripted(), Execution(workers=1), lambda job, out: done.append((job_id(job), out)), print)
     assert [j for j, _ in done] == [job_id(j) for j in jobs]
     assert "again" not in [out for _, out in done]
+
+
+class _SilentBatch:
+    """A transport whose first batched worker dies before any of its events arrive (as a
+    Ray actor's last events may die with it); later workers run what they are sent."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[list[JobId], bool]] = []
+        self.events: list[Event] = [Event(0, "ready", {"host": "h"})]
+
+    def start(self, slot: int) -> str:
+        if self.sent:
+            self.events.append(Event(slot, "ready", {"host": "h"}))
+        return f"w{len(self.sent)}"
+
+    def submit(self, slot: int, group: list[JobId], alone: bool) -> None:
+        self.sent.append((list(group), alone))
+        if len(self.sent) == 1:
+            self.events.append(Event(slot, "lost", "killed"))
+            return
+        for jid in group:
+            self.events += [Event(slot, "started", jid), Event(slot, "done", (jid, f"outcome of {jid}"))]
+
+    def wait(self, timeout: float) -> list[Event]:
+        events, self.events = self.events, []
+        return events
+
+    def kill(self, slot: int) -> None:
+        pass
+
+    def shutdown(self) -> None:
+        pass
+
+
+def test_a_batch_lost_unheard_runs_the_first_k_it_may_have_held_alone():
+    jobs = plan(FakeBuild(episodes=5)())
+    ids = [job_id(j) for j in jobs]
+    done = []
+    transport = _SilentBatch()
+    execution = Execution(workers=1, batch_envs=2, max_retries=0)
+    schedule(jobs, transport, execution, lambda job, out: done.append(job_id(job)), print)
+    assert sorted(done) == sorted(ids)  # each once, none counted as a failure
+    assert transport.sent == [(ids, False), ([ids[0]], True), ([ids[1]], True), (ids[2:], False)]
 
 
 KILL_SCRIPT = """
@@ -203,6 +340,22 @@ def test_ray_actors_give_the_same_rows_and_survive_a_kill_and_a_hang(tmp_path):
     _same_results(expected.reset_index(drop=True), others.reset_index(drop=True))
     session = report.run_dir.read_manifest()["execution"][-1]
     assert session["backend"] == "ray" and len(session["worker_threads"]) >= 4
+
+
+@pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
+def test_ray_actors_run_batches_and_rerun_a_lost_batch_alone(tmp_path):
+    # in each task, 3-5 are in flight when episode 4's first decode kills the actor (once)
+    build = FakeBuild(faults=((4, "sigkill:once"),), marks=str(tmp_path), episodes=6, tasks=2, batch=True)
+    execution = Execution(backend="ray", workers=2, batch_envs=3, episode_timeout=20.0, rebuild=build)
+    rows = _rows(run(build(), tmp_path / "r", execution=execution))
+    assert len(rows) == 12 and rows["success"].all() and rows["worker_id"].str.startswith("ray-").all()
+    assert not rows.duplicated(["task", "episode_index"]).any()
+    # the three the lost actor held ran again alone (its events reached the parent before it died)
+    assert (rows["batch_envs"] == rows["episode_index"].map(lambda i: 1 if i >= 3 else 3)).all()
+    clean = _rows(
+        run(FakeBuild(episodes=6, tasks=2, batch=True)(), tmp_path / "c", execution=Execution(batch_envs=3))
+    )
+    _same_results(clean.drop(columns="batch_envs"), rows.drop(columns="batch_envs"))
 
 
 def test_rows_a_ray_node_ran_are_that_nodes_machine(tmp_path):

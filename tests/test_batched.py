@@ -209,7 +209,6 @@ def test_runner_rows_record_the_batch_size_and_resume_may_change_it(tmp_path):
     ("flags", "message"),
     [
         (["--batch-envs", "0"], "--batch-envs must be an integer of at least 1, got 0"),
-        (["--batch-envs", "2", "--workers", "2"], "--batch-envs 2 runs in this process only"),
         (["--batch-envs", "2", "--policy", "scripted"], "policy scripted cannot batch"),
     ],
 )
@@ -221,6 +220,17 @@ def test_bad_batch_flags_exit_2_and_write_nothing(cli, tmp_path, flags, message)
     assert code == 2, err
     assert message in " ".join(err.split())
     assert not out.exists()
+
+
+def test_batching_is_accepted_with_workers_and_an_episode_timeout():
+    from harness.backends.options import execution_from_args
+    from harness.cli import build_parser
+
+    flags = ["--batch-envs", "3", "--workers", "2", "--episode-timeout", "30"]
+    args = build_parser().parse_args(["run", "--suite", "metaworld/mt10", "--policy", "fast_dvla", *flags])
+    execution = execution_from_args(args)  # once refused (exit 2): batching ran in this process only
+    assert (execution.batch_envs, execution.workers, execution.episode_timeout) == (3, 2, 30.0)
+    assert not execution.in_process
 
 
 def test_batch_envs_in_a_config_file_is_read_and_validated(cli, tmp_path):

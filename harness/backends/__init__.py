@@ -15,6 +15,9 @@ The last two share one scheduler (harness/backends/schedule.py): a task's episod
 to one worker, all policies interleaved episode by episode as in one process; a worker
 holds one episode at a time, so a lost worker loses exactly that episode, which is run
 again on a fresh worker up to `max_retries` times and then recorded as a failure row.
+With --batch-envs K each worker runs a task's episodes K at a time (one policy per
+batch) and says when each starts and ends; the episodes a lost batched worker held (up
+to K) are run again, alone, on its replacement (schedule.py says why alone).
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ class Execution:
     device: --device for each worker's policies (harness/device.py); None leaves them
       where they were built.
     batch_envs: environments stepped in lockstep, one policy call for them all
-      (harness/batched.py); above 1 only in this process (--workers 1).
+      (harness/batched.py), in this process or in each worker.
     """
 
     backend: str = "local"

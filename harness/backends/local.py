@@ -1,10 +1,13 @@
-"""The laptop backend: one process, episodes one after another, envs reused per task."""
+"""The laptop backend: one process, episodes one after another, envs reused per task;
+and the `Worker` every pool process and Ray actor runs, so an episode runs the same
+way wherever it runs."""
 
 from __future__ import annotations
 
 import socket
+import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
@@ -134,16 +137,72 @@ def execute_local(
         runner.close()
 
 
-def start_worker(
-    resolved: ResolvedRun, traces: bool
-) -> tuple[EpisodeRunner, dict[EpisodeJobKey, EpisodeJob], Any]:
-    """A worker's runner, its episodes by key, and its warm-up record: each worker process
-    pays its policies' one-off costs (first calls, lazy init) before its first timed
-    episode, as the writing process does for its own (harness/warmup.py), on the run's
-    first task."""
-    from harness.backends.schedule import index_jobs
-    from harness.warmup import warm_up_run
+class Worker:
+    """A worker's episodes (a pool process or a Ray actor): the run rebuilt, its policies
+    warmed up, then the groups of episodes the scheduler (harness/backends/schedule.py)
+    sends, each as a stream of events.
 
-    runner = EpisodeRunner(resolved, traces)
-    jobs = index_jobs(resolved)
-    return runner, jobs, warm_up_run(resolved, list(jobs.values()), runner.envs)
+    A group sent `alone` runs episode by episode with the `EpisodeRunner`, as without
+    batching: every group with --batch-envs 1, and with K > 1 each episode that was in
+    flight when its batch's worker was lost or stalled (run alone, a second loss or hang
+    names the episode that causes it). Any other group (one task, one policy) runs K at a
+    time with the `BatchedRunner`, saying when each episode starts (the scheduler re-runs
+    exactly those if the worker is lost) and, with --episode-timeout, that the batch
+    still moves at least every `heartbeat_s` seconds.
+
+    The warm-up (harness/warmup.py) pays the first calls at the batched shapes too, on
+    the run's first task, before the worker reports ready.
+    """
+
+    def __init__(
+        self,
+        resolved: ResolvedRun,
+        traces: bool,
+        worker_id: str,
+        batch_envs: int = 1,
+        heartbeat_s: float | None = None,
+    ):
+        from harness.backends.schedule import index_jobs
+        from harness.batched import BatchedRunner
+        from harness.warmup import warm_up_run
+
+        self.worker_id, self.heartbeat_s = worker_id, heartbeat_s
+        self.runner = EpisodeRunner(resolved, traces)
+        self.jobs = index_jobs(resolved)
+        self.batched = (
+            BatchedRunner(resolved, batch_envs, traces, self.runner.envs, self.runner.counters)
+            if batch_envs > 1
+            else None
+        )
+        self.warm_up = warm_up_run(resolved, list(self.jobs.values()), self.runner.envs, batch_envs)
+
+    def _placed(self, outcome: EpisodeOutcome) -> EpisodeOutcome:
+        outcome.host, outcome.worker_id = HOST, self.worker_id
+        return outcome
+
+    def run(self, group: Sequence[EpisodeJobKey], alone: bool) -> Iterator[tuple[str, Any]]:
+        """Yields ("started", key), ("stepped", None) and ("done", (key, outcome))."""
+        from harness.batched import DONE, STARTED, STEPPED
+
+        if alone or self.batched is None:
+            if self.batched is not None:
+                self.batched.release()  # its envs back to the runner, K at most per task
+            for key in group:
+                yield DONE, (key, self._placed(self.runner.run(self.jobs[key])))
+            return
+        said = time.monotonic()
+        for kind, payload in self.batched.events([self.jobs[key] for key in group]):
+            if kind == STEPPED and (self.heartbeat_s is None or time.monotonic() - said < self.heartbeat_s):
+                continue
+            if kind == STARTED:
+                payload = group[payload]
+            elif kind == DONE:
+                index, outcome = payload
+                payload = (group[index], self._placed(outcome))
+            said = time.monotonic()
+            yield kind, payload
+
+    def close(self) -> None:
+        if self.batched is not None:
+            self.batched.close()
+        self.runner.close()

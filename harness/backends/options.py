@@ -42,15 +42,17 @@ def add_backend_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         metavar="SECONDS",
         help="an episode running longer is recorded as a failure row (reason 'timeout') and its worker "
-        "replaced (runs episodes in a worker process even with --workers 1)",
+        "replaced (runs episodes in a worker process even with --workers 1); with --batch-envs K, a "
+        "batch with no step for that long is stopped and its episodes run again alone, where the "
+        "limit is per episode",
     )
     p.add_argument(
         "--batch-envs",
         type=int,
         metavar="K",
         help="step K environments of a task in lockstep and decode their observations in one policy "
-        "call (batched inference; this process only, policies that declare act_batch); default 1, "
-        "or the config's batch_envs",
+        "call (batched inference, in this process or in each worker; policies that declare "
+        "act_batch); default 1, or the config's batch_envs",
     )
     p.add_argument(
         "--ray-address",
@@ -96,11 +98,6 @@ def execution_from_args(args: argparse.Namespace) -> Execution:
         device=getattr(args, "device", None),
         batch_envs=batch_envs,
     )
-    if batch_envs > 1 and not execution.in_process:
-        raise UsageError(
-            f"--batch-envs {batch_envs} runs in this process only; drop --workers/--backend ray/"
-            "--episode-timeout, or use --batch-envs 1 with them"
-        )
     if backend == "ray":
         from harness.backends.ray import connect
 

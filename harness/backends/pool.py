@@ -4,7 +4,9 @@ Workers are started with multiprocessing's `spawn` context: a fresh interpreter,
 torch's thread pools and MuJoCo's GL state do not survive a fork of a process that has
 started them. Each worker rebuilds the run's policies and suite from the config (a
 built policy is not sent between processes), sets its own torch/BLAS threads, and then
-runs the episodes it is sent with the same `EpisodeRunner` as the in-process backend.
+runs the episodes it is sent with the same runners as the in-process backend
+(`EpisodeRunner`, and with --batch-envs K the `BatchedRunner`; harness/backends/local.py
+`Worker`), sending each event (an episode started, ended) as it happens.
 
 Each worker talks to the parent over its own pipe, not a shared queue: a worker killed
 mid-write (SIGKILL, a segfault) can then leave at most a cut message on its own pipe,
@@ -21,7 +23,7 @@ from functools import partial
 from multiprocessing import connection, get_context
 from typing import TYPE_CHECKING, Any
 
-from harness.backends.local import HOST, start_worker
+from harness.backends.local import HOST, Worker
 from harness.backends.schedule import Event, JobId
 
 if TYPE_CHECKING:
@@ -51,6 +53,14 @@ def worker_threads(execution: Execution) -> int:
     from harness.threads import default_threads
 
     return execution.threads or default_threads(execution.workers)
+
+
+def heartbeat_interval(execution: Execution) -> float | None:
+    """How often a batched worker says its batch still moves: often enough that a batch
+    is declared stalled only after --episode-timeout without a step; never without it."""
+    if execution.episode_timeout is None or execution.batch_envs == 1:
+        return None
+    return execution.episode_timeout / 4
 
 
 def lost_reason(exitcode: int | None) -> str:
@@ -84,15 +94,19 @@ def worker_main(
     threads: int | None,
     workers: int,
     traces: bool,
+    batch_envs: int = 1,
+    heartbeat_s: float | None = None,
 ) -> None:
-    """A worker's life: set threads, build, say ready, run episodes until told to stop."""
+    """A worker's life: set threads, build, say ready, run groups of episodes until told
+    to stop, sending each event as it happens (a finished episode's row is written by the
+    parent while the rest of its batch runs)."""
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the parent, which stops us
     from harness.threads import apply_threads, threads_record
 
     apply_threads(threads, workers)  # before the policies load torch
     try:
-        runner, jobs, warm_up = start_worker(rebuild(), traces)
+        worker = Worker(rebuild(), traces, worker_id, batch_envs, heartbeat_s)
     except BaseException as exc:
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
@@ -100,18 +114,18 @@ def worker_main(
     apply_threads(threads, workers)  # again with torch loaded: its inter-op threads too
     record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
     try:
-        conn.send(("ready", record | {"warm_up": warm_up}))
+        conn.send(("ready", record | {"warm_up": worker.warm_up}))
         while True:
-            jid = conn.recv()
-            if jid is None:
+            message = conn.recv()
+            if message is None:
                 break
-            outcome = runner.run(jobs[jid])
-            outcome.host, outcome.worker_id = HOST, worker_id
-            conn.send(("done", (jid, outcome)))
+            group, alone = message
+            for event in worker.run(group, alone):
+                conn.send(event)
     except (EOFError, OSError):
         pass  # the parent is gone or done: a worker still starting when the work ran out
     finally:
-        runner.close()
+        worker.close()
 
 
 class ProcessWorkers:
@@ -122,6 +136,7 @@ class ProcessWorkers:
         self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config, execution.device)
         self.threads, self.asked = worker_threads(execution), execution.threads
         self.workers, self.traces = execution.workers, traces
+        self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
         self.procs: dict[int, Any] = {}
         self.conns: dict[int, Any] = {}
         self.started = 0
@@ -131,15 +146,16 @@ class ProcessWorkers:
         self.started += 1
         mine, theirs = self.context.Pipe()
         args = (theirs, worker_id, self.rebuild, self.asked, self.workers, self.traces)
+        args += (self.batch_envs, self.heartbeat_s)
         proc = self.context.Process(target=worker_main, args=args, name=f"dvla-{worker_id}", daemon=True)
         proc.start()
         theirs.close()
         self.procs[slot], self.conns[slot] = proc, mine
         return worker_id
 
-    def submit(self, slot: int, job: JobId) -> None:
+    def submit(self, slot: int, group: list[JobId], alone: bool) -> None:
         try:
-            self.conns[slot].send(job)
+            self.conns[slot].send((group, alone))
         except OSError:
             pass  # the worker is gone: its sentinel says so at the next wait
 

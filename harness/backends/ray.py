@@ -1,11 +1,13 @@
 """`--backend ray`: the run's episodes on Ray actors, on this machine or a cluster.
 
 Each worker is a Ray actor (`EpisodeActor`) that rebuilds the run's policies and suite
-from the config, as a pool worker does, and runs one episode per call. Ray moves the
-calls and results, places the actors (`num_cpus` = the worker's torch threads,
+from the config, as a pool worker does, and runs one episode per call, or with
+--batch-envs K a task's episodes of one policy K at a time per call, as a Ray streaming
+generator (each episode's start and outcome reach the scheduler as they happen, so a
+row is written while the rest of its batch runs). Ray moves the calls and results, places the actors (`num_cpus` = the worker's torch threads,
 `num_gpus` = --ray-num-gpus, so a policy that decodes on a GPU lands on a GPU node), and
 reports a lost actor as `RayActorError`; the scheduler (harness/backends/schedule.py)
-then resubmits the episode to a fresh actor, as it does for a lost process. The actors
+then resubmits the episodes it held to a fresh actor, as it does for a lost process. The actors
 are made with `max_restarts=0`: a restarted actor would run the lost call again by
 itself, without the per-episode retry count the failure rows need.
 
@@ -25,12 +27,12 @@ import time
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
-from harness.backends.pool import rebuild_from_config, worker_threads
+from harness.backends.pool import heartbeat_interval, rebuild_from_config, worker_threads
 from harness.backends.schedule import Event, JobId
 from harness.errors import UsageError
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Iterator
 
     from harness.backends import Execution
     from harness.config import ResolvedRun
@@ -88,36 +90,47 @@ def connect(execution: Execution) -> None:
 
 
 class EpisodeActor:
-    """A Ray worker: the run rebuilt once, then one episode per `run` call."""
+    """A Ray worker: the run rebuilt once, then one episode per `run` call, or a batch of
+    a task's episodes per `run_batch` call, whose events stream back as they happen."""
 
     def __init__(
-        self, worker_id: str, rebuild: Callable[[], ResolvedRun], threads: int, workers: int, traces: bool
+        self,
+        worker_id: str,
+        rebuild: Callable[[], ResolvedRun],
+        threads: int,
+        workers: int,
+        traces: bool,
+        batch_envs: int = 1,
+        heartbeat_s: float | None = None,
     ):
-        from harness.backends.local import HOST, start_worker
+        from harness.backends.local import HOST, Worker
         from harness.threads import apply_threads, threads_record
 
-        self.worker_id, self.host, self.error = worker_id, HOST, ""
+        self.error = ""
         apply_threads(threads, workers)
         try:
-            self.runner, self.jobs, warm_up = start_worker(rebuild(), traces)
+            self.worker = Worker(rebuild(), traces, worker_id, batch_envs, heartbeat_s)
         except Exception as exc:  # said by ready(), not as a dead actor retried in vain
             self.error = f"{type(exc).__name__}: {exc}"
             return
         apply_threads(threads, workers)
         record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
-        self.record = record | {"warm_up": warm_up}
+        self.record = record | {"warm_up": self.worker.warm_up}
 
     def ready(self) -> tuple[str, Any]:
         return ("error", self.error) if self.error else ("ready", self.record)
 
     def run(self, jid: JobId) -> tuple[str, Any]:
-        outcome = self.runner.run(self.jobs[jid])
-        outcome.host, outcome.worker_id = self.host, self.worker_id
-        return "done", (jid, outcome)
+        (event,) = self.worker.run([jid], alone=True)
+        return event
+
+    def run_batch(self, group: list[JobId]) -> Iterator[tuple[str, Any]]:
+        """A Ray streaming generator: each event reaches the scheduler as it is yielded."""
+        yield from self.worker.run(group, alone=False)
 
     def close(self) -> None:
         if not self.error:
-            self.runner.close()
+            self.worker.close()
 
 
 class RayWorkers:
@@ -132,35 +145,73 @@ class RayWorkers:
         self.threads, self.asked = worker_threads(execution), execution.threads
         self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config, execution.device)
         self.workers, self.traces = execution.workers, traces
+        self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
         self.actor_class = ray.remote(EpisodeActor).options(
             num_cpus=self.threads, num_gpus=execution.ray_num_gpus, max_restarts=0, max_task_retries=0
         )
         self.actors: dict[int, Any] = {}
-        self.refs: dict[Any, tuple[int, Any]] = {}  # object ref -> (slot, the actor it came from)
+        # object ref or a batch's ObjectRefGenerator -> (slot, the actor it came from)
+        self.refs: dict[Any, tuple[int, Any]] = {}
         self.started = 0
+        # a batch's events stream back as yielded; each yield waits until this process has
+        # taken the one before (backpressure 1): an actor that dies drops the events not
+        # yet taken, and the scheduler must hear which episodes it had started
+        self.stream: dict[str, Any] = {"num_returns": "streaming", "_generator_backpressure_num_objects": 1}
 
     def start(self, slot: int) -> str:
         worker_id = f"ray-{self.started}"
         self.started += 1
-        actor = self.actor_class.remote(worker_id, self.rebuild, self.asked, self.workers, self.traces)
+        args = (
+            worker_id,
+            self.rebuild,
+            self.asked,
+            self.workers,
+            self.traces,
+            self.batch_envs,
+            self.heartbeat_s,
+        )
+        actor = self.actor_class.remote(*args)
         self.actors[slot] = actor
         self.refs[actor.ready.remote()] = (slot, actor)
         return worker_id
 
-    def submit(self, slot: int, job: JobId) -> None:
+    def submit(self, slot: int, group: list[JobId], alone: bool) -> None:
         actor = self.actors[slot]
-        self.refs[actor.run.remote(job)] = (slot, actor)
+        if alone:
+            for jid in group:
+                self.refs[actor.run.remote(jid)] = (slot, actor)
+        else:
+            try:
+                batch = actor.run_batch.options(**self.stream).remote(group)
+            except (TypeError, ValueError):  # a Ray without the (private) backpressure option
+                self.stream = {"num_returns": "streaming"}
+                batch = actor.run_batch.options(**self.stream).remote(group)
+            self.refs[batch] = (slot, actor)
 
     def wait(self, timeout: float) -> list[Event]:
         if not self.refs:
             time.sleep(timeout)
             return []
         ready, _ = self.ray.wait(list(self.refs), num_returns=1, timeout=timeout)
+        if ready:  # and whatever else is ready now
+            ready, _ = self.ray.wait(list(self.refs), num_returns=len(self.refs), timeout=0)
         events = []
-        for ref in ready:
-            slot, actor = self.refs.pop(ref)
+        for waitable in ready:
+            if waitable not in self.refs:
+                continue  # its actor was lost at an earlier event of this wait
+            slot, actor = self.refs[waitable]
             if self.actors.get(slot) is not actor:
+                del self.refs[waitable]
                 continue  # from an actor already replaced
+            if isinstance(waitable, self.ray.ObjectRef):
+                ref = waitable
+                del self.refs[waitable]
+            else:  # a batch's generator: its next event (kept until the batch ends)
+                try:
+                    ref = next(waitable)
+                except StopIteration:
+                    del self.refs[waitable]
+                    continue
             try:
                 kind, payload = self.ray.get(ref)
             except self.ray.exceptions.RayActorError as exc:

@@ -2,16 +2,33 @@
 
 Work goes out task by task: a worker takes a task's episodes (every policy, interleaved
 episode by episode as in one process, so the policies' timing ratios are taken under
-the same load) and keeps that task's env between them. A worker holds one episode at a
-time; what it held when it was lost (killed by a signal, a simulator segfault, the
-kernel's out-of-memory killer, an exit) is run again on a fresh worker, up to
-`max_retries` times, then recorded as a failure row saying why. An episode past
+the same load) and keeps that task's env between them. Unbatched, a worker holds one
+episode at a time; what it held when it was lost (killed by a signal, a simulator
+segfault, the kernel's out-of-memory killer, an exit) is run again on a fresh worker, up
+to `max_retries` times, then recorded as a failure row saying why. An episode past
 `episode_timeout` is a failure row with reason `timeout: ...` and its worker is replaced.
 Every outcome comes back here, to the one process that writes the run folder, and an
 episode whose outcome was already handed on is never handed on twice.
 
+With --batch-envs K a worker is sent a task's episodes of one policy as one group (a
+batch serves one policy; the task's policies follow one another, as in one process),
+runs them K at a time (harness/batched.py) and says when each starts and ends, so its
+rows are written as they end and the parent knows which episodes it holds: up to K.
+- A batched worker lost: every episode it held is run again, alone (`alone` groups, one
+  episode each, unbatched), on its fresh replacement; no try is counted against them,
+  since a batch cannot tell which of its episodes brought the worker down. Run alone,
+  the one that does is lost again and counted, as without batching; the others finish.
+  Episodes of the group that had not started go back to the task's queue.
+- --episode-timeout: an episode in a batch is stretched by its batch-mates (K envs step
+  one after another), so its wall time says nothing about it alone, and a hang stops
+  every slot at once. A batch is stalled when its worker says nothing (no step of the
+  lockstep loop, no start or end) for `episode_timeout` seconds (it says it still moves
+  every quarter of that); its worker is then replaced and the episodes it held run
+  alone, where the timeout is the episode's as without batching, so only the episode
+  that hangs gets the `timeout` row.
+
 The transports (harness/backends/pool.py, ray.py) implement `Workers`: start a worker in
-a slot, submit an episode, wait for events, kill a slot's worker.
+a slot, submit a group of episodes, wait for events, kill a slot's worker.
 """
 
 from __future__ import annotations
@@ -51,14 +68,15 @@ def index_jobs(resolved: ResolvedRun) -> dict[JobId, EpisodeJob]:
 @dataclass
 class Event:
     slot: int
-    kind: str  # "ready" (payload: the worker's record), "done" ((JobId, outcome)),
-    # "lost" (why the worker is gone), "error" (why it could not start)
+    kind: str  # "ready" (payload: the worker's record), "started" (JobId, batched only),
+    # "stepped" (a batch still moves), "done" ((JobId, outcome)), "lost" (why the
+    # worker is gone), "error" (why it could not start)
     payload: Any = None
 
 
 class Workers(Protocol):
     def start(self, slot: int) -> str: ...  # returns the new worker's id
-    def submit(self, slot: int, job: JobId) -> None: ...
+    def submit(self, slot: int, group: list[JobId], alone: bool) -> None: ...
     def wait(self, timeout: float) -> list[Event]: ...
     def kill(self, slot: int) -> None: ...
     def shutdown(self) -> None: ...
@@ -69,11 +87,21 @@ class Slot:
     worker_id: str = ""
     host: str = ""
     ready: bool = False
-    unit: deque[JobId] = field(default_factory=deque)
-    inflight: JobId | None = None
-    since: float = 0.0  # monotonic time the episode in flight was sent
-    started_at: datetime | None = None
+    unit: deque[JobId] = field(default_factory=deque)  # the task's episodes not yet sent
+    solo: deque[JobId] = field(default_factory=deque)  # to run alone next (lost in a batch)
+    held: dict[JobId, tuple[float, datetime]] = field(default_factory=dict)  # started, not back
+    queued: list[JobId] = field(default_factory=list)  # sent in a batch, not started
+    alone: bool = False  # the group in flight runs episode by episode
+    heard: float = 0.0  # monotonic time the worker last said something of its group
     start_failures: int = 0  # workers lost in a row before reporting ready
+
+    @property
+    def busy(self) -> bool:
+        return bool(self.held or self.queued)
+
+    @property
+    def has_work(self) -> bool:
+        return bool(self.busy or self.unit or self.solo)
 
 
 def units_by_task(jobs: list[EpisodeJob]) -> deque[deque[JobId]]:
@@ -88,9 +116,27 @@ def units_by_task(jobs: list[EpisodeJob]) -> deque[deque[JobId]]:
     return units
 
 
-def failure(reason: str, slot: Slot) -> EpisodeOutcome:
+def next_group(slot: Slot, units: deque[deque[JobId]], batch_envs: int) -> tuple[list[JobId], bool] | None:
+    """What the slot's worker runs next, and whether alone: an episode lost in a batch,
+    else the next episode of its task (unbatched), or the task's next policy's episodes
+    (batched); a new task when its own is done. None when no work is left for it."""
+    if slot.solo:
+        return [slot.solo.popleft()], True
+    if not slot.unit and units:
+        slot.unit = units.popleft()
+    if not slot.unit:
+        return None
+    if batch_envs == 1:
+        return [slot.unit.popleft()], True
+    policy = slot.unit[0][2]
+    group = [jid for jid in slot.unit if jid[2] == policy]
+    slot.unit = deque(jid for jid in slot.unit if jid[2] != policy)
+    return group, False
+
+
+def failure(reason: str, slot: Slot, started_at: datetime | None) -> EpisodeOutcome:
     """The row of an episode whose worker did not return it."""
-    return failure_outcome(reason, slot.started_at, host=slot.host, worker_id=slot.worker_id)
+    return failure_outcome(reason, started_at, host=slot.host, worker_id=slot.worker_id)
 
 
 def schedule(
@@ -105,6 +151,7 @@ def schedule(
     slots = [Slot() for _ in range(min(execution.workers, len(units)))]
     attempts: Counter[JobId] = Counter()
     handed_on: set[JobId] = set()
+    limit = execution.episode_timeout
 
     def hand_on(jid: JobId, outcome: EpisodeOutcome) -> None:
         if jid in handed_on:
@@ -112,65 +159,104 @@ def schedule(
         handed_on.add(jid)
         on_done(by_id[jid], outcome)
 
+    def give_back(slot: Slot) -> None:
+        """A lost or stalled batch: what it held runs alone, what it had not started
+        goes back to the front of its task's queue; no try is counted. Having heard of no
+        start, the first K episodes not finished are taken as held: a worker starts a
+        group's episodes in order, K at once, and a worker may die before its first event
+        arrives (a Ray without generator backpressure drops an actor's last events), so
+        without this a crash that always strikes first would be sent again forever."""
+        held = sorted(slot.held, key=lambda jid: slot.held[jid][0])
+        queued = slot.queued
+        if not held:
+            held, queued = queued[: execution.batch_envs], queued[execution.batch_envs :]
+        slot.solo.extend(held)
+        slot.unit.extendleft(reversed(queued))
+
     def restart(i: int) -> None:
         slot = slots[i]
-        slot.ready, slot.inflight, slot.started_at = False, None, None
-        if slot.unit or units:
+        slot.ready, slot.alone = False, False
+        slot.held, slot.queued = {}, []
+        if slot.has_work or units:
             slot.worker_id = workers.start(i)
+
+    def deadline(slot: Slot) -> float | None:
+        if limit is None or not slot.busy:
+            return None
+        if slot.alone:
+            return min(t for t, _ in slot.held.values()) + limit if slot.held else None
+        return slot.heard + limit
 
     for i, slot in enumerate(slots):
         slot.worker_id = workers.start(i)
     while True:
         for i, slot in enumerate(slots):
-            if not slot.ready or slot.inflight is not None:
+            if not slot.ready or slot.busy:
                 continue
-            if not slot.unit and units:
-                slot.unit = units.popleft()
-            if slot.unit:
-                slot.inflight = slot.unit.popleft()
-                slot.since, slot.started_at = time.monotonic(), datetime.now(UTC)
-                workers.submit(i, slot.inflight)
-        if not units and all(s.inflight is None and not s.unit for s in slots):
+            work = next_group(slot, units, execution.batch_envs)
+            if work is None:
+                continue
+            group, slot.alone = work
+            now = time.monotonic()
+            slot.heard = now
+            if slot.alone:  # an episode sent alone starts at once
+                slot.held = {jid: (now, datetime.now(UTC)) for jid in group}
+            else:
+                slot.queued = list(group)
+            workers.submit(i, group, slot.alone)
+        if not units and not any(s.has_work for s in slots):
             return
         timeout = POLL_S
-        if execution.episode_timeout is not None:
-            deadlines = [s.since + execution.episode_timeout for s in slots if s.inflight is not None]
-            timeout = min([timeout, *(max(0.0, d - time.monotonic()) for d in deadlines)])
+        deadlines = [d for d in map(deadline, slots) if d is not None]
+        timeout = min([timeout, *(max(0.0, d - time.monotonic()) for d in deadlines)])
         for event in workers.wait(timeout):
             slot = slots[event.slot]
+            slot.heard = time.monotonic()
             if event.kind == "ready":
                 slot.ready, slot.start_failures = True, 0
                 slot.host = event.payload.get("host", "")
                 on_worker(event.payload)
+            elif event.kind == "started":
+                if event.payload in slot.queued:
+                    slot.queued.remove(event.payload)
+                    slot.held[event.payload] = (slot.heard, datetime.now(UTC))
             elif event.kind == "done":
                 jid, outcome = event.payload
-                if jid == slot.inflight:
-                    slot.inflight = None
+                slot.held.pop(jid, None)
+                if jid in slot.queued:
+                    slot.queued.remove(jid)
                 hand_on(jid, outcome)
             elif event.kind == "error":
                 raise HarnessError(f"a {execution.backend} worker could not start: {event.payload}")
             elif event.kind == "lost":
-                jid = slot.inflight
-                if jid is None:
+                if slot.alone and slot.held:
+                    for jid, (_, started_at) in slot.held.items():
+                        attempts[jid] += 1
+                        if attempts[jid] > execution.max_retries:
+                            reason = f"worker lost: {event.payload} (tried {attempts[jid]} times)"
+                            hand_on(jid, failure(reason, slot, started_at))
+                        else:
+                            slot.solo.appendleft(jid)  # the same worker slot runs it again
+                elif slot.busy:
+                    give_back(slot)
+                else:
                     slot.start_failures += 1
                     if slot.start_failures > execution.max_retries:
                         raise HarnessError(
                             f"{slot.start_failures} {execution.backend} workers in a row were lost "
                             f"before taking work (last: {event.payload}); rows recorded before are kept"
                         )
-                else:
-                    attempts[jid] += 1
-                    if attempts[jid] > execution.max_retries:
-                        reason = f"worker lost: {event.payload} (tried {attempts[jid]} times)"
-                        hand_on(jid, failure(reason, slot))
-                    else:
-                        slot.unit.appendleft(jid)  # the same worker slot runs it again
                 restart(event.slot)
-        if execution.episode_timeout is not None:
-            now = time.monotonic()
-            for i, slot in enumerate(slots):
-                if slot.inflight is not None and now - slot.since > execution.episode_timeout:
-                    workers.kill(i)
-                    limit = execution.episode_timeout
-                    hand_on(slot.inflight, failure(f"timeout: ran past --episode-timeout {limit:g} s", slot))
-                    restart(i)
+        now = time.monotonic()
+        for i, slot in enumerate(slots):
+            due = deadline(slot)
+            if due is None or now <= due:
+                continue
+            workers.kill(i)
+            if slot.alone:
+                for jid, (_, started_at) in slot.held.items():
+                    reason = f"timeout: ran past --episode-timeout {limit:g} s"
+                    hand_on(jid, failure(reason, slot, started_at))
+            else:
+                give_back(slot)
+            restart(i)
