@@ -160,3 +160,59 @@ def test_worker_times_every_decoder_side_by_side(bench):
         want = sum(sum(c.cached) for c in chunks[:4]) / 4
         assert rows[name]["cached_read"] == pytest.approx(want)
         assert rows[name]["all_chunks"]["chunks"] == len(chunks)
+
+
+def test_threads_benchmark_compares_both_thread_counts_idle_and_under_load(tmp_path):
+    """benchmarks/threads.py on one MT10 task, one scripted episode: both conditions, both
+    thread counts, the comparison over common episodes, and no busy loop left behind."""
+    import os
+    import subprocess
+
+    config = tmp_path / "tiny.toml"
+    config.write_text(
+        'suite = "metaworld/mt10"\ntasks = ["reach-v3"]\nepisodes_per_task = 1\n[[policy]]\nname = "scripted"\n'
+    )
+    out = tmp_path / "threads.json"
+    argv = ["--config", str(config), "--load-procs", "1", "--time-box", "45", "--json", str(out)]
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "threads.py"), *argv],
+        cwd=ROOT,
+        env=os.environ | {"PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text())
+    assert list(result["conditions"]) == ["idle", "load"]
+    assert result["conditions"]["load"]["load_procs"] == 1 and len(result["load_pids"]) == 1
+    assert [c["order"] for c in result["conditions"].values()] == [[1, 2], [2, 1]]
+    for condition in result["conditions"].values():
+        runs = condition["runs"]
+        assert [r["threads"] for r in runs] == [1, 2]
+        for r in runs:
+            assert r["episodes"] == r["episodes_planned"] == 1 and r["exit_status"] == 0
+            assert {"load1_before", "load1_after", "run_wall_s", "stopped_at_time_box"} <= set(r)
+        cmp = condition["comparison"]
+        assert cmp["common_episodes"] == 1 and cmp["same_successes_and_steps"] is True
+        assert cmp["episodes_differing"] == 0
+        assert len(cmp["wall_clock_s"]) == len(cmp["policy_time_s"]) == len(cmp["tokens_per_s"]) == 2
+        assert cmp["wall_clock_ratio"] > 0 and "policy_time_ratio" in cmp
+    assert result["machine"]["cpu"] and "torch" in result["machine"]
+    assert "| idle |" in done.stdout and "| load (1 busy loops) |" in done.stdout
+    for pid in result["load_pids"]:  # killed and reaped: gone, or at least no longer the busy loop
+        cmdline = Path(f"/proc/{pid}/cmdline")
+        assert not cmdline.exists() or b"while True" not in cmdline.read_bytes()
+
+
+def test_threads_benchmark_stops_a_run_at_its_time_box(tmp_path):
+    """A run past its time box is stopped (SIGTERM, then SIGKILL) and its process is gone."""
+    import argparse
+
+    spec = importlib.util.spec_from_file_location("threads_benchmark", ROOT / "benchmarks" / "threads.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = argparse.Namespace(config=None, tasks="reach-v3", episodes_per_task=50)
+    r = bench.timed_run(args, 1, tmp_path / "boxed", time_box=1.0)
+    assert r["stopped_at_time_box"] and r["exit_status"] != 0
+    assert r["run_wall_s"] < 1.0 + bench.GRACE_S
