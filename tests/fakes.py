@@ -183,9 +183,13 @@ class FaultPolicy(ChunkPolicy):
 
     A fault written "KIND:once" strikes only the first time its episode starts (a file
     in the folder `marks` remembers it across worker processes), so a retry succeeds.
+    A fault's key is an episode index (in every task) or "TASK/INDEX" (that task's only),
+    so one run can suffer different faults in different tasks.
     """
 
-    def __init__(self, faults: dict[int, str], marks: str | None = None, chunk: int = 2, delay: float = 0.0):
+    def __init__(
+        self, faults: dict[int | str, str], marks: str | None = None, chunk: int = 2, delay: float = 0.0
+    ):
         super().__init__(chunk=chunk, delay=delay)
         self.faults, self.marks = faults, marks
 
@@ -195,7 +199,7 @@ class FaultPolicy(ChunkPolicy):
 
     def strike(self, ep: EpisodeContext) -> None:
         """Suffer the fault set for `ep`, if any (and not already suffered, for KIND:once)."""
-        kind = self.faults.get(ep.episode_index)
+        kind = self.faults.get(f"{ep.task}/{ep.episode_index}", self.faults.get(ep.episode_index))
         if kind is None:
             return
         kind, _, once = kind.partition(":")
@@ -217,7 +221,9 @@ class BatchFaultPolicy(FaultPolicy):
     episode in flight. Chunks depend only on the episode (a batchable policy keeps no state
     between calls), and one pass of a tiny torch module per call makes NFE counted."""
 
-    def __init__(self, faults: dict[int, str], marks: str | None = None, chunk: int = 2, delay: float = 0.0):
+    def __init__(
+        self, faults: dict[int | str, str], marks: str | None = None, chunk: int = 2, delay: float = 0.0
+    ):
         import torch
 
         super().__init__(faults, marks, chunk=chunk, delay=delay)
@@ -252,7 +258,7 @@ class FakeBuild:
     """Builds the fake run in a worker process (an Execution's `rebuild`): picklable,
     so a spawned process or a Ray actor makes the same ResolvedRun as the test."""
 
-    faults: tuple[tuple[int, str], ...] = ()
+    faults: tuple[tuple[int | str, str], ...] = ()  # (episode index or "TASK/INDEX", fault)
     marks: str | None = None
     episodes: int = 3
     tasks: int = 1

@@ -279,7 +279,7 @@ from tests.fakes import FakeBuild
 
 if __name__ == "__main__":
     build = FakeBuild(episodes=6, tasks=2, delay=0.15)
-    run(build(), Path(sys.argv[1]), execution=Execution(workers=2, rebuild=build))
+    run(build(), Path(sys.argv[1]), execution=Execution(backend=sys.argv[2], workers=2, rebuild=build))
 """
 
 
@@ -292,12 +292,16 @@ def _running(pid: int) -> bool:
     return "State:\tZ" not in status
 
 
-def test_parent_sigkill_then_resume_records_each_episode_once(tmp_path):
+NEEDS_RAY = pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
+
+
+@pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=NEEDS_RAY)])
+def test_parent_sigkill_then_resume_records_each_episode_once(tmp_path, backend):
     out = tmp_path / "r"
     script = tmp_path / "go.py"
     script.write_text(KILL_SCRIPT)
     env = os.environ | {"PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, str(script), str(out)], cwd=REPO, env=env)
+    proc = subprocess.Popen([sys.executable, str(script), str(out), backend], cwd=REPO, env=env)
     pending = out / "pending.jsonl"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
@@ -312,37 +316,46 @@ def test_parent_sigkill_then_resume_records_each_episode_once(tmp_path):
     pids = [
         w["pid"] for w in json.loads((out / "manifest.json").read_text())["execution"][-1]["worker_threads"]
     ]
-    time.sleep(1.0)  # the kernel ends the workers with their parent (PR_SET_PDEATHSIG)
-    assert not [pid for pid in pids if _running(pid)]
+    # the workers end with their parent: local ones by PR_SET_PDEATHSIG at once, Ray's
+    # actors when the local Ray the parent started sees its driver gone (seconds)
+    deadline = time.monotonic() + 30
+    while [pid for pid in pids if _running(pid)] and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert pids and not [pid for pid in pids if _running(pid)]
     build = FakeBuild(episodes=6, tasks=2)
-    # resumed with another worker count: that is not a config difference
+    # resumed in this process: another backend and worker count are not a config difference
     report = run(build(), out, resume=True, execution=Execution(workers=1))
     assert report.skipped == first and report.executed == 12 - first
-    assert len(report.run_dir.read_episodes()) == 12
+    episodes = report.run_dir.read_episodes()
+    assert len(episodes) == 12 and not episodes.duplicated(["task", "episode_index", "policy"]).any()
     sessions = report.run_dir.read_manifest()["execution"]
-    assert [s["workers"] for s in sessions] == [2, 1]
+    assert [(s["backend"], s["workers"]) for s in sessions] == [(backend, 2), ("local", 1)]
 
 
-@pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
-def test_ray_actors_give_the_same_rows_and_survive_a_kill_and_a_hang(tmp_path):
-    once = ((1, "sigkill:once"), (2, "hang:once"))  # in each of the two tasks
-    build = FakeBuild(faults=once, marks=str(tmp_path), episodes=4, tasks=2)
-    execution = Execution(backend="ray", workers=2, episode_timeout=5.0, rebuild=build)
+@NEEDS_RAY
+def test_ray_actors_give_the_same_rows_survive_faults(tmp_path):
+    # in each task: 1 is killed once (its retry passes), 2 hangs; 3 kills its actor every
+    # time, by a segfault in one task and os._exit in the other: retried, then a failure row
+    faults = ((1, "sigkill:once"), (2, "hang:once"), ("count/3", "segfault"), ("count1/3", "exit"))
+    build = FakeBuild(faults=faults, marks=str(tmp_path), episodes=4, tasks=2)
+    execution = Execution(backend="ray", workers=2, max_retries=1, episode_timeout=5.0, rebuild=build)
     report = run(build(), tmp_path / "r", execution=execution)
     rows = _rows(report)
-    assert len(rows) == 8
+    assert len(rows) == 8 and report.executed == 8
     hung = rows[rows["episode_index"] == 2]
     assert hung["failure_reason"].eq("timeout: ran past --episode-timeout 5 s").all()
-    others = rows[rows["episode_index"] != 2]
+    for reason in rows.loc[rows["episode_index"] == 3, "failure_reason"]:  # one segfault, one exit
+        assert reason.startswith("worker lost: Ray actor died (") and reason.endswith(" (tried 2 times)")
+    others = rows[rows["episode_index"] < 2]
     assert others["success"].all() and others["worker_id"].str.startswith("ray-").all()
     clean = run(FakeBuild(episodes=4, tasks=2)(), tmp_path / "clean")
-    expected = _rows(clean)[lambda d: d["episode_index"] != 2]
+    expected = _rows(clean)[lambda d: d["episode_index"] < 2]
     _same_results(expected.reset_index(drop=True), others.reset_index(drop=True))
     session = report.run_dir.read_manifest()["execution"][-1]
     assert session["backend"] == "ray" and len(session["worker_threads"]) >= 4
 
 
-@pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
+@NEEDS_RAY
 def test_ray_actors_run_batches_and_rerun_a_lost_batch_alone(tmp_path):
     # in each task, 3-5 are in flight when episode 4's first decode kills the actor (once)
     build = FakeBuild(faults=((4, "sigkill:once"),), marks=str(tmp_path), episodes=6, tasks=2, batch=True)
