@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.config import ResolvedRun
-from harness.device import device_record
+from harness.device import device_record, policy_device
 from harness.threads import threads_record
 from policies.dvla import checkpoint_fields
 
@@ -269,7 +269,7 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
                 "checkpoint_sha256": p.checkpoint_sha256,
                 # what training fixed (recipe, noise_schedule, block_size): plot axes and hues
                 "checkpoint_fields": checkpoint_fields(p.checkpoint) if p.checkpoint else {},
-                "device": getattr(p.policy, "device", None),  # None: no model to place
+                "device": policy_device(p.policy),  # None: no model to place
             }
             for p in resolved.policies
         ],

@@ -41,7 +41,7 @@ def _same_results(a, b) -> None:
 def test_workers_give_the_rows_of_one_process_and_say_where_they_ran(tmp_path):
     build = FakeBuild(episodes=3, tasks=2)
     alone = run(build(), tmp_path / "one")
-    pooled = run(build(), tmp_path / "two", execution=Execution(workers=2, rebuild=build))
+    pooled = run(build(), tmp_path / "two", execution=Execution(workers=2, device="auto", rebuild=build))
     a, b = _rows(alone), _rows(pooled)
     assert len(b) == 6 and b["failure_reason"].isna().all()
     _same_results(a, b)
@@ -56,6 +56,8 @@ def test_workers_give_the_rows_of_one_process_and_say_where_they_ran(tmp_path):
     workers = session["worker_threads"]
     assert set(b["worker_id"]) <= {w["worker_id"] for w in workers} <= {"local-0", "local-1"}
     assert all(w["threads"] == 1 and w["workers"] == 2 and w["pid"] != os.getpid() for w in workers)
+    # and where each decoded: --device resolved in the worker (no GPU here: the CPU)
+    assert all(w["device"] == {"requested": "auto", "used": "cpu", "gpu": None} for w in workers)
     # each worker warmed its policy up before its first timed episode
     assert all([p["policy"] for p in w["warm_up"]["policies"]] == ["fake"] for w in workers)
 
@@ -333,12 +335,14 @@ def test_parent_sigkill_then_resume_records_each_episode_once(tmp_path, backend)
 
 
 @NEEDS_RAY
-def test_ray_actors_give_the_same_rows_survive_faults(tmp_path):
+def test_ray_actors_give_the_same_rows_survive_faults_and_say_where_they_decoded(tmp_path):
     # in each task: 1 is killed once (its retry passes), 2 hangs; 3 kills its actor every
     # time, by a segfault in one task and os._exit in the other: retried, then a failure row
     faults = ((1, "sigkill:once"), (2, "hang:once"), ("count/3", "segfault"), ("count1/3", "exit"))
     build = FakeBuild(faults=faults, marks=str(tmp_path), episodes=4, tasks=2)
-    execution = Execution(backend="ray", workers=2, max_retries=1, episode_timeout=5.0, rebuild=build)
+    execution = Execution(
+        backend="ray", workers=2, max_retries=1, episode_timeout=5.0, device="auto", rebuild=build
+    )
     report = run(build(), tmp_path / "r", execution=execution)
     rows = _rows(report)
     assert len(rows) == 8 and report.executed == 8
@@ -353,6 +357,9 @@ def test_ray_actors_give_the_same_rows_survive_faults(tmp_path):
     _same_results(expected.reset_index(drop=True), others.reset_index(drop=True))
     session = report.run_dir.read_manifest()["execution"][-1]
     assert session["backend"] == "ray" and len(session["worker_threads"]) >= 4
+    # --device auto on actors that reserved no GPU (--ray-num-gpus 0): each says it used the CPU
+    expected_device = {"requested": "auto", "used": "cpu", "gpu": None, "ray_gpu_ids": []}
+    assert all(w["device"] == expected_device for w in session["worker_threads"])
 
 
 @NEEDS_RAY
@@ -408,6 +415,22 @@ def test_bad_backend_flags_exit_2_and_write_nothing(cli, tmp_path, monkeypatch, 
     code, _out, err = cli(*MT1, *flags, "--out", str(tmp_path / "out"))
     assert code == 2 and message in err
     assert list(tmp_path.iterdir()) == []
+
+
+@NEEDS_RAY
+def test_ray_workers_asking_for_gpus_this_machine_lacks_exit_2_and_write_nothing(cli, tmp_path, monkeypatch):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU for the workers to reserve")
+    monkeypatch.chdir(tmp_path)
+    flags = ["--backend", "ray", "--device", "cuda", "--ray-num-gpus", "1", "--out", str(tmp_path / "out")]
+    code, _out, err = cli(*MT1, *flags)
+    assert code == 2 and "this machine's Ray has 0 GPU(s), fewer than one worker reserves" in err
+    assert list(tmp_path.iterdir()) == []
+    import ray
+
+    assert not ray.is_initialized()  # the local Ray started to ask was stopped again
 
 
 def test_ray_backend_without_ray_names_the_extra(cli, tmp_path, monkeypatch):

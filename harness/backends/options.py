@@ -64,7 +64,8 @@ def add_backend_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=0.0,
         metavar="G",
-        help="GPUs Ray reserves for each worker (e.g. 1, or 0.25 to share one GPU among 4); default 0",
+        help="GPUs Ray reserves for each worker (e.g. 1, or 0.25 to share one GPU among 4); default 0; "
+        "--device cuda needs it, and --device auto uses a worker's reserved GPU (none: the CPU)",
     )
 
 

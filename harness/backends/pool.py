@@ -35,17 +35,12 @@ if TYPE_CHECKING:
 _PR_SET_PDEATHSIG = 1
 
 
-def rebuild_from_config(config: Any, device: str | None = None) -> ResolvedRun:
-    """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`),
-    its policies moved to `device` as --device moved the writing process's."""
+def rebuild_from_config(config: Any) -> ResolvedRun:
+    """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`);
+    the worker then moves its policies to --device (`worker_main`, the Ray actor)."""
     from harness.config import resolve
 
-    resolved = resolve(config)
-    if device is not None:
-        from harness.device import apply_device
-
-        apply_device(resolved.policies, device)
-    return resolved
+    return resolve(config)
 
 
 def worker_threads(execution: Execution) -> int:
@@ -96,23 +91,29 @@ def worker_main(
     traces: bool,
     batch_envs: int = 1,
     heartbeat_s: float | None = None,
+    device: str | None = None,
 ) -> None:
-    """A worker's life: set threads, build, say ready, run groups of episodes until told
+    """A worker's life: set threads, build (policies on --device), say ready, run groups of episodes until told
     to stop, sending each event as it happens (a finished episode's row is written by the
     parent while the rest of its batch runs)."""
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the parent, which stops us
+    from harness.device import apply_device, worker_device_record
     from harness.threads import apply_threads, threads_record
 
     apply_threads(threads, workers)  # before the policies load torch
     try:
-        worker = Worker(rebuild(), traces, worker_id, batch_envs, heartbeat_s)
+        resolved = rebuild()
+        if device is not None:  # before the warm-up (a GPU's one-off costs are paid there)
+            apply_device(resolved.policies, device)
+        worker = Worker(resolved, traces, worker_id, batch_envs, heartbeat_s)
     except BaseException as exc:
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
     apply_threads(threads, workers)  # again with torch loaded: its inter-op threads too
     record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
+    record["device"] = worker_device_record()
     try:
         conn.send(("ready", record | {"warm_up": worker.warm_up}))
         while True:
@@ -133,7 +134,8 @@ class ProcessWorkers:
 
     def __init__(self, resolved: ResolvedRun, execution: Execution, traces: bool):
         self.context = get_context("spawn")
-        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config, execution.device)
+        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.device = execution.device
         self.threads, self.asked = worker_threads(execution), execution.threads
         self.workers, self.traces = execution.workers, traces
         self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
@@ -146,7 +148,7 @@ class ProcessWorkers:
         self.started += 1
         mine, theirs = self.context.Pipe()
         args = (theirs, worker_id, self.rebuild, self.asked, self.workers, self.traces)
-        args += (self.batch_envs, self.heartbeat_s)
+        args += (self.batch_envs, self.heartbeat_s, self.device)
         proc = self.context.Process(target=worker_main, args=args, name=f"dvla-{worker_id}", daemon=True)
         proc.start()
         theirs.close()

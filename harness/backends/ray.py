@@ -11,6 +11,11 @@ then resubmits the episodes it held to a fresh actor, as it does for a lost proc
 are made with `max_restarts=0`: a restarted actor would run the lost call again by
 itself, without the per-episode retry count the failure rows need.
 
+`--device` under Ray is decided per worker (harness/device.py `worker_device`): `cuda`
+needs `--ray-num-gpus` (Ray hides or does not share out a GPU an actor did not reserve),
+and `auto` takes the GPU Ray reserved for the worker, if any; `check_ray_device` and
+`check_cluster_gpus` say so before anything is written.
+
 `--ray-address auto|HOST:PORT` joins a running cluster (every node needs dvla-harness
 and the suite's extra installed); without it a local Ray is started with this machine's
 cores and stopped at the end.
@@ -24,6 +29,7 @@ import os
 import socket
 import sys
 import time
+import warnings
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
@@ -61,10 +67,53 @@ def _probe(address: str) -> None:
         ) from None
 
 
+def check_ray_device(device: str | None, ray_num_gpus: float) -> None:
+    """Refuse (exit 2) `--device cuda` on workers that reserve no GPU: Ray gives an actor
+    only the GPUs it reserved (older Rays hide the others with CUDA_VISIBLE_DEVICES="",
+    newer ones leave them visible but unshared), so such a worker either cannot see a
+    GPU or lands, unaccounted, on a node that may have none. Flags only: no Ray needed."""
+    if device == "cuda" and not ray_num_gpus > 0:
+        raise UsageError(
+            "--device cuda with --backend ray needs --ray-num-gpus G (the GPUs Ray reserves for "
+            "each worker, e.g. 1, or 0.25 to share one GPU among 4): a Ray worker that reserves "
+            "none gets no GPU; or use --device auto (a worker's reserved GPU, else the CPU)"
+        )
+
+
+def check_cluster_gpus(
+    device: str | None, ray_num_gpus: float, cluster_gpus: float, local: bool
+) -> str | None:
+    """What the GPUs Ray has (`cluster_gpus`) mean for this run: a UsageError (exit 2)
+    when no worker could ever be placed on this machine's own Ray (`local`), else a
+    warning to print (None when all is as asked). A cluster joined with --ray-address
+    may still grow (an autoscaler adds GPU nodes), so there it is only a warning."""
+    if ray_num_gpus > cluster_gpus:
+        where = "this machine's Ray" if local else "the Ray cluster"
+        have = f"{where} has {cluster_gpus:g} GPU(s), fewer than one worker reserves (--ray-num-gpus {ray_num_gpus:g})"
+        if local:
+            raise UsageError(
+                f"{have}, so no worker could start; lower --ray-num-gpus, drop it with --device cpu, "
+                "or join a cluster with GPU nodes (--ray-address)"
+            )
+        return f"{have}: the workers wait until a node with enough GPUs joins"
+    if device == "auto" and ray_num_gpus == 0 and cluster_gpus > 0:
+        return (
+            f"--device auto with --ray-num-gpus 0: the workers reserve none of the cluster's "
+            f"{cluster_gpus:g} GPU(s), so every worker decodes on the CPU; add --ray-num-gpus G to use them"
+        )
+    if device == "cpu" and ray_num_gpus > 0:
+        return (
+            f"--ray-num-gpus {ray_num_gpus:g} with --device cpu: each worker reserves GPUs its model "
+            "policies do not decode on; add --device cuda or auto, or drop --ray-num-gpus"
+        )
+    return None
+
+
 def connect(execution: Execution) -> None:
     """Join the cluster or start a local Ray, refusing (exit 2) what cannot be had; called
     before anything is written."""
     check_ray_installed()
+    check_ray_device(execution.device, execution.ray_num_gpus)
     import ray
 
     if ray.is_initialized():
@@ -87,6 +136,25 @@ def connect(execution: Execution) -> None:
         where = f"at {address}" if address else "locally"
         hint = "start one with `ray start --head`, or leave --ray-address out for a local Ray"
         raise UsageError(f"--backend ray: cannot start or join Ray {where} ({exc}); {hint}") from None
+    gpus = float(ray.cluster_resources().get("GPU", 0))
+    try:
+        warning = check_cluster_gpus(execution.device, execution.ray_num_gpus, gpus, local=address is None)
+    except UsageError:
+        if address is None:
+            ray.shutdown()  # the Ray this call started
+        raise
+    if warning:
+        warnings.warn(warning, UserWarning, stacklevel=2)
+
+
+def reserved_gpu_ids() -> list[Any]:
+    """The GPUs Ray reserved for the calling actor (none with --ray-num-gpus 0)."""
+    import ray
+
+    try:
+        return list(ray.get_runtime_context().get_accelerator_ids().get("GPU", []))
+    except AttributeError:  # an older Ray
+        return list(ray.get_gpu_ids())
 
 
 class EpisodeActor:
@@ -102,20 +170,26 @@ class EpisodeActor:
         traces: bool,
         batch_envs: int = 1,
         heartbeat_s: float | None = None,
+        device: str | None = None,
     ):
         from harness.backends.local import HOST, Worker
+        from harness.device import apply_device, worker_device, worker_device_record
         from harness.threads import apply_threads, threads_record
 
         self.error = ""
         apply_threads(threads, workers)
+        gpu_ids = reserved_gpu_ids()
         try:
-            self.worker = Worker(rebuild(), traces, worker_id, batch_envs, heartbeat_s)
+            resolved = rebuild()
+            if device is not None:  # before the warm-up, on the GPU Ray gave this actor if any
+                apply_device(resolved.policies, device, used=worker_device(device, gpu_ids))
+            self.worker = Worker(resolved, traces, worker_id, batch_envs, heartbeat_s)
         except Exception as exc:  # said by ready(), not as a dead actor retried in vain
             self.error = f"{type(exc).__name__}: {exc}"
             return
         apply_threads(threads, workers)
         record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
-        self.record = record | {"warm_up": self.worker.warm_up}
+        self.record = record | {"device": worker_device_record(gpu_ids), "warm_up": self.worker.warm_up}
 
     def ready(self) -> tuple[str, Any]:
         return ("error", self.error) if self.error else ("ready", self.record)
@@ -143,7 +217,8 @@ class RayWorkers:
         self.ray = ray
         self.owns_ray = execution.ray_address is None
         self.threads, self.asked = worker_threads(execution), execution.threads
-        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config, execution.device)
+        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.device = execution.device  # each actor resolves it on its node
         self.workers, self.traces = execution.workers, traces
         self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
         self.actor_class = ray.remote(EpisodeActor).options(
@@ -169,6 +244,7 @@ class RayWorkers:
             self.traces,
             self.batch_envs,
             self.heartbeat_s,
+            self.device,
         )
         actor = self.actor_class.remote(*args)
         self.actors[slot] = actor

@@ -127,7 +127,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         choices=DEVICES,
         default=DEFAULT_DEVICE,
         help="where model policies decode: cpu (default: what every baseline was measured on), "
-        "cuda (refused without a GPU), auto (cuda when a GPU is visible); recorded in the manifest",
+        "cuda (refused without a GPU), auto (cuda when a GPU is visible); recorded in the manifest; "
+        "with --backend ray each worker resolves it on its node (see --ray-num-gpus)",
     )
 
 
@@ -163,12 +164,19 @@ def config_from_args(args: argparse.Namespace):
 
 def prepare_compute(args: argparse.Namespace) -> None:
     """Before the policies are built: torch's threads set before it does any work, and a
-    device that cannot be had refused (exit 2) before any model is loaded."""
+    device that cannot be had refused (exit 2) before any model is loaded. Under
+    --backend ray the workers resolve --device on their nodes (this machine may have no
+    GPU); only a GPU no Ray worker could be given is refused here."""
     from harness.device import resolve_device
     from harness.threads import apply_threads
 
     apply_threads(args.threads)
-    resolve_device(args.device)
+    if getattr(args, "backend", "local") == "ray":
+        from harness.backends.ray import check_ray_device
+
+        check_ray_device(args.device, args.ray_num_gpus)
+    else:
+        resolve_device(args.device)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -197,7 +205,8 @@ def execute_run(
     from results.summary import summarize
 
     apply_threads(args.threads)  # again, now that torch is loaded: its inter-op threads too
-    apply_device(resolved.policies, args.device)
+    # under Ray each worker places its own policies; this process only records the request
+    apply_device(resolved.policies, args.device, per_worker=getattr(args, "backend", "local") == "ray")
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     from harness.batched import check_batching
