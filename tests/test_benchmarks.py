@@ -216,3 +216,40 @@ def test_threads_benchmark_stops_a_run_at_its_time_box(tmp_path):
     r = bench.timed_run(args, 1, tmp_path / "boxed", time_box=1.0)
     assert r["stopped_at_time_box"] and r["exit_status"] != 0
     assert r["run_wall_s"] < 1.0 + bench.GRACE_S
+
+
+def test_scaling_benchmark_compares_batched_modes_less_what_batching_defines(tmp_path):
+    """benchmarks/scaling.py on one MT10 task: the batched mode runs, is compared with the
+    unbatched one on every result column but NFE, and the expert workload skips it."""
+    import os
+    import subprocess
+
+    pytest.importorskip("metaworld")
+    out = tmp_path / "scaling.json"
+    argv = ["--workloads", "mt10", "--tasks", "reach-v3", "--episodes-per-task", "3"]
+    argv += ["--modes", "local x1,local x1 b8", "--json", str(out)]
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "scaling.py"), *argv],
+        cwd=ROOT,
+        env=os.environ | {"PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    runs = json.loads(out.read_text())["workloads"]["mt10"]["runs"]
+    assert [r["mode"] for r in runs] == ["local x1", "local x1 b8"]
+    assert all(r["episodes"] == 3 and r["failed"] == 0 for r in runs)
+    assert runs[1]["episodes_differing_from_first"] == 0  # same actions, batched or not
+    assert (
+        "episodes_nfe_differing_from_first" in runs[1] and "episodes_nfe_differing_from_first" not in runs[0]
+    )
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "scaling.py"), "--modes", "local x9"],
+        cwd=ROOT,
+        env=os.environ | {"PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert bad.returncode == 2 and "valid: local x1, local x2, ray x2" in bad.stderr
