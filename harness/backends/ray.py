@@ -26,6 +26,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import os
+import re
 import socket
 import sys
 import time
@@ -155,6 +156,59 @@ def reserved_gpu_ids() -> list[Any]:
         return list(ray.get_runtime_context().get_accelerator_ids().get("GPU", []))
     except AttributeError:  # an older Ray
         return list(ray.get_gpu_ids())
+
+
+# `actor_death_reason`: Ray's words for a dead actor, and ours
+_EXIT_CODE = re.compile(r"Worker exits with an exit code (-?\d+)")
+_VANISHED = (
+    "its process vanished (Ray saw its connection close): crashed (e.g. SIGSEGV), exited, "
+    "or killed by SIGKILL (the out-of-memory killer, or a kill); Ray does not say which"
+)
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+REASON_CHARS = 300
+
+
+def actor_death_reason(message: str) -> str:
+    """Why a Ray actor is gone, in one line of at most REASON_CHARS characters, from
+    the text of its `RayActorError` (`str(exc)`, which is its `error_msg`).
+
+    Ray keeps the cause only as text: `ActorDiedError` joins a generic first line
+    ("The actor died unexpectedly before finishing this task."), the actor's id, pid
+    and node, and the GCS's "The actor is dead because ..." line with the worker's exit
+    type and detail; the exception has no exit code or signal field. So the cause is
+    read from that text and said in the words of harness/backends/pool.py `lost_reason`
+    ("killed by SIGTERM", "exited with status 3") where Ray knows it. Ray 2.60 does not
+    know it for a segfault, an `os._exit` or a SIGKILL (measured): the raylet sees only
+    the worker's connection close ("connection error code 2. End of file") and says the
+    same for all three, so the reason names the three. Text Ray words otherwise falls
+    back to its last "The actor is dead ..." or "The actor died ..." line, else its first.
+    """
+    text = _ANSI.sub("", message).strip()
+    if not text:
+        return "Ray gave no message"
+    if "raised in its creation task" in text:  # its __init__ raised: the exception's own last line
+        return _one_line(f"its __init__ raised {text.splitlines()[-1].strip()}")
+    if "NODE_OUT_OF_MEMORY" in text:
+        return "killed by Ray's memory monitor (its node ran low on memory)"
+    if "receives a SIGTERM" in text:
+        return "killed by SIGTERM"
+    if code := _EXIT_CODE.search(text):
+        return f"exited with status {code.group(1)}"
+    if "connection error code" in text and "End of file" in text:
+        return _VANISHED
+    if "killed by `ray.kill`" in text:
+        return "killed by ray.kill"
+    if "its node has died" in text:
+        return "its node died (preempted)" if "preempted" in text else "its node died"
+    if "its owner has died" in text:
+        return "its owner died"
+    because = [line for line in text.splitlines() if line.startswith(("The actor is dead", "The actor died"))]
+    return _one_line(because[-1] if because else text.splitlines()[0])
+
+
+def _one_line(text: str) -> str:
+    line = " ".join(text.split())
+    return line if len(line) <= REASON_CHARS else line[: REASON_CHARS - 3] + "..."
 
 
 class EpisodeActor:
@@ -292,8 +346,7 @@ class RayWorkers:
                 kind, payload = self.ray.get(ref)
             except self.ray.exceptions.RayActorError as exc:
                 self.kill(slot)
-                reason = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else type(exc).__name__
-                events.append(Event(slot, "lost", f"Ray actor died ({reason})"))
+                events.append(Event(slot, "lost", f"Ray actor died ({actor_death_reason(str(exc))})"))
                 continue
             except self.ray.exceptions.RayError as exc:
                 events.append(Event(slot, "error", f"{type(exc).__name__}: {exc}"))
