@@ -9,7 +9,10 @@ For the data-dependent ones (fast_dvla, fast_dllm) it does, and random weights n
 clear their confidence thresholds, so theirs are replayed from decode traces of the
 shipped, trained libero-spatial checkpoints (chunks of 8 steps x 7-D actions = 56
 tokens, the paper's), committed in benchmarks/traces/ (see --extract for how they were
-made and `RECORD` below for the run that recorded them).
+made and `RECORD` below for the run that recorded them). The committed traces come from
+the previous, evaluation-state spatial set (student ca86e42c8a5d, teacher 85b7d0c43706,
+shipped until commit ebcea68); `RECORD` today decodes with the held-out set that
+replaced it, so re-recording changes the replayed passes a little.
 
 Replay runs, for each chunk, the same passes at paper-like shapes (256 prefix tokens,
 56 action tokens, 8 layers, width 512, RANDOM weights: cost does not depend on them):
