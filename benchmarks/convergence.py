@@ -7,7 +7,7 @@ from those weights (~20k from scratch). Here both start from --teacher's weights
 the block-causal pattern: `distill` (KL to the frozen teacher, `frontier` masks) and
 `block_diffusion --init TEACHER` (BD3-LM's clean-context cross-entropy). Their training
 losses differ, so both are measured on the same yardsticks, the probe losses of
-policies/losses.py on a fixed sample of demonstration steps with masks from a fixed seed:
+policies/dvla/losses.py on a fixed sample of demonstration steps with masks from a fixed seed:
 
     frontier       cross-entropy of the true tokens at masked positions in one noisy
                    stream, earlier blocks partly masked (what pipelined decoding meets);
@@ -37,8 +37,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from policies.recipes import TrainConfig
-from policies.training import train
+from policies.dvla.recipes import TrainConfig
+from policies.dvla.training import train
 
 YARDSTICKS = ("frontier", "clean_context")
 

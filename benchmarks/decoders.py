@@ -2,7 +2,7 @@
 
 A decoder's cost is its sequence of forward passes: which action positions each pass
 runs as queries, whether it computes the observation prefix, and how many positions it
-reads from the KV cache (policies.decoding.Pass). For the fixed-schedule decoders
+reads from the KV cache (policies.dvla.decoding.Pass). For the fixed-schedule decoders
 (bidirectional T = 12, block_diffusion, autoregressive) that sequence does not depend
 on the weights: it is generated here by running the decoder itself at the paper shape.
 For the data-dependent ones (fast_dvla, fast_dllm) it does, and random weights never
@@ -33,7 +33,7 @@ and 95% Student t interval over the rounds.
     python benchmarks/decoders.py [--rounds 10] [--chunks 2] [--threads 1] [--kernels default] [--json PATH]
     python benchmarks/decoders.py --extract runs/traces-spatial   # rebuild the trace file
 
-CPU decoding uses oneDNN-prepacked linear weights, as the policies do (policies/kernels.py);
+CPU decoding uses oneDNN-prepacked linear weights, as the policies do (policies/dvla/kernels.py);
 `--kernels default` measures torch's default kernels. On a GPU (torch.cuda.is_available())
 it runs there and says so.
 """
@@ -133,7 +133,7 @@ def from_runs(runs: Sequence[Sequence[int]]) -> list[int]:
 def extract(run_dir: str | Path, out: str | Path = TRACES) -> dict:
     """The compact trace file from a `--traces` run: per policy, its parameters, the
     checkpoint's prefix length, and every chunk's passes (queries as [start, stop) runs)."""
-    from policies.checkpoint import load
+    from policies.dvla.checkpoint import load
     from results.store import RunDir
 
     run = RunDir(run_dir)
@@ -199,9 +199,9 @@ def load_traces(path: str | Path = TRACES) -> dict[str, dict]:
 
 def decode(name: str, model, words, state):
     """The decoder itself, default parameters (bidirectional T = 12)."""
-    from policies import decoders as d
-    from policies.fast_dllm import decode_fast_dllm
-    from policies.fast_dvla import decode_fast_dvla
+    from policies.dvla import decoders as d
+    from policies.dvla.fast_dllm import decode_fast_dllm
+    from policies.dvla.fast_dvla import decode_fast_dvla
 
     return {
         "bidirectional": lambda: d.decode_bidirectional(model, words, state, steps=12),
@@ -226,7 +226,7 @@ def replay(model, chunk: Chunk, words, state) -> dict[str, int]:
     counted from the calls made (query tokens, prefix passes, cache lengths)."""
     import torch
 
-    from policies.decoding import score
+    from policies.dvla.decoding import score
 
     cfg = model.cfg
     dev = words.device
@@ -297,8 +297,8 @@ def build(shape: dict, device: str) -> tuple[dict, tuple, dict]:
     """Random-weight models, one per attention pattern (the same weights); random inputs."""
     import torch
 
-    from policies.kernels import describe, pack_linears
-    from policies.model import ActionTokenModel, ModelConfig
+    from policies.dvla.kernels import describe, pack_linears
+    from policies.dvla.model import ActionTokenModel, ModelConfig
 
     models = {}
     for pattern in sorted(set(PATTERN.values())):
@@ -477,7 +477,7 @@ def main() -> None:
         choices=("prepacked", "default"),
         default="prepacked",
         help="CPU linear layers: oneDNN-prepacked weights as the policies use them "
-        "(policies/kernels.py), or torch's default, to see what packing is worth",
+        "(policies/dvla/kernels.py), or torch's default, to see what packing is worth",
     )
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0 = torch's default)")
     parser.add_argument(
@@ -494,7 +494,7 @@ def main() -> None:
 
         torch.set_num_threads(args.threads)
     if args.kernels == "default":
-        from policies.kernels import ENV
+        from policies.dvla.kernels import ENV
 
         os.environ[ENV] = "0"
     load_before = os.getloadavg()

@@ -241,7 +241,7 @@ def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
         )
     checkpoint = str(getattr(params, "checkpoint", "") or "")
     if checkpoint and not Path(checkpoint).is_file():
-        from policies.dvla import shipped_sets
+        from policies.dvla.policy import shipped_sets
 
         raise UsageError(
             f"policy {spec.name!r}: checkpoint {checkpoint!r} does not exist; pass a path or a "

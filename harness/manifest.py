@@ -30,7 +30,7 @@ from typing import Any
 from harness.config import ResolvedRun
 from harness.device import device_record, policy_device
 from harness.threads import threads_record
-from policies.dvla import checkpoint_fields
+from policies.dvla.policy import checkpoint_fields
 
 MANIFEST_VERSION = 1
 CORE_PACKAGES = ("dvla-harness", "numpy", "torch", "gymnasium", "mujoco", "pandas", "pyarrow")
@@ -204,12 +204,12 @@ def start_calibration() -> dict[str, Any]:
     torch = sys.modules.get("torch")
     if torch is None:
         return {"skipped": "no policy of this run uses torch, so none of its timings depend on torch's speed"}
-    from policies.kernels import describe
+    from policies.dvla.kernels import describe
 
     return {
         "workload": CALIBRATION_WORKLOAD,
         "torch_threads": torch.get_num_threads(),
-        # what the policies' CPU forward passes run on (policies/kernels.py)
+        # what the policies' CPU forward passes run on (policies/dvla/kernels.py)
         "linear_kernels": describe(),
         "start": measure_calibration(),
         "end": None,

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from harness.config import PolicyChoice, RunConfig
 from harness.errors import UsageError
-from policies.recipes import NOISE_SCHEDULES
+from policies.dvla.recipes import NOISE_SCHEDULES
 from policies.registry import PolicyParamError, UnknownPolicyError, get_policy, param_types, parse_params
 
 Grid = dict[str, list[str]]  # parameter -> values as typed, in the order given
@@ -72,7 +72,7 @@ def _unknown_key(policy: str, key: str, valid: Sequence[str]) -> str:
 def _check_block_sizes(points: list[dict[str, str]]) -> None:
     """A block size that does not divide the chunk's tokens, caught from the checkpoint's
     header (no torch) with the same message the policy gives when it is built."""
-    from policies.dvla import block_size_error, checkpoint_fields
+    from policies.dvla.policy import block_size_error, checkpoint_fields
 
     for point in points:
         fields = checkpoint_fields(str(point["checkpoint"])) if point.get("checkpoint") else {}

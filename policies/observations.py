@@ -1,5 +1,5 @@
 """How observations are named and stored, shared by collection (harness/collect.py),
-training (policies/training.py) and the decoder policies (policies/dvla.py), so that
+training (policies/dvla/training.py) and the decoder policies (policies/dvla/policy.py), so that
 what a demonstration records and what a checkpoint reads cannot drift apart."""
 
 from __future__ import annotations

@@ -60,7 +60,8 @@ class NoParams:
 
 
 def _builtin_specs() -> list[PolicySpec]:
-    from policies import dvla, libero_scripted, scripted
+    from policies.dvla import policy as dvla
+    from policies.experts import libero_scripted, scripted
 
     return [scripted.SCRIPTED, scripted.RANDOM, libero_scripted.LIBERO_SCRIPTED, *dvla.SPECS]
 

@@ -56,7 +56,7 @@ class PlotInputError(ValueError):
 
 
 def _checkpoint_fields_from_files(paths: Sequence[str]) -> dict[str, dict[str, Any]]:
-    from policies.dvla import checkpoint_fields  # torch-free header read
+    from policies.dvla.policy import checkpoint_fields  # torch-free header read
 
     return {p: checkpoint_fields(p) for p in paths if p}
 

@@ -120,7 +120,7 @@ def tiny_model(pattern: str, state_dim: int = 6, **kw):
     """A small random action-token model: 4-D actions, chunks of 4 (16 tokens), 32 bins."""
     import torch
 
-    from policies.model import ActionTokenModel, ModelConfig
+    from policies.dvla.model import ActionTokenModel, ModelConfig
 
     torch.manual_seed(0)
     cfg = ModelConfig(

@@ -13,10 +13,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from policies.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
-from policies.fast_dllm import decode_fast_dllm
-from policies.fast_dvla import decode_fast_dvla
-from policies.model import StepOutput
+from policies.dvla.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
+from policies.dvla.fast_dllm import decode_fast_dllm
+from policies.dvla.fast_dvla import decode_fast_dvla
+from policies.dvla.model import StepOutput
 from tests.fakes import tiny_model
 
 TOL = 1e-4
@@ -205,7 +205,7 @@ def test_a_batch_decodes_in_one_pass_per_step_and_each_row_as_alone(pattern, kw,
 def test_fast_dvla_with_random_block_sizes_attends_by_its_own_partition():
     """The random-block-size ablation: blocks of other sizes than the model's, with the
     attention mask following them; every pass still equals a full pass under that mask."""
-    from policies.fast_dvla import block_mask, random_block_sizes
+    from policies.dvla.fast_dvla import block_mask, random_block_sizes
 
     model = tiny_model("block_causal", block_size=4)
     sizes = random_block_sizes(16, 4, torch.Generator().manual_seed(5))

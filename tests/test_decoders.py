@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from harness.nfe import NFECounter
-from policies.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
-from policies.fast_dvla import decode_fast_dvla
-from policies.schedules import still_masked
+from policies.dvla.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
+from policies.dvla.fast_dvla import decode_fast_dvla
+from policies.dvla.schedules import still_masked
 from tests.fakes import tiny_model
 
 _model = tiny_model

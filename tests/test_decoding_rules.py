@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from policies.decoding import commit_confident, score
-from policies.fast_dvla import FULL, INACTIVE, SEMI, advance, commit_full, commit_semi
+from policies.dvla.decoding import commit_confident, score
+from policies.dvla.fast_dvla import FULL, INACTIVE, SEMI, advance, commit_full, commit_semi
 
 ALL = np.ones(7, dtype=bool)
 

@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 import torch
 
-from policies.checkpoint import Checkpoint, CheckpointError, load, save
-from policies.model import ActionTokenModel, ModelConfig
-from policies.tokenizer import ActionTokenizer
+from policies.dvla.checkpoint import Checkpoint, CheckpointError, load, save
+from policies.dvla.model import ActionTokenModel, ModelConfig
+from policies.dvla.tokenizer import ActionTokenizer
 from results.store import RunDir
 
 MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--quiet"]
@@ -118,7 +118,7 @@ def test_bad_decoder_parameters_are_refused(cli, tmp_path):
 
 
 def test_a_shipped_set_name_resolves_to_that_sets_file_for_the_decoders_recipe():
-    from policies.dvla import shipped
+    from policies.dvla.policy import shipped
     from policies.registry import get_policy, parse_params
 
     for policy, recipe in [("fast_dllm", "bidirectional"), ("fast_dvla", "fast_dvla")]:

@@ -471,7 +471,7 @@ def test_fresh_run_passes_and_degraded_run_fails_against_committed_baseline(cli,
     assert "gate passed" in out and "reference" in out and "not comparable" not in out
     calibration = json.loads((tmp_path / "fresh" / "manifest.json").read_text())["calibration"]
     assert calibration["workload"]["version"] == 1 and calibration["torch_threads"] == 1
-    from policies.kernels import describe
+    from policies.dvla.kernels import describe
 
     assert calibration["linear_kernels"] == describe()  # which kernels its timings came from
     assert calibration["start"]["passes_per_s"] > 0 and calibration["end"]["passes_per_s"] > 0

@@ -9,7 +9,7 @@ import warnings
 import pytest
 from safetensors.torch import load_file, save_file
 
-from policies.checkpoint import CheckpointError, load
+from policies.dvla.checkpoint import CheckpointError, load
 from policies.registry import PolicyParamError, get_policy, params_json, parse_params
 from tests.test_dvla_policies import make_checkpoint
 

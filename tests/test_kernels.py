@@ -1,4 +1,4 @@
-"""Prepacked CPU linears (policies/kernels.py): same logits and tokens, and a way out."""
+"""Prepacked CPU linears (policies/dvla/kernels.py): same logits and tokens, and a way out."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import dataclasses
 import pytest
 import torch
 
-from policies import kernels
-from policies.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
-from policies.fast_dvla import decode_fast_dvla
+from policies.dvla import kernels
+from policies.dvla.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
+from policies.dvla.fast_dvla import decode_fast_dvla
 from tests.fakes import tiny_model
 
 PATTERN = {
@@ -83,8 +83,8 @@ def test_only_weights_big_enough_to_gain_are_packed(packing):
 def test_decoder_policies_pack_what_gains(packing, tmp_path):
     """The shipped MT10 models are too small to gain (they keep the default kernels); a
     wider one built through the same policy is packed."""
-    from policies.checkpoint import load, save
-    from policies.model import ActionTokenModel
+    from policies.dvla.checkpoint import load, save
+    from policies.dvla.model import ActionTokenModel
     from policies.registry import get_policy, parse_params
 
     spec = get_policy("fast_dvla")

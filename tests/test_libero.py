@@ -139,12 +139,12 @@ def test_scripted_expert_solves_an_object_task(cli, tmp_path):
     ("task", "expert", "name", "episodes"),
     [
         # `On plate_1 main_table_stove_front_region`: a plate is too wide to grip, so it is
-        # dragged by its rim (policies/libero_push.py).
+        # dragged by its rim (policies/experts/libero_push.py).
         ("5", "PushExpert", "push_the_plate", 1),
         # `TurnOn flat_stove_1`: the knob's bar is gripped and the wrist turned (libero_knob.py).
         ("7", "KnobExpert", "turn_on_the_stove", 1),
         # `Open wooden_cabinet_1_middle_region`: the handle is pinched with the hand pitched
-        # and pulled (policies/libero_drawer.py). Under OpenVLA's seeding episode 0's pull
+        # and pulled (policies/experts/libero_drawer.py). Under OpenVLA's seeding episode 0's pull
         # stalls (episodes 1-5 solved), so the last of two episodes is checked.
         ("0", "DrawerExpert", "open_the_middle_drawer", 2),
         # `In akita_black_bowl_1 wooden_cabinet_1_top_region`, the drawer shut: opened part
@@ -157,7 +157,7 @@ def test_scripted_expert_solves_a_goal_task_that_is_not_pick_and_place(
 ):
     from adapters.registry import load_suite
     from harness.backends.local import episode_context
-    from policies.libero_scripted import LiberoScripted, LiberoScriptedParams
+    from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams
     from results.store import RunDir
 
     code, _, err = _run(cli, tmp_path / "goal", "libero/goal", task, "libero_scripted", str(episodes))
@@ -205,7 +205,7 @@ def test_collect_writes_demonstrations_train_can_read(cli, tmp_path):
 def test_the_drawer_expert_narrows_its_fingers_with_a_fixed_count_then_holds(cli, tmp_path):
     # Spatial task 4 (bowl in the top drawer): a fixed count is what a policy that runs a
     # chunk open loop can learn; a feedback loop on the finger joint was not.
-    from policies.libero_scripted import CLOSE, DRAWER_CLOSE_STEPS, HOLD, OPEN
+    from policies.experts.libero_scripted import CLOSE, DRAWER_CLOSE_STEPS, HOLD, OPEN
 
     out = tmp_path / "drawer"
     code, _, err = cli(
@@ -226,7 +226,7 @@ def test_the_drawer_expert_narrows_its_fingers_with_a_fixed_count_then_holds(cli
 def test_the_expert_lifts_in_the_step_its_grip_settles(cli, tmp_path, revision, waits):
     # Observations that repeat while the demonstrated action is "stay" teach a policy that
     # decodes its chunk left to right to stay for ever (revision 1 waited 12 steps).
-    from policies.libero_scripted import CLOSE, MIN_CLOSE, SETTLE
+    from policies.experts.libero_scripted import CLOSE, MIN_CLOSE, SETTLE
 
     out = tmp_path / "demo"
     code, _, err = cli(
@@ -251,7 +251,7 @@ def test_the_expert_grasps_and_lets_go_once_its_hand_has_stopped(cli, tmp_path, 
     # episode 1 the bowl comes to rest on the plate's rim ~2 cm from its centre. Revision 2
     # sat on one observation each time until a timer ran out (40 and 60 steps), which a
     # policy cannot see coming; revision 3 acts after STOPPED_STEPS still steps.
-    from policies.libero_scripted import CLOSE, OPEN, STOP_Z, STOPPED_STEPS
+    from policies.experts.libero_scripted import CLOSE, OPEN, STOP_Z, STOPPED_STEPS
 
     out = tmp_path / "demo"
     code, _, err = cli(
@@ -282,8 +282,8 @@ def test_the_expert_grasps_and_lets_go_once_its_hand_has_stopped(cli, tmp_path, 
 @needs_libero
 def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
     """Expert demonstrations -> tiny bidirectional checkpoint -> two episodes through the CLI."""
-    from policies.recipes import TrainConfig
-    from policies.training import train
+    from policies.dvla.recipes import TrainConfig
+    from policies.dvla.training import train
     from results.store import RunDir
 
     demos = tmp_path / "demos"
@@ -327,11 +327,11 @@ def test_camera_images_are_collected_trained_on_and_read_by_the_policy(cli, tmp_
     """obs=images: PNG frames in the demonstrations, a model with an image encoder, and a
     decoder policy that acts on a real image observation (and refuses a state-only one)."""
     from harness.backends.local import episode_context
-    from policies.checkpoint import load
+    from policies.dvla.checkpoint import load
+    from policies.dvla.recipes import TrainConfig
+    from policies.dvla.training import train
     from policies.observations import unpng
-    from policies.recipes import TrainConfig
     from policies.registry import get_policy, parse_params
-    from policies.training import train
 
     suite_name = "libero/spatial:obs=images,image_size=32"
     demos = tmp_path / "demos"

@@ -8,11 +8,11 @@ import hashlib
 import pytest
 import torch
 
-from policies.checkpoint import load
-from policies.dvla import checkpoint_fields
-from policies.losses import block_ratios, clean_context_logits, recipe_loss
-from policies.recipes import TrainConfig
-from policies.training import train
+from policies.dvla.checkpoint import load
+from policies.dvla.losses import block_ratios, clean_context_logits, recipe_loss
+from policies.dvla.policy import checkpoint_fields
+from policies.dvla.recipes import TrainConfig
+from policies.dvla.training import train
 from tests.fakes import TINY_TRAIN, tiny_model
 
 TINY = TINY_TRAIN

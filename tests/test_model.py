@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from policies.model import ActionTokenModel
-from policies.tokenizer import ActionTokenizer
+from policies.dvla.model import ActionTokenModel
+from policies.dvla.tokenizer import ActionTokenizer
 from tests.fakes import tiny_model
 
 TOL = 1e-4

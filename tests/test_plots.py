@@ -183,8 +183,8 @@ def test_a_noise_schedule_ablation_sweeps_checkpoints_and_plots_by_header(cli, t
     """Two checkpoints whose headers differ in the training noise schedule: the sweep
     records each one's header fields in the manifest, and --hue noise_schedule uses them."""
     pytest.importorskip("metaworld")
-    from policies.checkpoint import load, save
-    from policies.dvla import shipped
+    from policies.dvla.checkpoint import load, save
+    from policies.dvla.policy import shipped
 
     ckpt = load(shipped("fast_dvla"))
     ckpt.meta["train_config"] = dict(ckpt.meta["train_config"], noise_schedule="linear")

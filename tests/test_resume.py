@@ -176,7 +176,7 @@ def test_a_policy_upgrade_adding_a_defaulted_parameter_does_not_run_recorded_epi
     cli, tmp_path, monkeypatch
 ):
     import policies.registry
-    from policies.scripted import RANDOM, RandomParams, RandomPolicy
+    from policies.experts.scripted import RANDOM, RandomParams, RandomPolicy
 
     @dataclasses.dataclass(frozen=True)
     class OldRandomParams:  # the package before it gained chunk_length (default 1)

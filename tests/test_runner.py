@@ -157,7 +157,7 @@ def test_a_policy_calling_sys_exit_fails_its_episode_and_the_run_goes_on(tmp_pat
 def test_a_policy_calling_sys_exit_through_the_cli_exits_1_with_a_finished_run(cli, tmp_path, monkeypatch):
     """What a user sees: the run is not ended by the policy's exit status (3 here), but
     finishes, with that episode a failure row and exit 1 (some episode failed)."""
-    from policies.scripted import RandomPolicy
+    from policies.experts.scripted import RandomPolicy
 
     act = RandomPolicy.act
 

@@ -6,8 +6,8 @@ import hashlib
 
 import pytest
 
-from policies.checkpoint import load
-from policies.dvla import SHIPPED
+from policies.dvla.checkpoint import load
+from policies.dvla.policy import SHIPPED
 from results.store import RunDir
 
 EXPECTED = {

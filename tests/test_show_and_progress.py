@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from harness.console import episode_progress
-from policies.checkpoint import load, save
+from policies.dvla.checkpoint import load, save
 from results.lock import RunLock
 from tests.test_dvla_policies import make_checkpoint
 

@@ -35,7 +35,7 @@ def test_the_grid_is_the_cartesian_product_in_the_order_given():
 
 
 def test_a_checkpoint_grid_is_a_grid_over_a_parameter(tmp_path):
-    from policies.dvla import shipped
+    from policies.dvla.policy import shipped
 
     a, b = shipped("fast_dvla"), str(tmp_path / "b.safetensors")
     shutil.copy(a, b)

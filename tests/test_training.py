@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from harness.commands.train import trained_on
-from policies.checkpoint import load
-from policies.losses import block_ratios
-from policies.recipes import NOISE_SCHEDULES, TrainConfig
-from policies.training import train
+from policies.dvla.checkpoint import load
+from policies.dvla.losses import block_ratios
+from policies.dvla.recipes import NOISE_SCHEDULES, TrainConfig
+from policies.dvla.training import train
 from results.store import RunDir
 from tests.fakes import TINY_TRAIN
 
@@ -282,7 +282,7 @@ def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from policies.training import load_demos
+    from policies.dvla.training import load_demos
 
     one = load_demos(demos, chunk_len=4)
     two = load_demos([demos, demos], chunk_len=4)
@@ -339,7 +339,7 @@ def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(reci
     """What actions 2..H of a DART row say (they answer noise its state cannot predict)
     must change nothing: not the loss, and not what the model reads (with clean_context,
     not in the clean copy either)."""
-    from policies.losses import recipe_loss
+    from policies.dvla.losses import recipe_loss
     from tests.fakes import tiny_model
 
     pattern = {"bidirectional": "bidirectional", "autoregressive": "causal"}.get(recipe, "block_causal")
@@ -369,7 +369,7 @@ def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(reci
 def test_noisy_targets_follow_the_folders_manifest(demos, tmp_path, cli):
     import shutil
 
-    from policies.training import load_demos
+    from policies.dvla.training import load_demos
 
     noisy = tmp_path / "noisy"
     shutil.copytree(demos, noisy)
@@ -415,7 +415,7 @@ def test_relative_state_features_reach_the_checkpoint_and_the_policy(demos, tmp_
     states, and a continued model or a student keeps the choice."""
     import numpy as np
 
-    from policies.training import load_demos
+    from policies.dvla.training import load_demos
 
     manifest = json.loads((demos / "manifest.json").read_text())
     assert manifest["state_positions"] == {"reach-v3": [0, 4, 11, 36], "drawer-close-v3": [0, 4, 11, 36]}

@@ -22,7 +22,7 @@ CLIPPED = 0.1  # warn above this tokenizer error on a training action (a tenth o
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from policies.recipes import (
+    from policies.dvla.recipes import (
         ACTION_RANGES,
         DEFAULT_NOISE_SCHEDULE,
         NOISE_SCHEDULES,
@@ -60,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "distill): clean_context (block_diffusion's default), and the diffusion-forcing ones,\n"
             "one noisy stream with mask ratios non-decreasing along the chunk: frontier (distill's\n"
             "default), d2f (D2F: start in [0.2, 0.7], increments staying within it), linear,\n"
-            "sorted_uniform. policies/training.py explains each."
+            "sorted_uniform. policies/dvla/training.py explains each."
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -147,9 +147,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from policies.checkpoint import CheckpointError
-    from policies.recipes import TrainConfig
-    from policies.training import train
+    from policies.dvla.checkpoint import CheckpointError
+    from policies.dvla.recipes import TrainConfig
+    from policies.dvla.training import train
 
     out = Path(args.out)
     if out.suffix != ".safetensors":
@@ -223,7 +223,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         f"wrote {out} ({cfg.recipe}, {cfg.steps} steps, {report.seconds:.0f} s, "
         f"final loss {sum(report.losses[-50:]) / len(report.losses[-50:]):.4f}); curve: {out.with_suffix('.loss.png')}"
     )
-    from policies.checkpoint import load
+    from policies.dvla.checkpoint import load
 
     meta = load(out).meta
     console.print(trained_on(meta))

@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from policies.model import ActionTokenModel, ModelConfig
+from policies.dvla.model import ActionTokenModel, ModelConfig
+from policies.dvla.tokenizer import ActionTokenizer
 from policies.observations import relative_positions
-from policies.tokenizer import ActionTokenizer
 
 FORMAT = "dvla-harness-checkpoint/1"
 PAD, UNK = 0, 1

@@ -1,7 +1,7 @@
 """Training recipes as data: which recipe, which noise schedule, which shapes.
 
 Torch-free, so the CLI can describe and validate a training run before loading torch.
-The recipes and noise schedules themselves are explained in policies/training.py.
+The recipes and noise schedules themselves are explained in policies/dvla/training.py.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 RECIPES = ("bidirectional", "autoregressive", "block_diffusion", "distill")
-# Per-block mask ratios of the block-causal recipes (policies/training.py says what each is).
+# Per-block mask ratios of the block-causal recipes (policies/dvla/training.py says what each is).
 NOISE_SCHEDULES = ("clean_context", "frontier", "d2f", "linear", "sorted_uniform")
 # The schedule a recipe trains with when none is named; the others use none.
 DEFAULT_NOISE_SCHEDULE = {"block_diffusion": "clean_context", "distill": "frontier"}

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 SCHEDULES = ("cosine", "linear", "concave")
-CONFIDENCES = ("max_prob", "margin", "entropy", "random")  # policies/decoding.py says what each is
+CONFIDENCES = ("max_prob", "margin", "entropy", "random")  # policies/dvla/decoding.py says what each is
 
 
 def still_masked(schedule: str, step: int, steps: int, total: int) -> int:
@@ -19,5 +19,5 @@ def still_masked(schedule: str, step: int, steps: int, total: int) -> int:
     return min(total, max(0, math.ceil(total * frac - 1e-9)))
 
 
-# Fast-dLLM's approximate KV cache (policies/fast_dllm.py): what a step inside a block reuses.
+# Fast-dLLM's approximate KV cache (policies/dvla/fast_dllm.py): what a step inside a block reuses.
 CACHE_MODES = ("dual", "prefix", "none")

@@ -1,6 +1,6 @@
 """The training recipes' losses and the noise schedules they draw masks from.
 
-What each recipe and schedule is, and why, is explained in policies/training.py; this
+What each recipe and schedule is, and why, is explained in policies/dvla/training.py; this
 module is the arithmetic. `recipe_loss` is one batch's loss for a recipe; `probe_loss`
 is the one yardstick recipes whose losses differ are compared on.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from policies.model import ActionTokenModel
+from policies.dvla.model import ActionTokenModel
 
 D2F_RANGE = (0.2, 0.7)  # Discrete Diffusion Forcing's per-block mask ratios stay in here
 PROBE_SEED = 20260

@@ -1,6 +1,6 @@
 """The decoders as registered policies over one checkpoint format.
 
-Each policy loads a checkpoint (policies/checkpoint.py), turns observations into model
+Each policy loads a checkpoint (policies/dvla/checkpoint.py), turns observations into model
 inputs, decodes the action tokens of one chunk with its decoder and returns the actions.
 The checkpoint's attention pattern must be the one its decoder needs.
 """
@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 
 from policies.base import ChunkBatch, EpisodeContext, Observation
+from policies.dvla.schedules import CACHE_MODES, CONFIDENCES, SCHEDULES
 from policies.observations import cameras_of
 from policies.registry import PolicySpec, param
-from policies.schedules import CACHE_MODES, CONFIDENCES, SCHEDULES
 
-SHIPPED = Path(__file__).resolve().parent / "checkpoints"
+SHIPPED = Path(__file__).resolve().parent.parent / "checkpoints"
 
 
 # Training recipes whose per-block noise profile (`--noise-schedule`) shaped the weights.
@@ -246,7 +246,7 @@ class DVLAPolicy:
         self._load("cpu")
 
     def _load(self, device: str) -> None:
-        from policies.checkpoint import CheckpointError, load
+        from policies.dvla.checkpoint import CheckpointError, load
 
         try:
             self.ckpt = load(self.params.checkpoint)
@@ -259,7 +259,7 @@ class DVLAPolicy:
             )
         self._set_block_size(getattr(self.params, "block_size", 0))
         if device == "cpu":
-            from policies.kernels import pack_linears
+            from policies.dvla.kernels import pack_linears
 
             pack_linears(self.ckpt.model)  # decoding's small passes, ~2x faster on a CPU
         else:
@@ -269,7 +269,7 @@ class DVLAPolicy:
 
     def to_device(self, device: str) -> None:
         """Decode on `device` ('cpu', 'cuda') from now on (`run --device`). The model is
-        loaded again from its checkpoint: CPU-packed linears (policies/kernels.py) do not
+        loaded again from its checkpoint: CPU-packed linears (policies/dvla/kernels.py) do not
         move to a GPU."""
         if device != self.device:
             self._load(device)
@@ -284,7 +284,7 @@ class DVLAPolicy:
             raise ValueError(error)
         if block_size in (0, cfg.block):
             return
-        from policies.model import ActionTokenModel
+        from policies.dvla.model import ActionTokenModel
 
         model = ActionTokenModel(dataclasses.replace(cfg, block_size=block_size))
         model.load_state_dict(self.ckpt.model.state_dict())
@@ -319,7 +319,7 @@ class DVLAPolicy:
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
         import torch
 
-        from policies.checkpoint import to_tensors
+        from policies.dvla.checkpoint import to_tensors
 
         states = np.zeros((len(observations), self.ckpt.raw_state_dim), dtype=np.float32)
         for row, o in zip(states, observations, strict=True):
@@ -355,7 +355,7 @@ def _generator(p: Any) -> Any:
 
 
 def _bidirectional(m, w, s, p, i=None):
-    from policies.decoders import decode_bidirectional
+    from policies.dvla.decoders import decode_bidirectional
 
     return decode_bidirectional(
         m, w, s, p.steps, p.schedule, p.confidence, p.remask, p.cache_prefix, i, p.temperature, _generator(p)
@@ -363,7 +363,7 @@ def _bidirectional(m, w, s, p, i=None):
 
 
 def _fast_dllm(m, w, s, p, i=None):
-    from policies.fast_dllm import decode_fast_dllm
+    from policies.dvla.fast_dllm import decode_fast_dllm
 
     return decode_fast_dllm(
         m,
@@ -382,7 +382,7 @@ def _fast_dllm(m, w, s, p, i=None):
 
 
 def _block_diffusion(m, w, s, p, i=None):
-    from policies.decoders import decode_block_diffusion
+    from policies.dvla.decoders import decode_block_diffusion
 
     return decode_block_diffusion(
         m, w, s, p.steps_per_block, p.schedule, p.confidence, i, p.temperature, _generator(p)
@@ -390,7 +390,7 @@ def _block_diffusion(m, w, s, p, i=None):
 
 
 def _fast_dvla(m, w, s, p, i=None):
-    from policies.fast_dvla import decode_fast_dvla, random_block_sizes
+    from policies.dvla.fast_dvla import decode_fast_dvla, random_block_sizes
 
     sizes = (
         random_block_sizes(m.cfg.action_tokens, m.cfg.block, _generator(p)) if p.random_block_sizes else None
@@ -401,7 +401,7 @@ def _fast_dvla(m, w, s, p, i=None):
 
 
 def _autoregressive(m, w, s, p, i=None):
-    from policies.decoders import decode_autoregressive
+    from policies.dvla.decoders import decode_autoregressive
 
     return decode_autoregressive(m, w, s, p.temperature, _generator(p), images=i)
 

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from policies.decoding import Decoded, Pass, score
-from policies.model import ActionTokenModel, KVCache
+from policies.dvla.decoding import Decoded, Pass, score
+from policies.dvla.model import ActionTokenModel, KVCache
 
 INACTIVE, SEMI, FULL = 0, 1, 2
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.libero_scripted import (
+from policies.experts.libero_scripted import (
     CLOSE,
     MAX_DELTA_RAD,
     OPEN,

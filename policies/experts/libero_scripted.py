@@ -6,7 +6,7 @@ these experts. They read object poses and goal-region positions from the state v
 OSC_POSE controller with proportional control on the end-effector position through
 waypoints: above the object, down, close, lift, over the target, down, open. Two other
 goals have their own experts, picked by `expert_for`: a plate dragged into a table
-region (policies/libero_push.py) and a stove's knob turned on (policies/libero_knob.py).
+region (policies/experts/libero_push.py) and a stove's knob turned on (policies/experts/libero_knob.py).
 Other goals (`Open`, `Close`, two-step goals) raise at reset.
 
 Object geometry (where a body's origin sits relative to its bottom and top, where to
@@ -396,14 +396,14 @@ def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
 
 def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
     """The expert for a task's goal: a drawer pull for `Open` a drawer, and before
-    putting something `In` one (policies/libero_drawer.py), a drag for an object too wide
-    to grip going to a table region (policies/libero_push.py), a wrist turn for a stove's
-    knob (policies/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
+    putting something `In` one (policies/experts/libero_drawer.py), a drag for an object too wide
+    to grip going to a table region (policies/experts/libero_push.py), a wrist turn for a stove's
+    knob (policies/experts/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
     pick-and-place, the experts whose demonstrations are trained on so far."""
     from adapters import libero
-    from policies.libero_drawer import AJAR, DrawerExpert, OpenThenExpert, drawer_plan
-    from policies.libero_knob import KNOBS, Knob, KnobExpert
-    from policies.libero_push import PUSHED, PushExpert, push_plan
+    from policies.experts.libero_drawer import AJAR, DrawerExpert, OpenThenExpert, drawer_plan
+    from policies.experts.libero_knob import KNOBS, Knob, KnobExpert
+    from policies.experts.libero_push import PUSHED, PushExpert, push_plan
 
     problem, slices = _problem(context)
     _check_privileged_state(context, slices)

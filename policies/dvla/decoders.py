@@ -1,10 +1,10 @@
 """The fixed-step decoders: bidirectional (dVLA baseline), block diffusion, autoregressive.
 
-The adaptive ones live beside them: policies/fast_dllm.py and policies/fast_dvla.py.
-Every decoder talks to the model only through `model(...)` (see policies/model.py), so
+The adaptive ones live beside them: policies/dvla/fast_dllm.py and policies/dvla/fast_dvla.py.
+Every decoder talks to the model only through `model(...)` (see policies/dvla/model.py), so
 each call is one forward pass and the harness's hooks count it; each decodes a whole
 batch of observations with one pass per step. Shared pieces (the `Decoded` record,
-confidence measures, commit rules) are in policies/decoding.py.
+confidence measures, commit rules) are in policies/dvla/decoding.py.
 
 `images` (camera images, for models trained on them) travel with words and state: they
 are part of the prefix. Every tensor a decoder makes lives on the device of its inputs,
@@ -19,9 +19,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from policies.decoding import Decoded, Pass, commit_top, committed_lists, score
-from policies.model import ActionTokenModel, KVCache
-from policies.schedules import still_masked
+from policies.dvla.decoding import Decoded, Pass, commit_top, committed_lists, score
+from policies.dvla.model import ActionTokenModel, KVCache
+from policies.dvla.schedules import still_masked
 
 
 def decode_bidirectional(
@@ -46,7 +46,7 @@ def decode_bidirectional(
     predicts there is untrained, so treat remasking with these weights as an ablation.
     reuse_prefix_cache computes the prefix once and reuses its keys/values: exact when
     the prefix does not see the actions, stale when it does (a prefix cache that is never
-    refreshed; policies/fast_dllm.py is Fast-dLLM proper, refreshed at block boundaries).
+    refreshed; policies/dvla/fast_dllm.py is Fast-dLLM proper, refreshed at block boundaries).
     """
     cfg = model.cfg
     b, total, dev = words.shape[0], cfg.action_tokens, words.device

@@ -23,7 +23,7 @@ prefix, itself and earlier blocks, and decoding starts every block fully masked.
                     independently, and the model runs two streams in one pass of twice the
                     chunk: a clean copy, block-causal among itself, and a noisy copy whose
                     block i reads the prefix, clean blocks < i and noisy block i, never
-                    clean block i (policies/losses.py). Every scored token sees clean
+                    clean block i (policies/dvla/losses.py). Every scored token sees clean
                     earlier blocks; in one noisy stream only ~10% do. Not for distill: its
                     teacher reads one noisy chunk whole, so there is no clean copy to match.
 The diffusion-forcing schedules run one noisy stream with ratios t_1 <= ... <= t_N, so
@@ -56,12 +56,12 @@ import pandas as pd
 import pyarrow.parquet as pq
 import torch
 
-from policies.checkpoint import Checkpoint, load, save, words_of
-from policies.losses import PROBE_SEED, probe_loss, recipe_loss
-from policies.model import ActionTokenModel, ModelConfig
+from policies.dvla.checkpoint import Checkpoint, load, save, words_of
+from policies.dvla.losses import PROBE_SEED, probe_loss, recipe_loss
+from policies.dvla.model import ActionTokenModel, ModelConfig
+from policies.dvla.recipes import ACTION_RANGES, PATTERN, TrainConfig
+from policies.dvla.tokenizer import ActionTokenizer
 from policies.observations import relative_positions
-from policies.recipes import ACTION_RANGES, PATTERN, TrainConfig
-from policies.tokenizer import ActionTokenizer
 
 
 @dataclass

@@ -29,9 +29,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from policies.decoding import Decoded, Pass, commit_confident, commit_top, committed_lists, score
-from policies.model import ActionTokenModel, KVCache
-from policies.schedules import CACHE_MODES, still_masked
+from policies.dvla.decoding import Decoded, Pass, commit_confident, commit_top, committed_lists, score
+from policies.dvla.model import ActionTokenModel, KVCache
+from policies.dvla.schedules import CACHE_MODES, still_masked
 
 
 def decode_fast_dllm(
