@@ -8,9 +8,11 @@ The environment contract is Gymnasium's (`reset`/`step`) plus two conventions:
 - `reset(seed=spec.seed, options={"episode": spec})` puts the env in that episode's
   initial condition (layout, fixed initial state, visual variant). Protocol steps that
   do not count (e.g. LIBERO's no-op settle steps) happen inside `reset`.
-- `info["success"]` is a bool on every step. Chains of instructions (CALVIN-like)
-  also report `info["subtasks_completed"]` and the instruction now in force in
-  `info["instruction"]`.
+- `info["success"]` is a bool on every step. Chains of instructions (CALVIN-like,
+  adapters/chains.py) also report, from `reset` on, the instruction in force in
+  `info["instruction"]` and its position `info["subtask_index"]`, and
+  `info["subtasks_completed"]` and `info["subtasks"]` (one record per planned subtask);
+  the runner gives a changed instruction to the policy (policies/base.py).
 
 An env may also say where world-frame 3-D positions sit in its state vector:
 `state_positions`, a tuple of start indices, the end effector's first. `collect` records
@@ -37,19 +39,20 @@ class EpisodeSpec:
     init_state_id: int | None = None
     # Visual/physical variant (SimplerEnv-like): e.g. {"lighting": "dim"}.
     variant: Mapping[str, Any] = field(default_factory=dict, hash=False)
+    # The subtask ids of an instruction chain (CALVIN-like), in order; empty otherwise.
+    chain: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
 class TaskSpec:
-    """A task of a suite. `instructions` has several entries for instruction chains."""
+    """A task of a suite. For chain suites a task is a scene, its episodes are chains and
+    `instruction` only describes them: each episode's instructions come from its env."""
 
     name: str
     instruction: str
     max_steps: int
     episodes: tuple[EpisodeSpec, ...]
     index: int = 0
-    # Later instructions of a chain (CALVIN-like); empty for single-instruction tasks.
-    chain: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

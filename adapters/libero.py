@@ -263,7 +263,9 @@ class LiberoEpisodeEnv(gym.Env):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, key: str, task_index: int, options: Options):
+    def __init__(self, key: str, task_index: int, options: Options, problem: dict[str, Any] | None = None):
+        """`problem`: the parsed BDDL problem to lay the state out by, when it is not the
+        task's own (a chain scene's, whose goals are every subtask's: adapters/chains.py)."""
         images = options.cameras
         if images:
             choose_render_backend()  # before robosuite imports mujoco's GL module
@@ -271,7 +273,7 @@ class LiberoEpisodeEnv(gym.Env):
         from libero.libero.envs.env_wrapper import ControlEnv
 
         self.key, self.task_index, self.options = key, task_index, options
-        self.problem = task_problem(key, task_index)
+        self.problem = task_problem(key, task_index) if problem is None else problem
         self.init_states = bench.get_task_init_states(task_index)
         self._bddl = bench.get_task_bddl_file_path(task_index)
         size = options.size

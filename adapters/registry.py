@@ -19,6 +19,11 @@ class UnknownSuiteError(LookupError):
     """The name matches no suite; the message lists the valid ones."""
 
 
+class SuiteDataError(ValueError):
+    """A suite's own definition files are wrong (e.g. a chain file naming an unknown
+    subtask); the message names the file, the entry and the fix."""
+
+
 class MissingExtraError(RuntimeError):
     """The suite's simulator is not installed; the message names the pip extra."""
 
@@ -33,9 +38,9 @@ class SuiteProvider:
 
 
 def _builtin_providers() -> list[SuiteProvider]:
-    from adapters import libero, metaworld
+    from adapters import chains, libero, metaworld
 
-    return [metaworld.PROVIDER, libero.PROVIDER]
+    return [metaworld.PROVIDER, libero.PROVIDER, chains.PROVIDER]
 
 
 def _plugin_providers() -> list[SuiteProvider]:

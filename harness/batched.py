@@ -45,7 +45,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import EpisodeSpec
-from harness.episode import EpisodeOutcome, check_chunk
+from harness.episode import EpisodeOutcome, chain_fields, check_chunk, in_force
 from harness.errors import UsageError
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext, can_batch
@@ -93,6 +93,7 @@ class _Slot:
     failure: str | None = None
     trace: str | None = None
     traces: list[dict[str, Any]] | None = None
+    info: dict[str, Any] = field(default_factory=dict)  # the env's last info (chains read it)
 
     def fail(self, exc: BaseException) -> None:
         self.failure, self.trace = f"{type(exc).__name__}: {exc}", traceback.format_exc()
@@ -113,6 +114,7 @@ class _Slot:
             traceback=self.trace,
             traces=self.traces,
             batch_envs=batch_envs,
+            **chain_fields(self.info),
         )
 
 
@@ -152,9 +154,10 @@ class _Loop:
         slot = _Slot(index, spec, self.context_for(spec, env), started_at)
         slot.traces = [] if self.record_traces else None
         try:
-            slot.obs, _ = env.reset(seed=spec.seed, options={"episode": spec})
+            slot.obs, slot.info = env.reset(seed=spec.seed, options={"episode": spec})
             t = clock()
             slot.env_time += t - t0
+            slot.context = in_force(slot.context, slot.info)
             self.nfe.take()
             try:
                 with self.nfe.counting():
@@ -217,7 +220,8 @@ class _Loop:
         return elapsed
 
     def step(self, i: int, slot: _Slot) -> float:
-        """Execute slot i's next action; returns the env's time."""
+        """Execute slot i's next action; returns the time charged to it (the env's, and
+        the policy's when a chain's instruction changed)."""
         t = clock()
         try:
             slot.obs, _, terminated, truncated, info = self.envs[i].step(slot.actions.popleft())
@@ -231,10 +235,32 @@ class _Loop:
         elapsed = clock() - t
         slot.env_time += elapsed
         slot.steps += 1
+        slot.info = info
         if info.get("success"):
             slot.success = slot.done = True
         elif terminated or truncated or slot.steps >= slot.context.max_steps:
             slot.done = True
+        elif (switched := in_force(slot.context, info)) is not slot.context:
+            elapsed += self.switch(slot, switched)
+        return elapsed
+
+    def switch(self, slot: _Slot, context: EpisodeContext) -> float:
+        """A chain's next subtask: its instruction to the policy, the old chunk dropped;
+        returns the policy's time."""
+        slot.context = context
+        slot.actions.clear()
+        self.nfe.take()
+        t = clock()
+        try:
+            with self.nfe.counting():
+                self.policy.reset([context])
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:
+            slot.fail(exc)
+        elapsed = clock() - t
+        slot.policy_time += elapsed
+        slot.nfe += self.nfe.take()
         return elapsed
 
 

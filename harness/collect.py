@@ -76,6 +76,10 @@ class RecordingEnv(gym.Wrapper):
         self.observations: list[np.ndarray] = []
         self.images: list[list[bytes]] = []  # per step, one PNG per camera
         self.actions: list[np.ndarray] = []
+        # Per step, the instruction in force when its observation was taken: an
+        # instruction chain's env says which (info["instruction"]); None for other envs.
+        self.instructions: list[str | None] = []
+        self._instruction: str | None = None
         self._last: Any = None
         self.start: dict[str, Any] = {}  # the fresh initial state's hash and distance, if any
         self.refused: InitialStateOverlap | None = None
@@ -89,6 +93,7 @@ class RecordingEnv(gym.Wrapper):
             raise
         self.start = {k: info[k] for k in START_COLUMNS if k in info}
         self.observations, self.images, self.actions, self._last = [], [], [], obs
+        self.instructions, self._instruction = [], info.get("instruction")
         return obs, info
 
     def step(self, action):
@@ -105,8 +110,10 @@ class RecordingEnv(gym.Wrapper):
             # spend most of their range on actions that never happen.
             executed = np.clip(executed, space.low, space.high)
         self.actions.append(executed)
+        self.instructions.append(self._instruction)
         obs, reward, terminated, truncated, info = self.env.step(action)
         self._last = obs
+        self._instruction = info.get("instruction", self._instruction)
         return obs, reward, terminated, truncated, info
 
 
@@ -249,11 +256,12 @@ def _append_episode(
     cameras: list[str],
 ) -> int:
     """One kept episode's steps onto the column lists; returns how many steps."""
-    for step, (obs, action) in enumerate(zip(env.observations, env.actions, strict=True)):
+    steps = zip(env.observations, env.actions, env.instructions, strict=True)
+    for step, (obs, action, instruction) in enumerate(steps):
         for name, value in (
             ("episode_id", episode_id),
             ("task", task.name),
-            ("instruction", task.instruction),
+            ("instruction", instruction or task.instruction),
             ("episode_index", spec.index),
             ("seed", spec.seed),
             ("init_state_id", spec.init_state_id),

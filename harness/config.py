@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from adapters.base import EpisodeSpec, Suite, TaskSpec
-from adapters.registry import MissingExtraError, UnknownSuiteError, load_suite
+from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite
 from harness.errors import UsageError
 from policies.base import Policy
 from policies.registry import (
@@ -205,7 +205,7 @@ def _check_installed(modules: tuple[str, ...], extra: str, what: str) -> None:
 def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
     try:
         suite = load_suite(config.suite, config.split)
-    except (UnknownSuiteError, MissingExtraError) as exc:
+    except (UnknownSuiteError, MissingExtraError, SuiteDataError) as exc:
         raise UsageError(str(exc)) from None
     _check_installed(suite.simulator_packages, suite.extra, f"suite {suite.name!r}")
     tasks: list[TaskSpec] = []

@@ -10,10 +10,13 @@ failure row too, and so is a non-finite or absurd action. Only KeyboardInterrupt
 SIGTERM) stops the run. With `record_traces`, each chunk's decode trace (what the policy
 returned in ChunkBatch.trace) is kept in memory and written by the runner after the
 episode, so recording costs the loop one list append per chunk.
+Instruction chains: when the env reports a new instruction in force, the rest of the
+chunk is dropped and the policy is reset with it (policies/base.py, "Instruction chains").
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import traceback
 from dataclasses import dataclass
@@ -49,6 +52,26 @@ class EpisodeOutcome:
     # Environments stepped in lockstep with it, one policy call for them all (--batch-envs;
     # the `batch_envs` column). 1: unbatched (run_episode).
     batch_envs: int = 1
+    # Instruction chains: the env's last `subtasks` records and `subtasks_completed`.
+    subtasks: list[dict[str, Any]] | None = None
+    subtasks_completed: int | None = None
+
+
+def in_force(context: EpisodeContext, info: dict[str, Any]) -> EpisodeContext:
+    """The context with the instruction the env says is in force (chains); `context`
+    itself when nothing changed, so `is` tells the caller whether to reset the policy."""
+    instruction = info.get("instruction")
+    k = int(info.get("subtask_index", context.subtask_index))
+    if instruction is None or (instruction == context.instruction and k == context.subtask_index):
+        return context
+    return dataclasses.replace(context, instruction=str(instruction), subtask_index=k)
+
+
+def chain_fields(info: dict[str, Any]) -> dict[str, Any]:
+    """What an outcome keeps of a chain env's last info (nothing for other envs)."""
+    if "subtasks" not in info:
+        return {}
+    return {"subtasks": list(info["subtasks"]), "subtasks_completed": int(info["subtasks_completed"])}
 
 
 # Beyond any action space a simulator clips to: a policy's arithmetic went wrong, and the
@@ -86,12 +109,14 @@ def run_episode(
     policy_time = env_time = 0.0
     failure = trace = None
     traces: list[dict[str, Any]] | None = [] if record_traces else None
+    info: dict[str, Any] = {}
     nfe.take()
     start = clock()
     try:
         obs, info = env.reset(seed=spec.seed, options={"episode": spec})
         t = clock()
         env_time += t - start
+        context = in_force(context, info)
         with nfe.counting():
             policy.reset([context])
         t2 = clock()
@@ -122,6 +147,13 @@ def run_episode(
                     done = True
                 if done:
                     break
+                if (switched := in_force(context, info)) is not context:
+                    context = switched  # a new subtask: a fresh chunk for its instruction
+                    t = clock()
+                    with nfe.counting():
+                        policy.reset([context])
+                    policy_time += clock() - t
+                    break
     except KeyboardInterrupt:
         raise  # an interrupt (Ctrl-C, SIGTERM) stops the run; it is not the episode's failure
     except BaseException as exc:  # SystemExit from a policy too: that episode's failure row
@@ -142,4 +174,5 @@ def run_episode(
         failure_reason=failure,
         traceback=trace,
         traces=traces,
+        **chain_fields(info),
     )

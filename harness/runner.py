@@ -115,7 +115,9 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "suite_version": resolved.suite.version,
         "task": task.name,
         "task_index": task.index,
-        "instruction": task.instruction,
+        "instruction": " | ".join(r["instruction"] for r in out.subtasks)
+        if out.subtasks
+        else task.instruction,
         "episode_index": spec.index,
         "seed": spec.seed,
         "init_state_id": spec.init_state_id,
@@ -149,6 +151,9 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "worker_id": out.worker_id,
         "batch_envs": out.batch_envs,
         "speed_reliable": None,  # the run's calibration verdict, set when it finishes (_finish)
+        "chain_id": f"{task.name}/{spec.index}" if spec.chain else None,
+        "subtasks_completed": (out.subtasks_completed or 0) if spec.chain else None,
+        "subtasks": out.subtasks if spec.chain else None,
     }
 
 

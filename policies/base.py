@@ -9,6 +9,15 @@ start and end at different times.
 What a policy reports about itself is limited to what only it can know (how many action
 tokens it decoded, an optional decode trace). Forward passes (NFE) and time are
 measured by the harness around the call, never taken from the policy.
+
+Instruction chains (CALVIN-like suites, docs/chains.md): the instruction changes within
+an episode. When the env reports a new instruction in force, the runner drops what is
+left of the action chunk and calls `reset([context])` again, with `context.instruction`
+the new instruction and `context.subtask_index` its position in the chain, as CALVIN's
+evaluation resets its model and hands it the new goal before each subtask; the env is
+not reset. So every policy, plugins included, sees the instruction in force through the
+one method it already has, and a policy written for single-instruction suites works
+unchanged. Its time and forward passes in that reset count as the policy's.
 """
 
 from __future__ import annotations
@@ -36,6 +45,8 @@ class EpisodeContext:
     episode_index: int
     seed: int | None = None
     init_state_id: int | None = None
+    # Position of `instruction` in an instruction chain (0 for single-instruction suites).
+    subtask_index: int = 0
 
 
 @dataclass

@@ -11,7 +11,10 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "1"
+SCHEMA_VERSION = "2"
+# Versions this code reads: a version-1 table (before instruction chains) gets the chain
+# columns as nulls, which is what they mean for its suites.
+READABLE_VERSIONS = ("1", "2")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
 
@@ -25,6 +28,14 @@ class Column:
 
 
 _TS = pa.timestamp("us", tz="UTC")
+SUBTASK = pa.struct(
+    [
+        pa.field("id", pa.string()),
+        pa.field("instruction", pa.string()),
+        pa.field("success", pa.bool_()),
+        pa.field("steps", pa.int64()),
+    ]
+)
 
 COLUMNS: tuple[Column, ...] = (
     Column("run_id", pa.string(), "", "Identifier of the run (kept across --resume)."),
@@ -38,7 +49,13 @@ COLUMNS: tuple[Column, ...] = (
     Column("suite_version", pa.string(), "", "Version of the suite's task/episode definition."),
     Column("task", pa.string(), "", "Task name within the suite."),
     Column("task_index", pa.int64(), "", "Position of the task in the suite."),
-    Column("instruction", pa.string(), "", "Language instruction given to the policy."),
+    Column(
+        "instruction",
+        pa.string(),
+        "",
+        "Language instruction given to the policy; for an instruction chain, its instructions "
+        "in order joined by ` | `.",
+    ),
     Column("episode_index", pa.int64(), "", "Index of the episode spec within its task (0-based)."),
     Column(
         "seed",
@@ -66,7 +83,12 @@ COLUMNS: tuple[Column, ...] = (
         "Actions executed per chunk before re-planning (0 = whole chunk).",
     ),
     Column("max_steps", pa.int64(), "steps", "Step budget of the task."),
-    Column("success", pa.bool_(), "", "The environment reported success before the budget ran out."),
+    Column(
+        "success",
+        pa.bool_(),
+        "",
+        "The environment reported success before the budget ran out (a chain: all its subtasks).",
+    ),
     Column("steps", pa.int64(), "steps", "Environment steps executed (settle steps excluded)."),
     Column("chunks", pa.int64(), "", "Policy calls (action chunks requested)."),
     Column("nfe_total", pa.int64(), "passes", "Model forward passes, counted by the harness's hooks."),
@@ -143,6 +165,31 @@ COLUMNS: tuple[Column, ...] = (
         "timings (policy_time_s, tokens_per_s, control_hz, ...) are not comparable. Set on every "
         "row when the run finishes; null while it runs, after an interrupt, for runs without "
         "torch policies, and in rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "chain_id",
+        pa.string(),
+        "",
+        "Instruction chains (CALVIN-like suites): `<scene>/<j>`, the j-th stored chain of the "
+        "scene (docs/chains.md). Null for other suites.",
+        nullable=True,
+    ),
+    Column(
+        "subtasks_completed",
+        pa.int64(),
+        "subtasks",
+        "Instruction chains: subtasks completed in order before the first failure (0-5), "
+        "CALVIN's chain length. Null for other suites.",
+        nullable=True,
+    ),
+    Column(
+        "subtasks",
+        pa.list_(SUBTASK),
+        "",
+        "Instruction chains: one record per planned subtask, in order: id, instruction, "
+        "success, steps (a subtask never reached: false, 0). A nested column rather than a "
+        "second table, so one episode stays one appended row. Null for other suites.",
         nullable=True,
     ),
 )

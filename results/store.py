@@ -44,7 +44,7 @@ from results.manifest_check import ManifestError, check_manifest
 from results.schema import (
     COLUMN_NAMES,
     EPISODE_KEY,
-    SCHEMA_VERSION,
+    READABLE_VERSIONS,
     SCHEMA_VERSION_KEY,
     arrow_schema,
 )
@@ -178,9 +178,10 @@ def read_table(path: Path) -> pa.Table:
     version = meta.get(SCHEMA_VERSION_KEY)
     if version is None:
         raise ResultsFileError(f"{path}: not a dvla-harness episode table (no schema version)")
-    if version.decode() != SCHEMA_VERSION:
+    if version.decode() not in READABLE_VERSIONS:
         raise ResultsFileError(
-            f"{path}: schema version {version.decode()}, but this dvla-harness reads version {SCHEMA_VERSION}"
+            f"{path}: schema version {version.decode()}, but this dvla-harness reads versions "
+            f"{', '.join(READABLE_VERSIONS)}: upgrade dvla-harness to read it"
         )
     for field in arrow_schema():  # nullable columns added since the file was written: null
         if field.nullable and field.name not in table.column_names:

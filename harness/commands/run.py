@@ -9,10 +9,13 @@ from __future__ import annotations
 import argparse
 import signal
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from harness.console import console, episode_progress, err_console, raise_interrupt
 from harness.errors import EXIT_STATUS_HELP, UsageError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 EXAMPLES = (
     """\
@@ -189,6 +192,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
 
 
+def print_chain_table(episodes: pd.DataFrame) -> None:
+    """CALVIN's table beneath the summary, for instruction-chain runs (docs/chains.md)."""
+    from results.chain_table import chain_summary, chain_table, is_chain_run
+
+    if is_chain_run(episodes):
+        console.print(chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)"))
+
+
 def execute_run(
     resolved: Any, args: argparse.Namespace, again: str, labels: dict[str, str] | None = None
 ) -> int:
@@ -238,6 +249,7 @@ def execute_run(
         console.print(
             summary_table(summarize(episodes), title=f"{resolved.suite.name} - run {report.run_id}")
         )
+        print_chain_table(episodes)
     console.print(
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
     )

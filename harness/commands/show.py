@@ -49,7 +49,10 @@ def cmd_show(args: argparse.Namespace) -> int:
     if warning := speed_warning(manifest):
         console.print(f"[yellow]warning[/yellow]: speed figures of this run are unreliable: {warning}")
     if len(episodes):
+        from harness.commands.run import print_chain_table
+
         console.print(summary_table(summarize(episodes)))
+        print_chain_table(episodes)
     return 0
 
 

@@ -1,0 +1,319 @@
+"""CALVIN-like chain scenes as data: subtasks, the precondition model, the fixed chains.
+
+A scene file (`adapters/chain_data/<scene>.toml`) names a LIBERO task whose BDDL
+builds the scene and whose 50 initial states start the chains, and lists subtasks: an
+instruction, a goal, preconditions and what stops holding once the goal holds, all in
+LIBERO's BDDL predicates (`["In", "butter_1", "wooden_tray_1_contain_region"]`). The
+simulator checks goals with LIBERO's own predicate code (adapters/chains.py); this module
+only reasons about them symbolically, to sample chains the way CALVIN samples its
+evaluation sequences: a subtask is eligible when its preconditions hold and its goal does
+not, in the state the chain has reached.
+
+The chains (`<scene>.chains.json`) are sampled once and stored, like CALVIN's
+evaluation sequences, so every run and every paper reproducer sees the same ones:
+
+    python -m adapters.chain_scenes generate living_room_scene3 --chains 50 --seed 0
+
+This module imports neither LIBERO nor a simulator: listing and validating chains is cheap.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import sys
+import tomllib
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+from adapters.registry import SuiteDataError
+
+DATA = Path(__file__).resolve().parent / "chain_data"
+# CALVIN's protocol (calvin_models/calvin_agent/evaluation/evaluate_policy.py):
+# NUM_SEQUENCES chains of 5 subtasks, EP_LEN = 360 steps for each, a chain stops at
+# its first failure, no reset between subtasks. shared/notes/dvla-reference.md section 3.
+SUBTASKS_PER_CHAIN = 5
+STEPS_PER_SUBTASK = 360
+# LIBERO's initial-state files hold 50 states per task: chain j starts from state j.
+CHAINS_PER_SCENE = 50
+# LIBERO's predicates (libero/libero/envs/predicates/__init__.py VALIDATE_PREDICATE_FN_DICT),
+# with their arity; "printjointstate" and "true"/"false" are not goals.
+PREDICATES = {"in": 2, "on": 2, "up": 1, "open": 1, "close": 1, "turnon": 1, "turnoff": 1}
+
+# Where a subtask comes from: a LIBERO task's goal and instruction verbatim, or written here.
+SOURCES = ("libero_90", "libero_goal", "authored")
+LIBERO_SUITES = ("spatial", "object", "goal", "10", "90")  # adapters/libero.py MAX_STEPS keys
+Predicate = tuple[str, ...]  # ("in", "butter_1", "wooden_tray_1_contain_region"), lower-case name
+
+
+class ChainDataError(SuiteDataError):
+    """A scene or chain file is wrong; the message names the file, the entry and the fix."""
+
+
+@dataclass(frozen=True)
+class Subtask:
+    id: str
+    instruction: str
+    goal: tuple[Predicate, ...]
+    pre: tuple[Predicate, ...]
+    unless: tuple[Predicate, ...]  # eligible only while none of these holds
+    removes: tuple[Predicate, ...]
+    source: str  # one of SOURCES
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    libero_suite: str  # the LIBERO suite key holding that task ("90", "goal", ...)
+    libero_task: str  # the LIBERO task whose BDDL builds the scene and whose init states start chains
+    subtasks: tuple[Subtask, ...]
+
+    def subtask(self, subtask_id: str) -> Subtask:
+        for s in self.subtasks:
+            if s.id == subtask_id:
+                return s
+        raise ChainDataError(
+            f"scene {self.name!r} has no subtask {subtask_id!r}; its subtasks: "
+            + ", ".join(s.id for s in self.subtasks)
+        )
+
+    def predicates(self) -> set[Predicate]:
+        """Every predicate a subtask names (what the simulator must be able to evaluate)."""
+        return {p for s in self.subtasks for p in (*s.goal, *s.pre, *s.unless, *s.removes)}
+
+
+@dataclass(frozen=True)
+class ChainSet:
+    scene: str
+    seed: int
+    command: str
+    chains: tuple[tuple[str, ...], ...]
+
+
+def scene_names() -> list[str]:
+    return sorted(p.stem for p in DATA.glob("*.toml"))
+
+
+def _predicate(raw: object, where: str) -> Predicate:
+    if not isinstance(raw, list) or not raw or not all(isinstance(x, str) for x in raw):
+        raise ChainDataError(
+            f"{where}: a predicate is a list of strings like ['In', 'obj_1', 'region']; got {raw!r}"
+        )
+    name = raw[0].lower()
+    if name not in PREDICATES:
+        raise ChainDataError(
+            f"{where}: unknown predicate {raw[0]!r}; LIBERO's goal predicates: "
+            + ", ".join(sorted(PREDICATES))
+        )
+    if len(raw) - 1 != PREDICATES[name]:
+        raise ChainDataError(f"{where}: {raw[0]} takes {PREDICATES[name]} argument(s), got {len(raw) - 1}")
+    return (name, *raw[1:])
+
+
+def _predicates(entry: dict, key: str, where: str, required: bool = False) -> tuple[Predicate, ...]:
+    raw = entry.get(key, [])
+    if required and not raw:
+        raise ChainDataError(f"{where}: `{key}` is required and must name at least one predicate")
+    if not isinstance(raw, list):
+        raise ChainDataError(f"{where}: `{key}` must be a list of predicates")
+    return tuple(_predicate(p, f"{where} {key}") for p in raw)
+
+
+@cache
+def load_scene(name: str) -> Scene:
+    path = DATA / f"{name}.toml"
+    if not path.is_file():
+        raise ChainDataError(f"unknown chain scene {name!r}; scenes: {', '.join(scene_names()) or '(none)'}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ChainDataError(f"{path}: not valid TOML ({exc})") from None
+    for key in ("scene", "libero_task", "subtask"):
+        if key not in data:
+            raise ChainDataError(f"{path}: missing `{key}`")
+    if data["scene"] != name:
+        raise ChainDataError(f"{path}: `scene = {data['scene']!r}` must match the file name {name!r}")
+    subtasks = []
+    for i, entry in enumerate(data["subtask"]):
+        where = f"{path.name} subtask {i} ({entry.get('id', '?')})"
+        for key in ("id", "instruction", "source"):
+            if not isinstance(entry.get(key), str) or not entry[key]:
+                raise ChainDataError(f"{where}: `{key}` must be a non-empty string")
+        if entry["source"] not in SOURCES:
+            raise ChainDataError(f"{where}: `source` is one of {', '.join(SOURCES)}, not {entry['source']!r}")
+        subtasks.append(
+            Subtask(
+                id=entry["id"],
+                instruction=entry["instruction"],
+                goal=_predicates(entry, "goal", where, required=True),
+                pre=_predicates(entry, "pre", where),
+                unless=_predicates(entry, "unless", where),
+                removes=_predicates(entry, "removes", where),
+                source=entry["source"],
+            )
+        )
+    for field in ("id", "instruction"):  # a policy tells subtasks apart by instruction alone
+        values = [getattr(s, field) for s in subtasks]
+        if len(set(values)) != len(values):
+            repeated = sorted({v for v in values if values.count(v) > 1})
+            raise ChainDataError(f"{path}: subtask {field}s repeat: {repeated}")
+    suite = data.get("libero_suite", "90")
+    if suite not in LIBERO_SUITES:
+        raise ChainDataError(f"{path}: `libero_suite` is one of {', '.join(LIBERO_SUITES)}, not {suite!r}")
+    return Scene(name=name, libero_suite=suite, libero_task=data["libero_task"], subtasks=tuple(subtasks))
+
+
+def eligible(scene: Scene, state: frozenset[Predicate]) -> list[Subtask]:
+    """Subtasks whose preconditions hold in `state`, none of whose `unless` does, and
+    whose goal does not yet."""
+    return [
+        s
+        for s in scene.subtasks
+        if set(s.pre) <= state and not set(s.unless) & state and not set(s.goal) <= state
+    ]
+
+
+def apply(subtask: Subtask, state: frozenset[Predicate]) -> frozenset[Predicate]:
+    """The symbolic state once `subtask`'s goal holds."""
+    return frozenset((state - set(subtask.removes)) | set(subtask.goal))
+
+
+def check_chain(scene: Scene, chain: tuple[str, ...], start: frozenset[Predicate], where: str) -> None:
+    """Refuse a chain of the wrong length, with unknown subtasks or a subtask that is not
+    eligible where the chain reaches it."""
+    if len(chain) != SUBTASKS_PER_CHAIN:
+        raise ChainDataError(f"{where}: {len(chain)} subtasks; a chain has {SUBTASKS_PER_CHAIN}")
+    state = start
+    for k, subtask_id in enumerate(chain):
+        subtask = scene.subtask(subtask_id)
+        if subtask not in eligible(scene, state):
+            missing = sorted(set(subtask.pre) - state)
+            blocking = sorted(set(subtask.unless) & state)
+            why = (
+                f"preconditions {missing} do not hold"
+                if missing
+                else f"{blocking} hold (its `unless`)"
+                if blocking
+                else "its goal already holds"
+            )
+            raise ChainDataError(
+                f"{where}: subtask {k} ({subtask_id}) is not eligible there: {why}; regenerate the "
+                f"chains (python -m adapters.chain_scenes generate {scene.name}) or fix the scene file"
+            )
+        state = apply(subtask, state)
+
+
+def _completable(scene: Scene, state: frozenset[Predicate], remaining: int, memo: dict) -> bool:
+    """Whether some chain of `remaining` more subtasks can follow `state`."""
+    if remaining == 0:
+        return True
+    key = (state, remaining)
+    if key not in memo:
+        memo[key] = any(
+            _completable(scene, apply(s, state), remaining - 1, memo) for s in eligible(scene, state)
+        )
+    return memo[key]
+
+
+def sample_chains(scene: Scene, start: frozenset[Predicate], n: int, seed: int) -> list[tuple[str, ...]]:
+    """`n` chains, each subtask drawn uniformly among the eligible ones from which a chain
+    of 5 can still be completed (CALVIN's sampler draws from the tasks whose
+    preconditions hold in the reached state; a dead end is never entered)."""
+    rng = random.Random(seed)
+    memo: dict = {}
+    if not _completable(scene, start, SUBTASKS_PER_CHAIN, memo):
+        raise ChainDataError(
+            f"scene {scene.name!r}: no chain of {SUBTASKS_PER_CHAIN} subtasks is possible from the "
+            "scene's start; add subtasks (or complements that undo others) to the scene file"
+        )
+    chains = []
+    for _ in range(n):
+        state, chain = start, []
+        for k in range(SUBTASKS_PER_CHAIN):
+            left = SUBTASKS_PER_CHAIN - k - 1
+            options = [s for s in eligible(scene, state) if _completable(scene, apply(s, state), left, memo)]
+            subtask = rng.choice(options)
+            chain.append(subtask.id)
+            state = apply(subtask, state)
+        chains.append(tuple(chain))
+    return chains
+
+
+def chains_path(name: str) -> Path:
+    return DATA / f"{name}.chains.json"
+
+
+@cache
+def load_chains(name: str) -> ChainSet:
+    path = chains_path(name)
+    if not path.is_file():
+        raise ChainDataError(
+            f"{path}: no chains for scene {name!r}; make them with "
+            f"python -m adapters.chain_scenes generate {name}"
+        )
+    try:
+        data = json.loads(path.read_text())
+        chains = tuple(tuple(c) for c in data["chains"])
+        return ChainSet(scene=data["scene"], seed=int(data["seed"]), command=data["command"], chains=chains)
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ChainDataError(f"{path}: not a chain file ({type(exc).__name__}: {exc})") from None
+
+
+def initial_state(problem: dict) -> frozenset[Predicate]:
+    """The symbolic start: the BDDL's :init predicates (every chain starts from one of the
+    LIBERO task's initial states, which satisfy them; tests check that on the simulator)."""
+    return frozenset(tuple(p) for p in problem["initial_state"])
+
+
+def check_scene_names(scene: Scene, problem: dict) -> None:
+    """Every object and region a subtask names exists in the scene's BDDL."""
+    known = {n for names in problem["objects"].values() for n in names}
+    known |= {n for names in problem["fixtures"].values() for n in names}
+    known |= set(problem["regions"])
+    for p in sorted(scene.predicates()):
+        for arg in p[1:]:
+            if arg not in known:
+                raise ChainDataError(
+                    f"scene {scene.name!r}: {list(p)} names {arg!r}, which {scene.libero_task} does not "
+                    f"have; its objects and regions: {', '.join(sorted(known))}"
+                )
+
+
+def _main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m adapters.chain_scenes",
+        description="Sample a chain scene's fixed evaluation chains from its precondition model "
+        "and write adapters/chain_data/<scene>.chains.json (needs the libero extra for the BDDL).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    gen = sub.add_parser("generate", help="sample and write the chains of a scene")
+    gen.add_argument("scene", help=f"scene name ({', '.join(scene_names())})")
+    gen.add_argument("--chains", type=int, default=CHAINS_PER_SCENE, help="how many (default 50)")
+    gen.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
+    args = parser.parse_args(argv)
+    try:
+        scene = load_scene(args.scene)
+        from adapters.chains import scene_problem
+
+        problem = scene_problem(scene)
+        check_scene_names(scene, problem)
+        chains = sample_chains(scene, initial_state(problem), args.chains, args.seed)
+    except ChainDataError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    command = (
+        f"python -m adapters.chain_scenes generate {args.scene} --chains {args.chains} --seed {args.seed}"
+    )
+    text = json.dumps(
+        {"scene": args.scene, "seed": args.seed, "command": command, "chains": [list(c) for c in chains]},
+        indent=1,
+    )
+    chains_path(args.scene).write_text(text + "\n")
+    print(f"wrote {len(chains)} chains to {chains_path(args.scene)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main())

