@@ -25,6 +25,7 @@ import gymnasium as gym
 
 from adapters import chain_scenes as cs
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.libero import SETTLE_STEPS
 from adapters.registry import SuiteProvider, UnknownSuiteError
 
 SUITE_VERSION = "1"
@@ -105,7 +106,11 @@ class ChainEpisodeEnv(gym.Env):
         self.scene = scene
         self.problem = scene_problem(scene)
         self.inner = LiberoEpisodeEnv(
-            scene.libero_suite, libero_task_index(scene), options, problem=self.problem
+            scene.libero_suite,
+            libero_task_index(scene),
+            options,
+            problem=self.problem,
+            horizon=SETTLE_AND_CHAIN_STEPS,
         )
         self.observation_space = self.inner.observation_space
         self.action_space = self.inner.action_space
@@ -185,6 +190,8 @@ def _split_name(name: str) -> tuple[list[str], str, str]:
 # The train split's chains (what `collect` reads): sampled on the fly with this seed plus
 # the states seed, from fresh initial states held out from the evaluation's.
 TRAIN_CHAINS_SEED = 1000
+# robosuite's horizon for a chain: LIBERO's settle steps and every subtask's budget.
+SETTLE_AND_CHAIN_STEPS = SETTLE_STEPS + cs.SUBTASKS_PER_CHAIN * cs.STEPS_PER_SUBTASK
 
 
 def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:

@@ -77,6 +77,9 @@ MAX_STEPS = {  # run_libero_eval.py max_steps, counted after the settle steps
     "10": 520,  # 505
     "90": 400,  # 373
 }
+# LIBERO's ControlEnv default: robosuite refuses to step past it (settle steps count).
+# Single tasks end long before; a 5-subtask chain (1,810 steps) needs more.
+HORIZON = 1000
 # LIBERO's benchmark names for our suite names.
 BENCHMARKS = {key: f"libero_{key}" for key in MAX_STEPS}
 # Image sizes and the observation regimes: adapters/libero_options.py.
@@ -263,9 +266,17 @@ class LiberoEpisodeEnv(gym.Env):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, key: str, task_index: int, options: Options, problem: dict[str, Any] | None = None):
+    def __init__(
+        self,
+        key: str,
+        task_index: int,
+        options: Options,
+        problem: dict[str, Any] | None = None,
+        horizon: int = HORIZON,
+    ):
         """`problem`: the parsed BDDL problem to lay the state out by, when it is not the
-        task's own (a chain scene's, whose goals are every subtask's: adapters/chains.py)."""
+        task's own (a chain scene's, whose goals are every subtask's: adapters/chains.py).
+        `horizon`: robosuite's step limit, past which its env refuses to step."""
         images = options.cameras
         if images:
             choose_render_backend()  # before robosuite imports mujoco's GL module
@@ -290,6 +301,7 @@ class LiberoEpisodeEnv(gym.Env):
             # undoes the one piece of state a soft reset keeps (the gripper's action
             # filter): episodes are bit-identical to upstream's hard resets.
             hard_reset=False,
+            horizon=horizon,
         )
         self.libero: Any = None
         self._open()

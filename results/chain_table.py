@@ -36,33 +36,47 @@ def length_interval(lengths: np.ndarray) -> tuple[float, float]:
     return (float(low), float(high))
 
 
+def _chain_row(mine: pd.DataFrame, max_length: int) -> dict[str, object]:
+    lengths = mine["subtasks_completed"].to_numpy(dtype=float)
+    n = len(lengths)
+    row: dict[str, object] = {"chains": n}
+    for k in range(1, max_length + 1):
+        reached = int((lengths >= k).sum())
+        low, high = wilson_interval(reached, n)
+        row |= {f"reach_{k}": reached / n, f"reach_{k}_low": low, f"reach_{k}_high": high}
+    low, high = length_interval(lengths)
+    return row | {
+        "avg_len": float(lengths.mean()),
+        "avg_len_low": low,
+        "avg_len_high": high,
+        "nfe_per_chunk": mine["nfe_per_chunk"].mean(),
+        "tokens_per_s": mine["tokens_per_s"].mean(),
+    }
+
+
 def chain_summary(episodes: pd.DataFrame, max_length: int = 5) -> pd.DataFrame:
-    """One row per policy configuration over its chain episodes: reach_k (k = 1..5) with
-    Wilson bounds, avg_len with a bootstrap interval, NFE per chunk and tokens/s. A chain
-    whose row failed (an exception) counts as the subtasks it completed before it."""
+    """Per policy configuration, one row per scene (task) and, with several scenes, an
+    `ALL` row: reach_k (k = 1..5) with Wilson bounds, avg_len with a bootstrap interval,
+    NFE per chunk and tokens/s. A chain whose row failed (an exception) counts as the
+    subtasks it completed before it."""
     chains = episodes[episodes["subtasks_completed"].notna()]
+    if "task" not in chains:
+        chains = chains.assign(task="ALL")
     first = chains.sort_values("started_at", kind="stable") if "started_at" in chains else chains
     rows = []
     for config_id, policy in first.drop_duplicates("policy_config_id")[
         ["policy_config_id", "policy"]
     ].itertuples(index=False):
         mine = chains[chains["policy_config_id"] == config_id]
-        lengths = mine["subtasks_completed"].to_numpy(dtype=float)
-        n = len(lengths)
-        row: dict[str, object] = {"policy_config_id": config_id, "policy": policy, "chains": n}
-        for k in range(1, max_length + 1):
-            reached = int((lengths >= k).sum())
-            low, high = wilson_interval(reached, n)
-            row |= {f"reach_{k}": reached / n, f"reach_{k}_low": low, f"reach_{k}_high": high}
-        low, high = length_interval(lengths)
-        row |= {
-            "avg_len": float(lengths.mean()),
-            "avg_len_low": low,
-            "avg_len_high": high,
-            "nfe_per_chunk": mine["nfe_per_chunk"].mean(),
-            "tokens_per_s": mine["tokens_per_s"].mean(),
-        }
-        rows.append(row)
+        tasks = list(dict.fromkeys(mine["task"]))
+        for task in tasks:
+            key = {"policy_config_id": config_id, "policy": policy, "task": task}
+            rows.append(key | _chain_row(mine[mine["task"] == task], max_length))
+        if len(tasks) > 1:
+            rows.append(
+                {"policy_config_id": config_id, "policy": policy, "task": "ALL"}
+                | _chain_row(mine, max_length)
+            )
     return pd.DataFrame(rows)
 
 
@@ -84,6 +98,7 @@ def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
     )
     for name in (
         "policy",
+        "scene",
         "chains",
         "1/5",
         "2/5",
@@ -95,14 +110,22 @@ def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
         "tokens/s",
         "speedup",
     ):
-        table.add_column(name, justify="left" if name == "policy" else "right")
-    base = summary[summary["policy"] == "bidirectional"]["tokens_per_s"]
-    base_speed = float(base.iloc[0]) if len(base) else math.nan
+        table.add_column(name, justify="left" if name in ("policy", "scene") else "right")
+    base = (
+        summary[summary["policy"] == "bidirectional"]
+        .drop_duplicates("task")
+        .set_index("task")["tokens_per_s"]
+    )
+    previous = None
     for _, row in summary.iterrows():
+        base_speed = float(base[row["task"]]) if row["task"] in base.index else math.nan
+        policy = str(row["policy"]) if row["policy_config_id"] != previous else ""
+        previous = row["policy_config_id"]
         length = f"{row['avg_len']:.2f} [{row['avg_len_low']:.2f}, {row['avg_len_high']:.2f}]"
         speedup = _num(row["tokens_per_s"] / base_speed, ".2f")
         table.add_row(
-            str(row["policy"]),
+            policy,
+            str(row["task"]),
             str(row["chains"]),
             *(_pct(row, k) for k in range(1, 6)),
             length,

@@ -204,7 +204,7 @@ def test_the_precondition_model_refuses_chains_it_would_not_sample():
         "tomato_sauce_in_tray",
     )
     cs.check_chain(scene, ok, start, "test")
-    with pytest.raises(cs.ChainDataError, match="preconditions"):  # the butter is in the tray already
+    with pytest.raises(cs.ChainDataError, match="not eligible"):  # the butter is in the tray already
         cs.check_chain(scene, ("butter_in_tray", "butter_in_tray", *ok[2:]), start, "test")
     with pytest.raises(cs.ChainDataError, match="has no subtask 'fly'"):
         cs.check_chain(scene, ("fly", *ok[1:]), start, "test")
@@ -331,7 +331,7 @@ def test_the_expert_completes_a_chain_and_resume_extends_the_run(cli, tmp_path):
     [
         ("chains/nope", None, "chain suites: chains/"),
         (f"chains/{SCENE}", [["fly", "b", "c", "d", "e"]], "has no subtask 'fly'"),
-        (f"chains/{SCENE}", [["butter_in_tray"] * 5], "preconditions"),
+        (f"chains/{SCENE}", [["butter_in_tray"] * 5], "its goal already holds"),
     ],
 )
 def test_bad_chain_input_exits_2_and_writes_nothing(cli, tmp_path, monkeypatch, suite, chains, needle):
