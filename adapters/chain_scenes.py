@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import random
 import sys
 import tomllib
@@ -310,7 +311,10 @@ def _main(argv: list[str] | None = None) -> int:
         {"scene": args.scene, "seed": args.seed, "command": command, "chains": [list(c) for c in chains]},
         indent=1,
     )
-    chains_path(args.scene).write_text(text + "\n")
+    path = chains_path(args.scene)
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text(text + "\n")
+    os.replace(temporary, path)  # a killed generator leaves the old file, never half a new one
     print(f"wrote {len(chains)} chains to {chains_path(args.scene)}")
     return 0
 

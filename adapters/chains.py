@@ -24,8 +24,8 @@ from typing import Any, ClassVar
 import gymnasium as gym
 
 from adapters import chain_scenes as cs
+from adapters import libero
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
-from adapters.libero import SETTLE_STEPS
 from adapters.registry import SuiteProvider, UnknownSuiteError
 
 SUITE_VERSION = "1"
@@ -34,8 +34,6 @@ ALL = "all"
 
 
 def libero_task_index(scene: cs.Scene) -> int:
-    from adapters import libero
-
     names = [t.name for t in libero.benchmark(scene.libero_suite).tasks]
     if scene.libero_task not in names:
         raise cs.ChainDataError(
@@ -49,8 +47,6 @@ def scene_problem(scene: cs.Scene) -> dict[str, Any]:
     """The scene's BDDL problem with every subtask's goal as its goal list, so the state
     layout (adapters/libero.state_layout) holds every region any subtask names, in one
     order for the whole scene."""
-    from adapters import libero
-
     problem = dict(libero.task_problem(scene.libero_suite, libero_task_index(scene)))
     goals: list[list[str]] = []
     for s in scene.subtasks:
@@ -65,8 +61,6 @@ def subtask_problem(scene_name: str, instruction: str) -> tuple[dict[str, Any], 
     """For experts reading privileged state: the scene's problem with one subtask's goal
     (found by its instruction, unique within a scene), and where each entity and goal
     region sits in the scene's state vector."""
-    from adapters import libero
-
     scene = cs.load_scene(scene_name)
     matches = [s for s in scene.subtasks if s.instruction == instruction]
     if not matches:
@@ -101,11 +95,9 @@ class ChainEpisodeEnv(gym.Env):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, scene: cs.Scene, options: Any):
-        from adapters.libero import LiberoEpisodeEnv
-
         self.scene = scene
         self.problem = scene_problem(scene)
-        self.inner = LiberoEpisodeEnv(
+        self.inner = libero.LiberoEpisodeEnv(
             scene.libero_suite,
             libero_task_index(scene),
             options,
@@ -133,7 +125,7 @@ class ChainEpisodeEnv(gym.Env):
             "subtasks_completed": done,
             "instruction": current.instruction,
             "subtask_index": min(self._k, len(self._chain) - 1),
-            "subtasks": [dict(r) for r in self._records],
+            "subtasks": self._records,  # live records: a reader keeps a copy (chain_fields)
         }
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -191,11 +183,10 @@ def _split_name(name: str) -> tuple[list[str], str, str]:
 # the states seed, from fresh initial states held out from the evaluation's.
 TRAIN_CHAINS_SEED = 1000
 # robosuite's horizon for a chain: LIBERO's settle steps and every subtask's budget.
-SETTLE_AND_CHAIN_STEPS = SETTLE_STEPS + cs.SUBTASKS_PER_CHAIN * cs.STEPS_PER_SUBTASK
+SETTLE_AND_CHAIN_STEPS = libero.SETTLE_STEPS + cs.SUBTASKS_PER_CHAIN * cs.STEPS_PER_SUBTASK
 
 
 def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
-    from adapters import libero
     from adapters.libero_states import FRESH_EPISODES_PER_TASK, fresh_seed
 
     chains = cs.load_chains(scene.name)
@@ -231,7 +222,6 @@ def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
 
 
 def load_suite(name: str, split: str = "eval") -> Suite:
-    from adapters import libero
     from adapters.libero_options import parse_options, resolve_initial_states
 
     names, key, opts = _split_name(name)
@@ -262,33 +252,10 @@ def load_suite(name: str, split: str = "eval") -> Suite:
 
 
 def list_suites() -> list[SuiteInfo]:
-    from adapters.libero import EXTRA, _installed
-
-    installed = _installed()
-    rows = []
-    scenes = cs.scene_names()
-    for name in scenes:
-        rows.append(
-            SuiteInfo(
-                f"{PREFIX}{name}",
-                f"CALVIN-like chains in LIBERO scene {name}",
-                1,
-                cs.CHAINS_PER_SCENE,
-                EXTRA,
-                installed,
-            )
-        )
-    rows.append(
-        SuiteInfo(
-            f"{PREFIX}{ALL}",
-            "CALVIN-like chains in every chain scene",
-            len(scenes),
-            cs.CHAINS_PER_SCENE,
-            EXTRA,
-            installed,
-        )
-    )
-    return rows
+    installed, scenes = libero._installed(), cs.scene_names()
+    rows = [(f"{PREFIX}{name}", f"CALVIN-like chains in LIBERO scene {name}", 1) for name in scenes]
+    rows.append((f"{PREFIX}{ALL}", "CALVIN-like chains in every chain scene", len(scenes)))
+    return [SuiteInfo(name, desc, n, cs.CHAINS_PER_SCENE, libero.EXTRA, installed) for name, desc, n in rows]
 
 
 PROVIDER = SuiteProvider(prefix=PREFIX, list_suites=list_suites, load_suite=load_suite)

@@ -61,8 +61,10 @@ def in_force(context: EpisodeContext, info: dict[str, Any]) -> EpisodeContext:
     """The context with the instruction the env says is in force (chains); `context`
     itself when nothing changed, so `is` tells the caller whether to reset the policy."""
     instruction = info.get("instruction")
+    if instruction is None:  # not a chain: one dict lookup a step
+        return context
     k = int(info.get("subtask_index", context.subtask_index))
-    if instruction is None or (instruction == context.instruction and k == context.subtask_index):
+    if instruction == context.instruction and k == context.subtask_index:
         return context
     return dataclasses.replace(context, instruction=str(instruction), subtask_index=k)
 
@@ -71,7 +73,8 @@ def chain_fields(info: dict[str, Any]) -> dict[str, Any]:
     """What an outcome keeps of a chain env's last info (nothing for other envs)."""
     if "subtasks" not in info:
         return {}
-    return {"subtasks": list(info["subtasks"]), "subtasks_completed": int(info["subtasks_completed"])}
+    records = [dict(r) for r in info["subtasks"]]  # a copy: the env's records are live
+    return {"subtasks": records, "subtasks_completed": int(info["subtasks_completed"])}
 
 
 # Beyond any action space a simulator clips to: a policy's arithmetic went wrong, and the

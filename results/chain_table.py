@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 from rich.table import Table
 
+from results.render import _num
 from results.summary import wilson_interval
 
 BOOTSTRAP_RESAMPLES = 10_000
@@ -82,10 +83,6 @@ def chain_summary(episodes: pd.DataFrame, max_length: int = 5) -> pd.DataFrame:
 
 def _pct(row: pd.Series, k: int) -> str:
     return f"{row[f'reach_{k}'] * 100:.1f} [{row[f'reach_{k}_low'] * 100:.0f}, {row[f'reach_{k}_high'] * 100:.0f}]"
-
-
-def _num(value: object, fmt: str) -> str:
-    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt)
 
 
 def chain_table(summary: pd.DataFrame, title: str = "") -> Table:

@@ -560,7 +560,8 @@ class LiberoScripted:
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
         states = [o["state"] if isinstance(o, dict) else np.asarray(o) for o in observations]
         for key, state in zip(self._episodes, states, strict=True):
-            self._homes.setdefault(key, np.array(state[:7]))
+            if key not in self._homes:  # the episode's first observation: where chains return
+                self._homes[key] = np.array(state[:7])
         actions = [e.act(o) for e, o in zip(self._experts, states, strict=True)]
         return ChunkBatch(actions=np.stack(actions)[:, None, :])
 
