@@ -11,6 +11,7 @@ interval, and it needs no normality that a 10-chain run does not have.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -37,17 +38,55 @@ def length_interval(lengths: np.ndarray) -> tuple[float, float]:
     return (float(low), float(high))
 
 
+@dataclass(frozen=True)
+class ChainStats:
+    """A set of chains in CALVIN's terms: how many reach k of 5, and the average length.
+    The one place these numbers are computed: `run`/`show`, leaderboards, paper tables
+    and the HTML report all read them from here."""
+
+    chains: int
+    reached: tuple[int, ...]  # chains reaching k subtasks, k = 1 .. max length
+    avg_len: float
+    avg_len_interval: tuple[float, float]
+
+    def reach(self, k: int) -> float:
+        return self.reached[k - 1] / self.chains if self.chains else math.nan
+
+    def reach_interval(self, k: int) -> tuple[float, float]:
+        return wilson_interval(self.reached[k - 1], self.chains)
+
+    def reach_text(self, k: int) -> str:
+        """'80.0 [49, 94]': percent of chains reaching k, Wilson 95% bounds."""
+        if not self.chains:
+            return "-"
+        low, high = self.reach_interval(k)
+        return f"{self.reach(k) * 100:.1f} [{low * 100:.0f}, {high * 100:.0f}]"
+
+    def length_text(self) -> str:
+        if not self.chains:
+            return "-"
+        low, high = self.avg_len_interval
+        return f"{self.avg_len:.2f} [{low:.2f}, {high:.2f}]"
+
+
+def chain_stats(lengths: np.ndarray | pd.Series, max_length: int = 5) -> ChainStats:
+    """From subtasks completed per chain; a chain whose row failed (an exception) counts
+    as the subtasks it completed before it."""
+    lengths = np.asarray(lengths, dtype=float)
+    reached = tuple(int((lengths >= k).sum()) for k in range(1, max_length + 1))
+    mean = float(lengths.mean()) if len(lengths) else math.nan
+    return ChainStats(len(lengths), reached, mean, length_interval(lengths))
+
+
 def _chain_row(mine: pd.DataFrame, max_length: int) -> dict[str, object]:
-    lengths = mine["subtasks_completed"].to_numpy(dtype=float)
-    n = len(lengths)
-    row: dict[str, object] = {"chains": n}
+    stats = chain_stats(mine["subtasks_completed"], max_length)
+    row: dict[str, object] = {"chains": stats.chains}
     for k in range(1, max_length + 1):
-        reached = int((lengths >= k).sum())
-        low, high = wilson_interval(reached, n)
-        row |= {f"reach_{k}": reached / n, f"reach_{k}_low": low, f"reach_{k}_high": high}
-    low, high = length_interval(lengths)
+        low, high = stats.reach_interval(k)
+        row |= {f"reach_{k}": stats.reach(k), f"reach_{k}_low": low, f"reach_{k}_high": high}
+    low, high = stats.avg_len_interval
     return row | {
-        "avg_len": float(lengths.mean()),
+        "avg_len": stats.avg_len,
         "avg_len_low": low,
         "avg_len_high": high,
         "nfe_per_chunk": mine["nfe_per_chunk"].mean(),

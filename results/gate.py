@@ -16,6 +16,12 @@ docs/ci-gate.md explains the rules; in short:
   the chi-square approximation is poor. Gated overall at alpha and per task at
   alpha / tasks (Bonferroni), so one collapsed task is caught without every task
   being another chance of a false alarm.
+* Instruction chains (CALVIN-like suites): besides full-chain success, the subtasks
+  completed per chain, paired chain by chain: a chain that completes fewer subtasks is a
+  drop, more a gain, equal carries no evidence, and p is the same exact one-sided sign
+  test. A policy that still finishes its 5/5 chains but stops earlier in the others is
+  caught here and by nothing else. The two tests of a chain row are each at alpha / 2
+  (Bonferroni), so a chain suite is no likelier to raise a false alarm than another.
 * NFE per chunk (total passes / total chunks) is deterministic for deterministic
   decoders: any increase fails.
 * tokens/s is compared only as a paired ratio: each configuration's tokens/s over a
@@ -66,10 +72,20 @@ class TaskDiff:
     baseline_nfe: float | None  # passes per chunk
     candidate_nfe: float | None
     nfe_gated: bool = True
+    # Instruction chains only (None otherwise): subtasks completed per chain, paired.
+    baseline_length: float | None = None  # mean over the chains
+    candidate_length: float | None = None
+    length_drops: int = 0  # chains where the candidate completed fewer subtasks
+    length_gains: int = 0
+    length_p: float | None = None
 
     @property
     def success_regressed(self) -> bool:
         return self.p_value <= self.alpha
+
+    @property
+    def length_regressed(self) -> bool:
+        return self.length_p is not None and self.length_p <= self.alpha
 
     @property
     def nfe_increased(self) -> bool:
@@ -133,6 +149,12 @@ class GateResult:
                     f"{t.pair} / {t.task}: success {t.baseline_successes} -> {t.candidate_successes} "
                     f"of {t.episodes} ({t.drops} drops, {t.gains} gains, p = {t.p_value:.3g} <= {t.alpha:.3g})"
                 )
+            if t.length_regressed:
+                out.append(
+                    f"{t.pair} / {t.task}: subtasks completed per chain {t.baseline_length:.2f} -> "
+                    f"{t.candidate_length:.2f} ({t.length_drops} chains shorter, {t.length_gains} longer, "
+                    f"p = {t.length_p:.3g} <= {t.alpha:.3g})"
+                )
             if t.nfe_increased and t.nfe_gated:
                 out.append(f"{t.pair} / {t.task}: NFE/chunk {t.baseline_nfe:.3f} -> {t.candidate_nfe:.3f}")
         for s in self.speed:
@@ -152,7 +174,15 @@ class GateResult:
 # ---- comparing -------------------------------------------------------------------
 
 
-_MEASURES = ("success", "nfe_total", "chunks", "action_tokens_total", "policy_time_s", "task_index")
+_MEASURES = (
+    "success",
+    "nfe_total",
+    "chunks",
+    "action_tokens_total",
+    "policy_time_s",
+    "task_index",
+    "subtasks_completed",
+)
 
 
 def _side(merged: pd.DataFrame, side: str) -> pd.DataFrame:
@@ -171,10 +201,30 @@ def _tokens_per_s(df: pd.DataFrame) -> float | None:
     return float(decoded["action_tokens_total"].sum()) / time_s if len(decoded) and time_s > 0 else None
 
 
+def _chain_lengths(b: pd.DataFrame, c: pd.DataFrame) -> dict[str, Any]:
+    """The sign test on subtasks completed, for chain rows; {} for other suites. A chain
+    row without a count (it raised before the runner could count) completed none."""
+    if not (b["subtasks_completed"].notna().any() or c["subtasks_completed"].notna().any()):
+        return {}
+    base = b["subtasks_completed"].astype(float).fillna(0).to_numpy()
+    cand = c["subtasks_completed"].astype(float).fillna(0).to_numpy()
+    drops, gains = int((cand < base).sum()), int((cand > base).sum())
+    return {
+        "baseline_length": float(base.mean()) if len(base) else None,
+        "candidate_length": float(cand.mean()) if len(cand) else None,
+        "length_drops": drops,
+        "length_gains": gains,
+        "length_p": mcnemar_drop_p(drops, gains),
+    }
+
+
 def _task_diff(pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nfe: bool) -> TaskDiff:
     b, c = _side(merged, "b"), _side(merged, "c")
     base, cand = b["success"].astype(bool), c["success"].astype(bool)
     drops, gains = int((base & ~cand).sum()), int((~base & cand).sum())
+    lengths = _chain_lengths(b, c)
+    if lengths:
+        alpha /= 2  # two tests on one row: full-chain success and length (Bonferroni)
     return TaskDiff(
         pair=pair,
         task=task,
@@ -188,6 +238,7 @@ def _task_diff(pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nf
         baseline_nfe=_nfe(b),
         candidate_nfe=_nfe(c),
         nfe_gated=gate_nfe,
+        **lengths,
     )
 
 
@@ -241,6 +292,7 @@ def _merged(baseline: pd.DataFrame, candidate: pd.DataFrame, pair: ConfigPair) -
     """The pair's episodes side by side (measures suffixed _b and _c)."""
     b = episode_keys(baseline[baseline["policy_config_id"] == pair.baseline_id])
     c = episode_keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
+    b, c = (df if "subtasks_completed" in df else df.assign(subtasks_completed=None) for df in (b, c))
     cols = [*PAIR_KEY, *_MEASURES]
     return b[cols].merge(c[cols], on=list(PAIR_KEY), suffixes=("_b", "_c"))
 

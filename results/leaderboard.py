@@ -17,16 +17,17 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import PurePath
 from typing import Any
 
 import pandas as pd
 from rich.table import Table
 
+from results.board_warnings import episode_warnings, provenance_warnings
+from results.chain_table import ChainStats, chain_stats, is_chain_run
 from results.published import observation_regime, privileged_label
-from results.runs import Run, batch_sizes, combined_episodes, dedupe_episodes, speed_warning
-from results.simulator_versions import suspect as simulator_suspect
+from results.runs import Run, combined_episodes, dedupe_episodes
 from results.summary import wilson_interval
 
 DEFAULT_BASELINE = "bidirectional"
@@ -74,6 +75,9 @@ class Entry:
     wall_clock_s: float
     speedup: float | None = None
     speedup_note: str = ""  # why speedup is missing ("n/a: other machine"); '' when computed
+    # Instruction-chain suites only: CALVIN's numbers over all the row's chains, and per group.
+    chain: ChainStats | None = None
+    chain_groups: dict[str, ChainStats] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -93,6 +97,11 @@ class Leaderboard:
     @property
     def machines(self) -> tuple[str, ...]:
         return tuple(dict.fromkeys(e.machine for e in self.entries))
+
+    @property
+    def is_chain(self) -> bool:
+        """An instruction-chain suite: laid out as CALVIN's table (reaching k/5, avg len)."""
+        return any(e.chain is not None for e in self.entries)
 
     def frame(self) -> pd.DataFrame:
         """The numbers, one row per entry, for notebooks and CSV (rates as fractions)."""
@@ -116,6 +125,8 @@ class Leaderboard:
                     f"successes[{group}]": s.successes,
                     f"episodes[{group}]": s.episodes,
                 }
+            if e.chain is not None:
+                row |= _chain_columns(e)
             row |= {
                 "errors": e.errors,
                 "nfe_per_chunk": e.nfe_per_chunk,
@@ -131,20 +142,31 @@ class Leaderboard:
 
     def cells(self) -> tuple[list[str], list[list[Cell]]]:
         """Headers and formatted cells: the one layout every output format shares. Rows
-        measured on privileged state say so beside the policy ('[privileged state]')."""
+        measured on privileged state say so beside the policy ('[privileged state]').
+        A chain suite gets CALVIN's columns in place of the success ones: average length
+        per scene (with several), reaching 1/5 ... 5/5 and the average length overall."""
         show_machine = len(self.machines) > 1
         regime = privileged_label([self.suite])
-        headers = ["policy", *(["machine"] if show_machine else []), *self.groups]
-        headers += ["success (Wilson 95%)", "NFE/chunk", "tokens/s", "control Hz", "wall s/episode"]
+        headers = ["policy", *(["machine"] if show_machine else [])]
+        if self.is_chain:
+            k_max = max(len(e.chain.reached) for e in self.entries if e.chain is not None)
+            groups = [f"{g} avg len" for g in self.groups] if len(self.groups) > 1 else []
+            headers += [*groups, *(f"{k}/{k_max}" for k in range(1, k_max + 1)), "avg len (95%)"]
+        else:
+            headers += [*self.groups, "success (Wilson 95%)"]
+        headers += ["NFE/chunk", "tokens/s", "control Hz", "wall s/episode"]
         headers += ["errors", f"speedup vs {self.baseline}"]
         rows = []
         for e in self.entries:
             row = [Cell(e.label + regime, e.label)]
             if show_machine:
                 row.append(Cell(e.machine or "unknown", e.machine))
-            row += [Cell(e.success[g].text(), finite_or_none(e.success[g].rate)) for g in self.groups]
+            if self.is_chain:
+                row += _chain_cells(e, self.groups, k_max)
+            else:
+                row += [Cell(e.success[g].text(), finite_or_none(e.success[g].rate)) for g in self.groups]
+                row.append(Cell(e.overall.text(), finite_or_none(e.overall.rate)))
             row += [
-                Cell(e.overall.text(), finite_or_none(e.overall.rate)),
                 number_cell(e.nfe_per_chunk, ".1f"),
                 number_cell(e.tokens_per_s, ".0f"),
                 number_cell(e.control_hz, ".0f"),
@@ -154,6 +176,35 @@ class Leaderboard:
             ]
             rows.append(row)
         return headers, rows
+
+
+def _chain_cells(e: Entry, groups: Sequence[str], k_max: int) -> list[Cell]:
+    if e.chain is None:  # a row of a chain suite without chain columns: none in practice
+        return [Cell("-", None)] * ((len(groups) if len(groups) > 1 else 0) + k_max + 1)
+    per_group = [
+        Cell(e.chain_groups[g].length_text(), finite_or_none(e.chain_groups[g].avg_len))
+        if g in e.chain_groups
+        else Cell("-", None)
+        for g in groups
+    ]
+    return [
+        *(per_group if len(groups) > 1 else []),
+        *(Cell(e.chain.reach_text(k), finite_or_none(e.chain.reach(k))) for k in range(1, k_max + 1)),
+        Cell(e.chain.length_text(), finite_or_none(e.chain.avg_len)),
+    ]
+
+
+def _chain_columns(e: Entry) -> dict[str, Any]:
+    assert e.chain is not None
+    out: dict[str, Any] = {}
+    for k in range(1, len(e.chain.reached) + 1):
+        low, high = e.chain.reach_interval(k)
+        out |= {f"reach_{k}": e.chain.reach(k), f"reach_{k}_low": low, f"reach_{k}_high": high}
+    low, high = e.chain.avg_len_interval
+    out |= {"avg_len": e.chain.avg_len, "avg_len_low": low, "avg_len_high": high}
+    for group, stats in e.chain_groups.items():
+        out[f"avg_len[{group}]"] = stats.avg_len
+    return out
 
 
 def finite_or_none(value: float) -> float | None:
@@ -278,88 +329,6 @@ def speedups(items: Sequence[Timed], baseline: str) -> tuple[list[tuple[float | 
     return out, warnings
 
 
-# --- warnings ---------------------------------------------------------------------
-
-
-def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
-    """What in a manifest besides simulator versions changes scores: rendering. (Versions
-    are results/simulator_versions.py's, named first as one warning.)"""
-    env = manifest.get("environment") or {}
-    suite = manifest.get("suite") or {}
-    out: dict[str, Any] = {"render backend": suite.get("render_backend")}
-    # a suite that renders nothing is not touched by MUJOCO_GL (older manifests recorded
-    # the variable as import order left it); harness.manifest.mujoco_gl records this now
-    unrendered = str(suite.get("render_backend") or "").startswith("none")
-    out["MUJOCO_GL"] = "unused (state observations)" if unrendered else env.get("mujoco_gl")
-    return out
-
-
-def _provenance_warnings(runs: Sequence[str], provenance: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    known = {r: _scoring_provenance(provenance[r]) for r in runs if provenance.get(r)}
-    # first: a version difference alone flips outcomes, so it is the first thing to rule out
-    versions = simulator_suspect({r: provenance[r] for r in runs if provenance.get(r)})
-    warnings = [f"{versions}; rule that out first where success differs between rows"] if versions else []
-    warnings += [
-        f"{r}: speed figures unreliable (tokens/s, Hz, speedups): {speed_warning(provenance[r])}"
-        for r in runs
-        if provenance.get(r) and speed_warning(provenance[r])
-    ]
-    for r in runs:
-        if r not in known:
-            warnings.append(
-                f"{r or 'rows'}: no manifest, so versions, render backend and machine are unknown"
-            )
-    for key in sorted({k for p in known.values() for k in p}):
-        values: dict[str, list[str]] = {}
-        for r, p in known.items():
-            values.setdefault(str(p.get(key)), []).append(r)
-        if len(values) > 1:
-            listed = "; ".join(f"{v} ({', '.join(rs)})" for v, rs in values.items())
-            warnings.append(f"runs differ in {key}: {listed}; success may not be comparable")
-    return warnings
-
-
-def _episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Mapping[str, str]) -> list[str]:
-    warnings = []
-
-    def name(key: tuple[str, str]) -> str:
-        return labels[key[0]] + (f" @ {key[1]}" if len({m for _, m in keys}) > 1 else "")
-
-    by_row = {k: g for k, g in df.groupby(["policy_config_id", "machine"], sort=False)}
-    counts = {k: len(by_row[k]) for k in keys}
-    if len(set(counts.values())) > 1:
-        listed = ", ".join(f"{name(k)} {n}" for k, n in counts.items())
-        warnings.append(f"episode counts differ between rows: {listed}; intervals differ in width")
-    episodes = {k: set(zip(by_row[k]["task"], by_row[k]["episode_index"], strict=True)) for k in keys}
-    if len(set(counts.values())) == 1 and len({frozenset(e) for e in episodes.values()}) > 1:
-        warnings.append("rows were evaluated on different episodes (task, episode index); compare with care")
-    starts = df.groupby(["task", "episode_index"])[["seed", "init_state_id"]].nunique(dropna=False)
-    differing = starts[(starts > 1).any(axis=1)]
-    if len(differing):
-        task, index = differing.index[0]
-        warnings.append(
-            f"seeds or initial states differ between rows for {len(differing)} episode(s) "
-            f"(e.g. {task} #{index}); rows did not start from the same states"
-        )
-    for column, what in (
-        ("suite_version", "suite version"),
-        ("replan_every", "replan_every"),
-        ("max_steps", "step budgets"),
-    ):
-        if df[column].nunique() > 1:
-            warnings.append(f"rows differ in {what}: {sorted(map(str, df[column].unique()))}")
-    sizes = batch_sizes(df)
-    if len(sizes) > 1:
-        warnings.append(
-            f"rows ran at different batch sizes (--batch-envs {', '.join(map(str, sizes))}): speed "
-            "figures (tokens/s, Hz, speedups) are not comparable between them; compare speed within one"
-        )
-    machines = df.groupby("policy_config_id")["machine"].nunique()
-    for cid in machines[machines > 1].index:
-        warnings.append(f"{labels[cid]} was measured on {machines[cid]} machines: one row per machine")
-    return warnings
-
-
 # --- building ---------------------------------------------------------------------
 
 
@@ -393,13 +362,17 @@ def leaderboard(
     first = df.sort_values("started_at", kind="stable") if "started_at" in df else df
     keys = list(dict.fromkeys(zip(first["policy_config_id"], first["machine"], strict=True)))
     grouped = {k: g for k, g in df.groupby(["policy_config_id", "machine"], sort=False)}
+    chains = is_chain_run(df)
     drafts = []
     for key in keys:
         rows = grouped[key]
         per_group = {g: Success(0, 0) for g in groups}
+        chain_groups = {}
         for group in groups:
             mine = rows[rows["task"].map(group_of) == group]
             per_group[group] = Success(int(mine["success"].sum()), len(mine))
+            if chains:
+                chain_groups[group] = chain_stats(mine["subtasks_completed"].fillna(0))
         drafts.append(
             Entry(
                 policy=str(rows["policy"].iloc[0]),
@@ -414,6 +387,8 @@ def leaderboard(
                 tokens_per_s=float(rows["tokens_per_s"].mean()),
                 control_hz=float(rows["control_hz"].mean()),
                 wall_clock_s=float(rows["wall_clock_s"].mean()),
+                chain=chain_stats(rows["subtasks_completed"].fillna(0)) if chains else None,
+                chain_groups=chain_groups,
             )
         )
     timed = [Timed(e.policy, e.policy_config_id, e.label, e.machine, e.runs, e.tokens_per_s) for e in drafts]
@@ -422,9 +397,9 @@ def leaderboard(
         Entry(**{**e.__dict__, "speedup": s, "speedup_note": note})
         for e, (s, note) in zip(drafts, ratios, strict=True)
     )
-    warnings = _episode_warnings(df, keys, labels) + warnings
+    warnings = episode_warnings(df, keys, labels) + warnings
     if provenance is not None:
-        warnings = _provenance_warnings(list(dict.fromkeys(df["run"])), provenance) + warnings
+        warnings = provenance_warnings(list(dict.fromkeys(df["run"])), provenance) + warnings
     if duplicates:
         warnings.append(f"{duplicates} episode(s) appear in more than one run; the latest is counted")
     return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings))

@@ -17,6 +17,7 @@ from results.leaderboard import (
     Block,
     Cell,
     Entry,
+    Leaderboard,
     Success,
     finite_or_none,
     leaderboards,
@@ -24,6 +25,7 @@ from results.leaderboard import (
     number_cell,
 )
 from results.published import (
+    CALVIN,
     LIBERO,
     PRIVILEGED,
     check_comparable,
@@ -49,12 +51,14 @@ class PaperRow:
 
 @dataclass(frozen=True)
 class PaperTable:
-    """Fast-dVLA's LIBERO layout: methods x suites, average, tokens/s, speedup."""
+    """Fast-dVLA's LIBERO layout: methods x suites, average, tokens/s, speedup; and its
+    CALVIN layout, one table per instruction-chain suite (`chain_boards`)."""
 
     suites: tuple[str, ...]
     rows: tuple[PaperRow, ...]
     baseline: str
     warnings: tuple[str, ...]
+    chain_boards: tuple[Leaderboard, ...] = ()
 
 
 def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
@@ -62,7 +66,9 @@ def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
     that suite, on the same machine) and averaged over the suites a row has, never
     across suites: a LIBERO row is not measured against a Meta-World teacher. Tokens/s
     is the mean over those suites likewise, so each suite counts once."""
-    boards = leaderboards(runs, baseline)
+    every = leaderboards(runs, baseline)
+    chain_boards = tuple(b for b in every if b.is_chain)  # CALVIN's layout: not averaged with LIBERO's
+    boards = [b for b in every if not b.is_chain]
     baseline = baseline or DEFAULT_BASELINE
     keys = list(dict.fromkeys((e.policy_config_id, e.machine) for b in boards for e in b.entries))
     out = []
@@ -83,8 +89,10 @@ def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
         )
         runs_of = tuple(dict.fromkeys(r for e in mine.values() for r in e.runs))
         out.append(PaperRow(first.label, cid, machine, success, average, tokens, speedup, note, runs_of))
-    warnings = [f"{b.suite}: {w}" for b in boards for w in b.warnings]
-    return PaperTable(tuple(b.suite for b in boards), tuple(out), baseline, tuple(dict.fromkeys(warnings)))
+    warnings = [f"{b.suite}: {w}" for b in every for w in b.warnings]
+    return PaperTable(
+        tuple(b.suite for b in boards), tuple(out), baseline, tuple(dict.fromkeys(warnings)), chain_boards
+    )
 
 
 def _suite_mean_speedup(entries: dict[str, Entry]) -> tuple[float | None, str]:
@@ -146,8 +154,8 @@ def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
             f"rows marked [{PRIVILEGED}] were measured on object and fixture poses "
             f"({', '.join(privileged)}); the published rows on camera images: not the same task",
         )
-    blocks = [Block("measured", headers, rows, notes)]
-    for table in tables_for(list(pt.suites)):
+    blocks = [Block("measured", headers, rows, notes)] if pt.suites else []
+    for table in tables_for(list(pt.suites)) if pt.suites else ():
         label = f"published: {table.source}"
         pub_rows = []
         for p in table.rows:
@@ -173,7 +181,50 @@ def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
         else:
             pub_headers = ["method", *table.columns, "tokens/s", "speedup", "source"]
             blocks.append(Block(f"published: {table.name}", pub_headers, pub_rows, (note,), 0))
-    return blocks
+    return blocks + [calvin_block(board, pt.baseline) for board in pt.chain_boards]
+
+
+NOT_CALVIN = "CALVIN-like: CALVIN's protocol on LIBERO scenes, not CALVIN's scene or tasks (docs/chains.md)"
+
+
+def calvin_block(board: Leaderboard, baseline: str) -> Block:
+    """One chain suite in Fast-dVLA's CALVIN layout (reaching 1/5 ... 5/5, avg len,
+    tokens/s), the published CALVIN rows beneath, labelled as a different benchmark:
+    the same protocol and metrics, but CALVIN's own scene, tasks and training data,
+    so no number of ours can be read against theirs."""
+    headers = ["method", *CALVIN.columns, "tokens/s", f"speedup vs {baseline}", "source"]
+    rows = []
+    machines = len(board.machines) > 1
+    for e in board.entries:
+        assert e.chain is not None
+        rows.append(
+            [
+                Cell(e.label + (f" @ {e.machine}" if machines else ""), e.label),
+                *(Cell(e.chain.reach_text(k), finite_or_none(e.chain.reach(k))) for k in range(1, 6)),
+                Cell(e.chain.length_text(), finite_or_none(e.chain.avg_len)),
+                number_cell(e.tokens_per_s, ".0f"),
+                Cell(f"{e.speedup:.2f}x", e.speedup) if e.speedup is not None else Cell(e.speedup_note, None),
+                Cell("measured: " + ", ".join(e.runs), "measured"),
+            ]
+        )
+    label = f"published: {CALVIN.source}"
+    published = [
+        [
+            Cell(f"{p.method} (published, CALVIN: not comparable)", p.method),
+            *(Cell(CALVIN.text(c, p.values.get(c)), p.values.get(c)) for c in CALVIN.columns),
+            Cell(CALVIN.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
+            Cell("-", None),
+            Cell(label, label),
+        ]
+        for p in CALVIN.rows
+    ]
+    notes = (
+        f"{board.suite}: {NOT_CALVIN}",
+        "measured: % of chains reaching k of 5 subtasks (Wilson 95%); avg len: subtasks completed "
+        "per chain (bootstrap 95%)",
+        f"{CALVIN.name}, {label}; {CALVIN.note}; not measured here, and not the same benchmark",
+    )
+    return Block(f"{board.suite} (CALVIN layout)", headers, [*rows, *published], notes, len(rows))
 
 
 def blocks_markdown(blocks: Sequence[Block]) -> str:

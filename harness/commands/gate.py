@@ -14,7 +14,7 @@ from rich.table import Table
 from harness.errors import UsageError
 
 if TYPE_CHECKING:  # pandas and the gate load only when the command runs, not for every CLI call
-    from results.gate import GateResult, SpeedDiff
+    from results.gate import GateResult, SpeedDiff, TaskDiff
 
 DESCRIPTION = """\
 Compare a candidate run with a baseline run of the same episodes and exit 1 on a
@@ -24,6 +24,10 @@ What fails the gate:
   success   a drop that is significant at --alpha by McNemar's exact test (one-sided)
             on the paired episodes: overall at alpha, per task at alpha / tasks.
             A drop that could be chance (e.g. 1 of 9 episodes) passes.
+  chain length  (instruction-chain suites) a drop in subtasks completed per chain,
+            chains paired, by the exact sign test; it and full-chain success are each
+            tested at alpha / 2, so a policy that stops earlier is caught even when
+            its 5/5 chains hold.
   NFE       any increase of NFE per chunk (forward passes are counted, not timed,
             so they are exact for deterministic decoders), unless --allow-nfe-increase.
   tokens/s  a slowdown beyond --max-slowdown of each configuration's tokens/s relative
@@ -101,13 +105,11 @@ def _fmt(value: float | None, digits: int = 2) -> str:
 
 
 def render(result: GateResult, title: str) -> Table:
+    chains = any(t.length_p is not None for t in result.tasks)
+    columns = ["configuration", "task", "episodes", "successes", "drops/gains", "p (drop)"]
+    columns += ["subtasks/chain (shorter/longer, p)"] if chains else []
     table = Table(
-        "configuration",
-        "task",
-        "episodes",
-        "successes",
-        "drops/gains",
-        "p (drop)",
+        *columns,
         "NFE/chunk",
         "tokens/s vs ref.",
         "verdict",
@@ -115,6 +117,7 @@ def render(result: GateResult, title: str) -> Table:
         caption=(
             "successes and NFE/chunk: baseline -> candidate; * = significant drop; tokens/s vs ref.: "
             "change of tokens/s over the reference decoder's in the same run"
+            + ("; subtasks/chain: mean subtasks completed, chains paired" if chains else "")
         ),
     )
     skipped = dict(result.not_comparable)
@@ -127,6 +130,7 @@ def render(result: GateResult, title: str) -> Table:
             name
             for name, hit in (
                 ("success", t.success_regressed),
+                ("chain length", t.length_regressed),
                 ("NFE", t.nfe_increased and t.nfe_gated),
                 ("speed", s is not None and s.regressed),
             )
@@ -140,6 +144,7 @@ def render(result: GateResult, title: str) -> Table:
             f"{t.baseline_successes} -> {t.candidate_successes}",
             f"{t.drops} / {t.gains}",
             f"{t.p_value:.3g}" + (" *" if t.success_regressed else ""),
+            *([_length_cell(t)] if chains else []),
             nfe + (" (up)" if t.nfe_increased else ""),
             _speed_cell(t.task, t.pair, s, skipped, result.reference),
             "[red]FAIL " + ", ".join(bad) + "[/red]" if bad else "[green]ok[/green]",
@@ -147,6 +152,15 @@ def render(result: GateResult, title: str) -> Table:
         )
         previous = t.pair
     return table
+
+
+def _length_cell(t: TaskDiff) -> str:
+    if t.length_p is None:
+        return ""
+    return (
+        f"{_fmt(t.baseline_length)} -> {_fmt(t.candidate_length)} ({t.length_drops}/{t.length_gains}, "
+        f"p {t.length_p:.3g}{' *' if t.length_regressed else ''})"
+    )
 
 
 def _speed_cell(task: str, pair: str, s: SpeedDiff | None, skipped: dict[str, str], reference: str) -> str:

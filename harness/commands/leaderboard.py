@@ -22,7 +22,8 @@ Rows are policy configurations (one per machine they were timed on); success has
 Wilson 95% interval and episode counts; speedup is tokens/s over the baseline's on the
 same machine, else the cell says why it is missing. Differences that move scores
 (simulator/mujoco versions, render backend, seeds, episode counts) are printed as
-warnings. See docs/reports.md.
+warnings. An instruction-chain suite (chains/...) is laid out as CALVIN's table:
+chains reaching 1/5 ... 5/5 and the average length (docs/chains.md). See docs/reports.md.
 """
 
 

@@ -21,6 +21,10 @@ labelled with their source. html writes OUT/index.html (one self-contained page:
 sortable leaderboards, the paper table, a Pareto plot, provenance of every run) plus
 leaderboard.md, leaderboard.csv and paper-table.md. See docs/reports.md.
 
+An instruction-chain suite (chains/...) gets its own table in the layout of Fast-dVLA's
+CALVIN table (reaching 1/5 ... 5/5, avg len, tokens/s, speedup), the published CALVIN
+rows beneath, labelled "CALVIN: not comparable" (CALVIN-like suites on LIBERO scenes).
+
 The published LIBERO rows come from models that read camera images. LIBERO rows
 measured on privileged state (obs=state, the default, or obs=images: object and fixture
 poses) are refused beside them (exit 2) unless --allow-privileged is given; they are

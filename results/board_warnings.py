@@ -1,0 +1,93 @@
+"""The warnings a leaderboard prints beside its numbers: what makes two rows not the
+same measurement (versions, render backend, seeds, episode sets, budgets, batch sizes,
+machines). Kept apart from the arithmetic so that each rule reads on its own; outputs
+must show them, not bury them (results/leaderboard.py)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import pandas as pd
+
+from results.runs import batch_sizes, speed_warning
+from results.simulator_versions import suspect as simulator_suspect
+
+
+def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
+    """What in a manifest besides simulator versions changes scores: rendering. (Versions
+    are results/simulator_versions.py's, named first as one warning.)"""
+    env = manifest.get("environment") or {}
+    suite = manifest.get("suite") or {}
+    out: dict[str, Any] = {"render backend": suite.get("render_backend")}
+    # a suite that renders nothing is not touched by MUJOCO_GL (older manifests recorded
+    # the variable as import order left it); harness.manifest.mujoco_gl records this now
+    unrendered = str(suite.get("render_backend") or "").startswith("none")
+    out["MUJOCO_GL"] = "unused (state observations)" if unrendered else env.get("mujoco_gl")
+    return out
+
+
+def provenance_warnings(runs: Sequence[str], provenance: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    known = {r: _scoring_provenance(provenance[r]) for r in runs if provenance.get(r)}
+    # first: a version difference alone flips outcomes, so it is the first thing to rule out
+    versions = simulator_suspect({r: provenance[r] for r in runs if provenance.get(r)})
+    warnings = [f"{versions}; rule that out first where success differs between rows"] if versions else []
+    warnings += [
+        f"{r}: speed figures unreliable (tokens/s, Hz, speedups): {speed_warning(provenance[r])}"
+        for r in runs
+        if provenance.get(r) and speed_warning(provenance[r])
+    ]
+    for r in runs:
+        if r not in known:
+            warnings.append(
+                f"{r or 'rows'}: no manifest, so versions, render backend and machine are unknown"
+            )
+    for key in sorted({k for p in known.values() for k in p}):
+        values: dict[str, list[str]] = {}
+        for r, p in known.items():
+            values.setdefault(str(p.get(key)), []).append(r)
+        if len(values) > 1:
+            listed = "; ".join(f"{v} ({', '.join(rs)})" for v, rs in values.items())
+            warnings.append(f"runs differ in {key}: {listed}; success may not be comparable")
+    return warnings
+
+
+def episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Mapping[str, str]) -> list[str]:
+    warnings = []
+
+    def name(key: tuple[str, str]) -> str:
+        return labels[key[0]] + (f" @ {key[1]}" if len({m for _, m in keys}) > 1 else "")
+
+    by_row = {k: g for k, g in df.groupby(["policy_config_id", "machine"], sort=False)}
+    counts = {k: len(by_row[k]) for k in keys}
+    if len(set(counts.values())) > 1:
+        listed = ", ".join(f"{name(k)} {n}" for k, n in counts.items())
+        warnings.append(f"episode counts differ between rows: {listed}; intervals differ in width")
+    episodes = {k: set(zip(by_row[k]["task"], by_row[k]["episode_index"], strict=True)) for k in keys}
+    if len(set(counts.values())) == 1 and len({frozenset(e) for e in episodes.values()}) > 1:
+        warnings.append("rows were evaluated on different episodes (task, episode index); compare with care")
+    starts = df.groupby(["task", "episode_index"])[["seed", "init_state_id"]].nunique(dropna=False)
+    differing = starts[(starts > 1).any(axis=1)]
+    if len(differing):
+        task, index = differing.index[0]
+        warnings.append(
+            f"seeds or initial states differ between rows for {len(differing)} episode(s) "
+            f"(e.g. {task} #{index}); rows did not start from the same states"
+        )
+    for column, what in (
+        ("suite_version", "suite version"),
+        ("replan_every", "replan_every"),
+        ("max_steps", "step budgets"),
+    ):
+        if df[column].nunique() > 1:
+            warnings.append(f"rows differ in {what}: {sorted(map(str, df[column].unique()))}")
+    sizes = batch_sizes(df)
+    if len(sizes) > 1:
+        warnings.append(
+            f"rows ran at different batch sizes (--batch-envs {', '.join(map(str, sizes))}): speed "
+            "figures (tokens/s, Hz, speedups) are not comparable between them; compare speed within one"
+        )
+    machines = df.groupby("policy_config_id")["machine"].nunique()
+    for cid in machines[machines > 1].index:
+        warnings.append(f"{labels[cid]} was measured on {machines[cid]} machines: one row per machine")
+    return warnings
