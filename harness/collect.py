@@ -1,5 +1,10 @@
 """Demonstrations: run a policy through the ordinary episode loop, keep the successes.
 
+On an instruction-chain suite the unit of success is the subtask: every chain keeps the
+steps of the subtasks it completed, up to its first failure, each under its own
+instruction. CALVIN trains on instruction-labelled segments too, and keeping only 5/5
+chains would throw away most of what an expert that completes half its chains shows.
+
 Recording is a Gymnasium wrapper around the suite's env, so collection uses exactly
 the loop, seeds and success test that evaluation uses. The output folder is written
 once, at the end, atomically (docs/demonstrations.md describes the format):
@@ -37,7 +42,7 @@ from adapters.base import EpisodeSpec, TaskSpec
 from adapters.libero_states import InitialStateOverlap
 from harness.backends.local import episode_context
 from harness.config import ResolvedRun
-from harness.episode import run_episode
+from harness.episode import EpisodeOutcome, run_episode
 from harness.errors import UsageError
 from harness.manifest import environment, now
 from harness.nfe import NFECounter
@@ -148,8 +153,10 @@ class NoisyActions(gym.Wrapper):
 @dataclass
 class CollectReport:
     attempted: dict[str, int] = field(default_factory=dict)
-    kept: dict[str, int] = field(default_factory=dict)
+    kept: dict[str, int] = field(default_factory=dict)  # chains: those with a completed subtask
     steps: int = 0
+    # Instruction chains only, per task: subtasks completed over all chains (what was kept).
+    subtasks_kept: dict[str, int] = field(default_factory=dict)
     # Per task, fresh initial states only: how many were drawn, and the smallest distance
     # (m, largest object displacement) of any of them to an evaluation state.
     fresh_states: dict[str, int] = field(default_factory=dict)
@@ -211,10 +218,14 @@ def collect(
                     raise UsageError(f"{task.name}: {env.refused}; nothing was written")
                 _note_start(report, task.name, env.start)
                 report.attempted[task.name] += 1
-                if outcome.success:
+                keep = _kept_steps(outcome, env)
+                if keep:
                     report.kept[task.name] += 1
-                    report.steps += _append_episode(rows, env, task, spec, episode_id, cameras or [])
+                    report.steps += _append_episode(rows, env, task, spec, episode_id, cameras or [], keep)
                     episode_id += 1
+                if outcome.subtasks_completed is not None:
+                    completed = report.subtasks_kept.get(task.name, 0) + outcome.subtasks_completed
+                    report.subtasks_kept[task.name] = completed
                 if tick:
                     tick(outcome.success)
         finally:
@@ -230,6 +241,24 @@ def collect(
         schema = schema.append(pa.field(f"image_{cam}", pa.binary()))
     _write(resolved, out, pa.table(rows, schema=schema), report, cameras or [], action_noise)
     return report
+
+
+def _kept_steps(outcome: EpisodeOutcome, env: RecordingEnv) -> int:
+    """How many of the episode's recorded steps to keep: all of a success; of a chain,
+    those of the subtasks it completed (their records count each one's steps); else 0."""
+    if outcome.subtasks_completed is None or not outcome.subtasks:
+        return len(env.actions) if outcome.success else 0
+    done = outcome.subtasks[: outcome.subtasks_completed]
+    keep = sum(int(r["steps"]) for r in done)
+    # The records and the recording must agree, or steps would go under the wrong instruction.
+    labels = env.instructions[:keep]
+    expected = [r["instruction"] for r in done for _ in range(int(r["steps"]))]
+    if keep > len(env.actions) or labels != expected:
+        raise RuntimeError(
+            f"chain {outcome.subtasks_completed} subtasks: the recorded steps do not line up "
+            "with the env's subtask records; nothing was written"
+        )
+    return keep
 
 
 def _note_start(report: CollectReport, task: str, start: Mapping[str, Any]) -> None:
@@ -254,9 +283,10 @@ def _append_episode(
     spec: EpisodeSpec,
     episode_id: int,
     cameras: list[str],
+    keep: int,
 ) -> int:
-    """One kept episode's steps onto the column lists; returns how many steps."""
-    steps = zip(env.observations, env.actions, env.instructions, strict=True)
+    """The first `keep` steps of an episode onto the column lists; returns `keep`."""
+    steps = zip(env.observations[:keep], env.actions[:keep], env.instructions[:keep], strict=True)
     for step, (obs, action, instruction) in enumerate(steps):
         for name, value in (
             ("episode_id", episode_id),
@@ -272,11 +302,11 @@ def _append_episode(
             rows[name].append(value)
     for name in START_COLUMNS:
         if name in env.start:
-            rows.setdefault(name, []).extend([env.start[name]] * len(env.actions))
-    for frames in env.images:
+            rows.setdefault(name, []).extend([env.start[name]] * keep)
+    for frames in env.images[:keep]:
         for cam, data in zip(cameras, frames, strict=True):
             rows[f"image_{cam}"].append(data)
-    return len(env.actions)
+    return keep
 
 
 def _write(
@@ -304,6 +334,9 @@ def _write(
         "episodes_attempted": report.attempted,
         "episodes_kept": report.kept,
         "steps": report.steps,
+        # Instruction chains: episodes_kept counts chains with a completed subtask, and
+        # only completed subtasks' steps were kept (module docstring).
+        **({"subtasks_kept": report.subtasks_kept} if report.subtasks_kept else {}),
         "observation_dim": len(table["observation"][0]),
         "action_dim": len(table["action"][0]),
         "state_positions": report.state_positions,

@@ -3,6 +3,7 @@ both episode loops, the chain columns, and (with the libero extra) the real scen
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from collections.abc import Sequence
@@ -443,6 +444,38 @@ def test_collect_records_the_instruction_in_force_at_every_step(cli, tmp_path):
     scene, chain = cs.load_scene(SCENE), train.episodes[0].chain
     assert train.episodes[0].init_state_id is None and train.episodes[0].seed is not None
     in_order = list(dict.fromkeys(steps["instruction"]))  # distinct, in order of first step
-    assert in_order == [scene.subtask(i).instruction for i in chain]
+    manifest = json.loads((out / "manifest.json").read_text())
+    completed = manifest["subtasks_kept"][SCENE]  # a failed chain keeps its completed subtasks
+    assert completed >= 1 and manifest["episodes_kept"][SCENE] == 1
+    assert in_order == [scene.subtask(i).instruction for i in chain][:completed]
     assert steps["instruction"].is_monotonic_increasing is False  # not one label for the episode
     assert (steps.groupby("instruction", sort=False).size() > 10).all()
+
+
+def test_a_failed_chain_keeps_the_steps_of_its_completed_subtasks_only():
+    from datetime import UTC, datetime
+    from types import SimpleNamespace
+
+    from harness.collect import _kept_steps
+    from harness.episode import EpisodeOutcome
+
+    def outcome(completed: int, steps: list[int], success: bool = False) -> EpisodeOutcome:
+        records = [
+            {"id": f"s{k}", "instruction": f"do {k}", "success": k < completed, "steps": n}
+            for k, n in enumerate(steps)
+        ]
+        return EpisodeOutcome(
+            success, sum(steps), 1, 1, 1, 0.0, 0.0, 0.0, datetime.now(UTC),
+            subtasks=records, subtasks_completed=completed,
+        )  # fmt: skip
+
+    labels = ["do 0"] * 3 + ["do 1"] * 4 + ["do 2"] * 360  # the third subtask ran out of steps
+    env = SimpleNamespace(instructions=labels, actions=[0] * len(labels))
+    assert _kept_steps(outcome(2, [3, 4, 360, 0, 0]), env) == 7
+    assert _kept_steps(outcome(0, [360, 0, 0, 0, 0]), env) == 0
+    shifted = SimpleNamespace(instructions=["do 0"] * 4 + labels[4:], actions=env.actions)
+    with pytest.raises(RuntimeError, match="do not line up"):
+        _kept_steps(outcome(2, [3, 4, 360, 0, 0]), shifted)
+    plain = EpisodeOutcome(True, 5, 1, 1, 1, 0.0, 0.0, 0.0, datetime.now(UTC))
+    assert _kept_steps(plain, SimpleNamespace(instructions=[None] * 5, actions=[0] * 5)) == 5
+    assert _kept_steps(dataclasses.replace(plain, success=False), env) == 0

@@ -80,11 +80,20 @@ def cmd_collect(args: argparse.Namespace) -> int:
     total = sum(len(resolved.episodes(t)) for t in resolved.tasks)
     with progress:
         report = collect(resolved, out, args.overwrite, start(total, 0), args.action_noise)
-    table = Table("task", "kept / attempted", title=f"demonstrations in {out}")
+    chains = bool(report.subtasks_kept)
+    columns = ["task", "kept / attempted", *(["subtasks kept"] if chains else [])]
+    table = Table(*columns, title=f"demonstrations in {out}")
     for task, attempted in report.attempted.items():
-        table.add_row(task, f"{report.kept[task]} / {attempted}")
+        extra = [str(report.subtasks_kept.get(task, 0))] if chains else []
+        table.add_row(task, f"{report.kept[task]} / {attempted}", *extra)
     console.print(table)
     console.print(f"{sum(report.kept.values())} episodes, {report.steps} steps")
+    if chains:
+        console.print(
+            "instruction chains: every chain keeps the steps of the subtasks it completed, up to "
+            "its first failure, each under its own instruction (docs/chains.md, Demonstrations)",
+            soft_wrap=True,
+        )
     if report.fresh_states:
         closest = min(report.closest_to_evaluation.values())
         console.print(
