@@ -70,6 +70,9 @@ class Suite:
     simulator_packages: tuple[str, ...] = ()
     # How observations are rendered: "none (state)" or e.g. "egl"; recorded per run.
     render_backend: str = "none (state observations)"
+    # Anything else that can move scores and belongs in the manifest beside the versions,
+    # e.g. the Vulkan driver SAPIEN renders and builds its scene with.
+    provenance: Mapping[str, str] = field(default_factory=dict)
 
     def task(self, name_or_index: str) -> TaskSpec:
         """Look a task up by name or by its position in the suite."""

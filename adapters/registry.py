@@ -38,9 +38,9 @@ class SuiteProvider:
 
 
 def _builtin_providers() -> list[SuiteProvider]:
-    from adapters import chains, libero, metaworld
+    from adapters import chains, libero, metaworld, simpler
 
-    return [metaworld.PROVIDER, libero.PROVIDER, chains.PROVIDER]
+    return [metaworld.PROVIDER, libero.PROVIDER, chains.PROVIDER, simpler.PROVIDER]
 
 
 def _plugin_providers() -> list[SuiteProvider]:

@@ -259,6 +259,7 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
             "tasks": [t.name for t in resolved.tasks],
             "render_backend": suite.render_backend,
             "simulator_packages": {p: package_version(p) for p in suite.simulator_packages},
+            **({"provenance": dict(suite.provenance)} if suite.provenance else {}),
         },
         "policies": [
             {

@@ -61,9 +61,15 @@ class NoParams:
 
 def _builtin_specs() -> list[PolicySpec]:
     from policies.dvla import policy as dvla
-    from policies.experts import libero_scripted, scripted
+    from policies.experts import libero_scripted, maniskill_scripted, scripted
 
-    return [scripted.SCRIPTED, scripted.RANDOM, libero_scripted.LIBERO_SCRIPTED, *dvla.SPECS]
+    return [
+        scripted.SCRIPTED,
+        scripted.RANDOM,
+        libero_scripted.LIBERO_SCRIPTED,
+        maniskill_scripted.MANISKILL_SCRIPTED,
+        *dvla.SPECS,
+    ]
 
 
 def _plugin_specs() -> list[PolicySpec]:

@@ -24,6 +24,8 @@ def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
     # the variable as import order left it); harness.manifest.mujoco_gl records this now
     unrendered = str(suite.get("render_backend") or "").startswith("none")
     out["MUJOCO_GL"] = "unused (state observations)" if unrendered else env.get("mujoco_gl")
+    for key, value in (suite.get("provenance") or {}).items():  # e.g. SAPIEN's Vulkan driver
+        out[key.replace("_", " ")] = value
     return out
 
 
