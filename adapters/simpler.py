@@ -26,6 +26,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
+from adapters import simpler_variants as sv
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec, derive_seed
 from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
 
@@ -35,6 +36,9 @@ SUITE_VERSION = "1"
 EPISODES_PER_TASK = 24
 TRAIN_EPISODES = 1000  # the train split's fixed seeds per task (demonstrations), disjoint
 CONTROL_MODE = "pd_ee_delta_pose"
+DISTRACTOR_HALF = 0.02  # m; the size of ManiSkill's task cubes
+CAMERA = "base_camera"  # ManiSkill's camera for these tasks
+DEFAULT_IMAGE_SIZE = 128  # ManiSkill3's own base_camera size for these tasks
 ACTION_DIM = 7
 
 
@@ -106,7 +110,7 @@ class ManiSkillEpisodeEnv(gym.Env):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, task: SimplerTask):
+    def __init__(self, task: SimplerTask, obs: str = "state", image_size: int = DEFAULT_IMAGE_SIZE):
         from adapters import vulkan
 
         self.task = task
@@ -119,9 +123,11 @@ class ManiSkillEpisodeEnv(gym.Env):
         import mani_skill.envs  # noqa: F401  (registers the tasks)
 
         try:
+            cameras = {"sensor_configs": {CAMERA: {"width": image_size, "height": image_size}}}
             self.env = gym.make(
                 task.env_id,
-                obs_mode="state_dict",
+                obs_mode="state_dict" if obs == "state" else "state_dict+rgb",
+                **(cameras if obs == "images" else {}),
                 control_mode=CONTROL_MODE,
                 num_envs=1,
                 sim_backend="physx_cpu",
@@ -137,9 +143,29 @@ class ManiSkillEpisodeEnv(gym.Env):
             raise
         self.layout = state_layout(task)
         self.state_positions = state_positions(task)
+        self.variant = sv.CANONICAL_VARIANT  # what the scene holds now
+        scene_loader = self.env.unwrapped._load_scene
+
+        def load_scene(options: dict) -> None:  # distractors are built with the scene
+            scene_loader(options)
+            self._build_distractors()
+
+        self.env.unwrapped._load_scene = load_scene
         dim = self.layout[-1][2]
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (dim,), np.float32)
+        self.images = obs == "images"
+        state_space = gym.spaces.Box(-np.inf, np.inf, (dim,), np.float32)
+        pixels = gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
+        self.observation_space = (
+            gym.spaces.Dict({"state": state_space, CAMERA: pixels}) if self.images else state_space
+        )
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+
+    def _observation(self, obs: dict[str, Any]) -> Any:
+        state = self._state(obs)
+        if not self.images:
+            return state
+        rgb = obs["sensor_data"][CAMERA]["rgb"]
+        return {"state": state, CAMERA: np.asarray(rgb.cpu().numpy()[0], dtype=np.uint8)}
 
     def _state(self, obs: dict[str, Any]) -> np.ndarray:
         agent, extra = obs["agent"], obs["extra"]
@@ -158,8 +184,97 @@ class ManiSkillEpisodeEnv(gym.Env):
         spec: EpisodeSpec | None = (options or {}).get("episode")
         if spec is None or spec.seed is None:
             raise ValueError("reset needs options={'episode': EpisodeSpec} with a seed")
-        obs, _ = self.env.reset(seed=spec.seed)
-        return self._state(obs), {"success": False}
+        variant = sv.of_spec(spec.variant) or sv.CANONICAL_VARIANT
+        # A new variant rebuilds the scene from ManiSkill's canonical one (0.3 s): what a
+        # level changed cannot leak into the next episode, whatever ran before it.
+        rebuild = variant != self.variant
+        self.variant = variant
+        obs, _ = self.env.reset(seed=spec.seed, options={"reconfigure": rebuild})
+        if rebuild and variant != sv.CANONICAL_VARIANT:
+            # once per rebuild: a level scales what it finds (mass, friction, camera pose),
+            # and the scene keeps it across the plain resets of the same variant
+            self._apply(variant)
+            obs = self.env.unwrapped.get_obs()  # cameras see the level from the first step
+        return self._observation(obs), {"success": False, "variant": variant.label}
+
+    # --- variants ------------------------------------------------------------------
+
+    def _level(self, axis: str) -> dict[str, Any] | None:
+        if self.variant.axis != axis:
+            return None
+        return sv.axes()[axis].levels[self.variant.level]
+
+    def _build_distractors(self) -> None:
+        import sapien
+
+        level = self._level("distractors")
+        if level is None:
+            return
+        scene = self.env.unwrapped.scene
+        for i, ((x, y), rgba) in enumerate(zip(level["positions"], level["colors"], strict=True)):
+            builder = scene.create_actor_builder()
+            builder.add_box_collision(half_size=[DISTRACTOR_HALF] * 3)
+            builder.add_box_visual(
+                half_size=[DISTRACTOR_HALF] * 3, material=sapien.render.RenderMaterial(base_color=rgba)
+            )
+            builder.initial_pose = sapien.Pose(p=[x, y, DISTRACTOR_HALF])
+            builder.build(name=f"distractor_{i}")
+
+    def _task_bodies(self) -> list[Any]:
+        """The physx bodies of the task's objects (not the table, ground, goal markers or distractors)."""
+        import sapien
+
+        out = []
+        for name, actor in self.env.unwrapped.scene.actors.items():
+            if name.startswith("distractor_"):
+                continue
+            for obj in actor._objs:
+                body = obj.find_component_by_type(sapien.physx.PhysxRigidDynamicComponent)
+                if body is not None and not body.kinematic:
+                    out.append(body)
+        return out
+
+    def _apply(self, variant: sv.Variant) -> None:
+        """Set one axis to its level on a freshly built canonical scene."""
+        import sapien
+
+        level = sv.axes()[variant.axis].levels[variant.level]
+        unwrapped = self.env.unwrapped
+        scene = unwrapped.scene
+        if variant.axis == "lighting":
+            scene.set_ambient_light(level["ambient"])
+            for sub in scene.sub_scenes:
+                for entity in sub.entities:
+                    for c in entity.components:
+                        if isinstance(c, sapien.render.RenderDirectionalLightComponent):
+                            c.color = level["directional"]
+        elif variant.axis == "table":
+            table = scene.actors["table-workspace"]
+            for obj in table._objs:
+                body = obj.find_component_by_type(sapien.render.RenderBodyComponent)
+                for shape in body.render_shapes:
+                    for part in shape.parts:
+                        part.material.base_color_texture = None
+                        part.material.base_color = level["rgba"]
+        elif variant.axis == "camera":
+            for sensor in unwrapped._sensors.values():
+                pose = sensor.camera.get_local_pose()
+                raw = pose.raw_pose[0].cpu().numpy()
+                sensor.camera.set_local_pose(sapien.Pose(p=raw[:3] + np.asarray(level["offset"]), q=raw[3:]))
+        elif variant.axis == "friction":
+            for body in self._task_bodies():
+                for shape in body.collision_shapes:
+                    m = shape.physical_material
+                    scale = level["scale"]
+                    shape.set_physical_material(
+                        sapien.physx.PhysxMaterial(
+                            m.static_friction * scale, m.dynamic_friction * scale, m.restitution
+                        )
+                    )
+        elif variant.axis == "mass":
+            for body in self._task_bodies():
+                body.mass = body.mass * level["scale"]
+        # distractors: built with the scene (_build_distractors)
 
     def step(self, action):
         action = np.asarray(action, dtype=np.float32).reshape(1, ACTION_DIM)
@@ -167,7 +282,7 @@ class ManiSkillEpisodeEnv(gym.Env):
         success = bool(np.asarray(_numpy(info.get("success", 0.0))).any())
         out = {"success": success}
         return (
-            self._state(obs),
+            self._observation(obs),
             float(_numpy(reward)[0]),
             bool(_numpy(terminated)[0]),
             bool(_numpy(truncated)[0]),
@@ -178,37 +293,101 @@ class ManiSkillEpisodeEnv(gym.Env):
         self.env.close()
 
 
-def _episodes(split: str, task: str) -> tuple[EpisodeSpec, ...]:
+def variant_number(variant: sv.Variant) -> int:
+    """0 for the canonical scene, then 1, 2, ... in the variants file's order: fixed, so an
+    episode's index does not depend on which variants a run selected."""
+    return 0 if variant == sv.CANONICAL_VARIANT else 1 + sv.all_variants().index(variant)
+
+
+def _episodes(split: str, task: str, variants: tuple[sv.Variant, ...]) -> tuple[EpisodeSpec, ...]:
+    """Episode j of variant v has index v * count + j and episode j's seed (its layout):
+    every variant replays the canonical layouts."""
     count = EPISODES_PER_TASK if split == "eval" else TRAIN_EPISODES
-    return tuple(EpisodeSpec(index=j, seed=derive_seed("maniskill", split, task, j)) for j in range(count))
+    return tuple(
+        EpisodeSpec(
+            index=variant_number(v) * count + j,
+            seed=derive_seed("maniskill", split, task, j),
+            variant=v.as_spec(),
+        )
+        for v in variants
+        for j in range(count)
+    )
 
 
-def build_suite(name: str, task_names: tuple[str, ...], split: str = "eval") -> Suite:
+@dataclass(frozen=True)
+class Options:
+    variants: tuple[sv.Variant, ...] = (sv.CANONICAL_VARIANT,)
+    obs: str = "state"  # state | images (state + the base camera's RGB)
+    image_size: int = DEFAULT_IMAGE_SIZE
+
+    def suffix(self) -> str:
+        """The options not at their defaults, in one order: what the suite name records."""
+        parts = []
+        if sv.name(self.variants) != sv.CANONICAL:
+            parts.append(f"variants={sv.name(self.variants)}")
+        if self.obs != "state":
+            parts.append(f"obs={self.obs}")
+        if self.image_size != DEFAULT_IMAGE_SIZE:
+            parts.append(f"image_size={self.image_size}")
+        return ":" + ",".join(parts) if parts else ""
+
+
+_OPTIONS_HELP = (
+    "valid options: variants=canonical|all|<axis>[+<axis>.<level>...], obs=state|images, image_size=N "
+    "(16-1024)"
+)
+
+
+def parse_options(text: str) -> Options:
+    values: dict[str, Any] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        key, _, value = item.partition("=")
+        if key == "variants" and value:
+            values["variants"] = sv.parse(value)
+        elif key == "obs" and value in ("state", "images"):
+            values["obs"] = value
+        elif key == "image_size" and value.isdigit() and 16 <= int(value) <= 1024:
+            values["image_size"] = int(value)
+        else:
+            raise UnknownSuiteError(f"bad simpler/ suite option {item!r}; {_OPTIONS_HELP}")
+    options = Options(**values)
+    if options.image_size != DEFAULT_IMAGE_SIZE and options.obs != "images":
+        raise UnknownSuiteError(f"image_size={options.image_size} needs obs=images; {_OPTIONS_HELP}")
+    return options
+
+
+def build_suite(
+    name: str, task_names: tuple[str, ...], split: str = "eval", options: Options | None = None
+) -> Suite:
+    options = options or Options()
+    variants = options.variants
     tasks = tuple(
         TaskSpec(
             name=t,
             instruction=TASKS[t].instruction,
             max_steps=TASKS[t].max_steps,
             index=i,
-            episodes=_episodes(split, t),
+            episodes=_episodes(split, t, variants),
         )
         for i, t in enumerate(task_names)
     )
 
     def make_env(task: TaskSpec) -> gym.Env:
         _require_maniskill()
-        return ManiSkillEpisodeEnv(TASKS[task.name])
+        return ManiSkillEpisodeEnv(TASKS[task.name], options.obs, options.image_size)
 
     from adapters import vulkan
 
+    setting = "canonical scene" if len(variants) == 1 else f"canonical + {len(variants) - 1} variants"
     return Suite(
-        name=name,
+        name=name + options.suffix(),
         version=SUITE_VERSION,
         tasks=tasks,
         make_env=make_env,
         description=(
-            f"SimplerEnv-like on ManiSkill3 (not SimplerEnv): {len(tasks)} task(s), canonical scene, "
-            "state observations, 7-D delta end-effector pose + gripper"
+            f"SimplerEnv-like on ManiSkill3 (not SimplerEnv): {len(tasks)} task(s), {setting}, "
+            + ("state observations" if options.obs == "state" else f"state + {options.image_size} px RGB")
+            + ", 7-D delta end-effector pose + gripper"
         ),
         extra="maniskill",
         simulator_packages=("mani_skill", "sapien"),
@@ -217,11 +396,13 @@ def build_suite(name: str, task_names: tuple[str, ...], split: str = "eval") -> 
 
 
 def load_suite(name: str, split: str = "eval") -> Suite:
-    tail = name.removeprefix("simpler/")
+    """`simpler/<task>|all[:variants=...]` (adapters/simpler_variants.py)."""
+    base, _, opts = name.partition(":")
+    tail = base.removeprefix("simpler/")
     if tail == "all":
-        return build_suite(name, ALL, split)
+        return build_suite(base, ALL, split, parse_options(opts))
     if tail in TASKS:
-        return build_suite(name, (tail,), split)
+        return build_suite(base, (tail,), split, parse_options(opts))
     raise UnknownSuiteError(
         f"unknown suite {name!r}; SimplerEnv-like suites: simpler/all, "
         + ", ".join(f"simpler/{t}" for t in TASKS)

@@ -184,8 +184,27 @@ class ResolvedRun:
     policies: list[PolicyRun]
 
     def episodes(self, task: TaskSpec) -> tuple[EpisodeSpec, ...]:
-        n = self.config.episodes_per_task
-        return task.episodes if n is None else task.episodes[:n]
+        return first_per_variant(task.episodes, self.config.episodes_per_task)
+
+
+def _variant_of(spec: EpisodeSpec) -> tuple:
+    return tuple(sorted(spec.variant.items()))
+
+
+def first_per_variant(specs: tuple[EpisodeSpec, ...], n: int | None) -> tuple[EpisodeSpec, ...]:
+    """The first n episodes of each variant (SimplerEnv-like suites run every episode under
+    every variant: --episodes-per-task counts layouts, not layouts x variants); suites
+    without variants: the first n."""
+    if n is None:
+        return specs
+    taken: dict[tuple, int] = {}
+    out = []
+    for spec in specs:
+        key = _variant_of(spec)
+        if taken.get(key, 0) < n:
+            out.append(spec)
+            taken[key] = taken.get(key, 0) + 1
+    return tuple(out)
 
 
 def sha256_file(path: str) -> str:
@@ -219,10 +238,14 @@ def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
             ) from None
     n = config.episodes_per_task
     for task in tasks:
-        if n is not None and n > len(task.episodes):
+        first = _variant_of(task.episodes[0]) if task.episodes else ()
+        per_variant = sum(1 for s in task.episodes if _variant_of(s) == first)
+        if n is not None and n > per_variant:
             raise UsageError(
                 f"--episodes-per-task {n}: task {task.name!r} of {suite.name!r} defines "
-                f"{len(task.episodes)} episodes; valid range 1..{len(task.episodes)}"
+                f"{per_variant} episodes"
+                + (" per variant" if per_variant < len(task.episodes) else "")
+                + f"; valid range 1..{per_variant}"
             )
     unique = {t.name: t for t in tasks}  # a task named twice runs once
     return suite, tuple(unique.values())

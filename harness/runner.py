@@ -15,6 +15,7 @@ from typing import Any
 import gymnasium as gym
 
 from adapters.base import EpisodeSpec, TaskSpec
+from adapters.simpler_variants import label as variant_label
 from harness.backends import Execution, execute, record_execution
 from harness.config import PolicyRun, ResolvedRun
 from harness.episode import EpisodeOutcome
@@ -66,6 +67,7 @@ def job_key(resolved: ResolvedRun, job: EpisodeJob) -> tuple:
             "episode_index": job.spec.index,
             "seed": job.spec.seed,
             "init_state_id": job.spec.init_state_id,
+            "variant": variant_label(job.spec.variant),
             "policy": job.policy.spec.name,
             "policy_params": job.policy.params_json,
             "checkpoint_sha256": job.policy.checkpoint_sha256,
@@ -121,6 +123,7 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "episode_index": spec.index,
         "seed": spec.seed,
         "init_state_id": spec.init_state_id,
+        "variant": variant_label(spec.variant),
         "policy": p.spec.name,
         "policy_params": p.params_json,
         "policy_config_id": p.config_id,

@@ -17,7 +17,7 @@ from typing import Any
 
 import pandas as pd
 
-PAIR_KEY = ("suite", "task", "episode_index", "seed", "init_state_id")
+PAIR_KEY = ("suite", "task", "episode_index", "seed", "init_state_id", "variant")
 _SHOWN = 5  # mismatched episodes listed in a refusal
 
 

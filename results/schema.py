@@ -11,10 +11,11 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "2"
+SCHEMA_VERSION = "3"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
-# columns as nulls, which is what they mean for its suites.
-READABLE_VERSIONS = ("1", "2")
+# columns as nulls, a version-2 table (before variants) a null `variant`, which is what
+# they mean for its suites.
+READABLE_VERSIONS = ("1", "2", "3")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
 
@@ -168,6 +169,15 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     Column(
+        "variant",
+        pa.string(),
+        "",
+        "SimplerEnv-like suites: the scene setting the episode ran under, `canonical` (visual "
+        "matching) or `<axis>=<level>` (one level of one variant axis, e.g. `lighting=dim`; "
+        "docs/simpler.md). Part of the episode key. Null for suites without variants.",
+        nullable=True,
+    ),
+    Column(
         "chain_id",
         pa.string(),
         "",
@@ -221,6 +231,7 @@ EPISODE_KEY = (
     "episode_index",
     "seed",
     "init_state_id",
+    "variant",
     "policy",
     "policy_params",
     "checkpoint_sha256",

@@ -147,7 +147,7 @@ def test_maniskill_builds_steps_and_a_spec_always_starts_the_same():
         try:
             first, info = env.reset(options={"episode": task.episodes[0]})
             assert first.shape == env.observation_space.shape and first.dtype == np.float32
-            assert info == {"success": False}
+            assert info == {"success": False, "variant": "canonical"}
             obs, _, _, _, info = env.step(np.zeros(7, dtype=np.float32))
             assert isinstance(info["success"], bool) and np.isfinite(obs).all()
             other, _ = env.reset(options={"episode": task.episodes[1]})
@@ -176,3 +176,144 @@ def test_the_expert_solves_its_tasks_and_the_manifest_names_the_vulkan_driver(cl
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["suite"]["provenance"]["vulkan_driver"] == vulkan.describe()
     assert set(manifest["suite"]["simulator_packages"]) == {"mani_skill", "sapien"}
+
+
+# --- variants ----------------------------------------------------------------------------
+
+
+def test_variant_selection_names_and_episode_indices():
+    from adapters import simpler_variants as sv
+
+    every = sv.all_variants()
+    assert {v.axis for v in every} >= {"lighting", "table", "camera", "distractors", "friction", "mass"}
+    assert sv.parse("canonical") == (sv.CANONICAL_VARIANT,)
+    assert sv.parse("all") == (sv.CANONICAL_VARIANT, *every)
+    some = sv.parse("camera.left+lighting")  # file order, the canonical first, each once
+    assert [v.label for v in some] == [
+        "canonical",
+        "lighting=dim",
+        "lighting=bright",
+        "lighting=warm",
+        "camera=left",
+    ]
+    assert sv.name(some) == "lighting+camera.left" and sv.name(sv.parse("all")) == "all"
+    suite = load_suite("simpler/pick_cube:variants=lighting.dim+mass")
+    assert suite.name == "simpler/pick_cube:variants=lighting.dim+mass"
+    specs = suite.tasks[0].episodes
+    assert len(specs) == 4 * simpler.EPISODES_PER_TASK
+    by_label = {sv.label(s.variant) for s in specs}
+    assert by_label == {"canonical", "lighting=dim", "mass=light", "mass=heavy"}
+    # an episode's index is the same whichever variants a run selects; its layout is the canonical one's
+    alone = load_suite("simpler/pick_cube:variants=mass.heavy").tasks[0].episodes
+    heavy = [s for s in specs if s.variant["level"] == "heavy"]
+    assert [(s.index, s.seed) for s in heavy] == [
+        (s.index, s.seed) for s in alone if s.variant["level"] == "heavy"
+    ]
+    assert [s.seed for s in heavy] == [s.seed for s in specs[: simpler.EPISODES_PER_TASK]]
+
+
+@pytest.mark.parametrize(
+    ("suite", "needle"),
+    [
+        ("simpler/pick_cube:variants=fog", "unknown variant axis 'fog'"),
+        ("simpler/pick_cube:variants=lighting.neon", "its levels: lighting.dim, lighting.bright"),
+        ("simpler/pick_cube:colour=red", "valid options: variants="),
+        ("simpler/pick_cube:image_size=64", "needs obs=images"),
+    ],
+)
+def test_bad_variants_exit_2_naming_the_valid_ones(cli, tmp_path, suite, needle):
+    out = tmp_path / "r"
+    code, _, err = cli("run", "--suite", suite, "--policy", "random", "--out", str(out))
+    assert code == 2 and needle in err and not out.exists()
+
+
+def test_the_variants_flag_is_the_suite_option(cli, tmp_path):
+    from harness.commands.run import with_variants
+    from harness.errors import UsageError
+
+    assert with_variants("simpler/all", "all") == "simpler/all:variants=all"
+    assert (
+        with_variants("simpler/all:variants=camera,obs=images", "mass")
+        == "simpler/all:variants=mass,obs=images"
+    )
+    with pytest.raises(UsageError, match="applies to the simpler/ suites"):
+        with_variants("metaworld/mt10", "all")
+    code, _, err = cli("run", "--suite", "metaworld/mt10", "--variants", "all", "--out", str(tmp_path / "r"))
+    assert code == 2 and "--variants applies to the simpler/ suites" in err
+
+
+def test_a_variants_data_file_with_a_bad_level_is_refused(tmp_path):
+    from adapters import simpler_variants as sv
+    from adapters.registry import SuiteDataError
+
+    bad = tmp_path / "v.toml"
+    bad.write_text('[camera]\nkind = "visual"\nlevels.up = { offset = [0.0, 0.1] }\n')
+    with pytest.raises(SuiteDataError, match="offset must be 3 numbers"):
+        sv.axes(bad)
+    bad.write_text('[fog]\nkind = "visual"\nlevels.thick = { density = 1.0 }\n')
+    with pytest.raises(SuiteDataError, match="unknown axis \\[fog\\]"):
+        sv.axes(bad)
+
+
+@needs_maniskill
+def test_each_axis_changes_what_it_claims_and_nothing_else():
+    """Visual axes change the camera frame and leave the state; physical axes change the
+    bodies and leave the frame; a spec starts the same whatever ran before it."""
+    suite = load_suite("simpler/pick_cube:variants=all,obs=images")
+    task = suite.tasks[0]
+    first = {
+        s.variant["axis"] + "." + s.variant["level"]: s
+        for s in task.episodes
+        if s.seed == task.episodes[0].seed
+    }
+    env = suite.make_env(task)
+    try:
+        canonical, info = env.reset(options={"episode": first["canonical.canonical"]})
+        assert info["variant"] == "canonical"
+        bodies = env._task_bodies()
+        mass0 = [b.mass for b in bodies]
+        friction0 = [s.physical_material.static_friction for b in bodies for s in b.collision_shapes]
+        for key, spec in first.items():
+            obs, info = env.reset(options={"episode": spec})
+            assert info["variant"] == simpler.sv.label(spec.variant)
+            frame = np.abs(obs["base_camera"].astype(int) - canonical["base_camera"]).max()
+            np.testing.assert_array_equal(obs["state"], canonical["state"])  # the same layout
+            axis = spec.variant["axis"]
+            if axis in ("lighting", "table", "camera", "distractors"):
+                assert frame > 30, key
+            else:
+                assert frame == 0, key
+            masses = [b.mass for b in env._task_bodies()]
+            frictions = [
+                s.physical_material.static_friction for b in env._task_bodies() for s in b.collision_shapes
+            ]
+            scale = (
+                simpler.sv.axes()[axis].levels[spec.variant["level"]].get("scale")
+                if axis in ("mass", "friction")
+                else 1.0
+            )
+            assert masses == pytest.approx([m * (scale if axis == "mass" else 1.0) for m in mass0]), key
+            assert frictions == pytest.approx(
+                [f * (scale if axis == "friction" else 1.0) for f in friction0]
+            ), key
+        again, _ = env.reset(options={"episode": first["canonical.canonical"]})  # after every variant
+        np.testing.assert_array_equal(again["base_camera"], canonical["base_camera"])
+        assert [b.mass for b in env._task_bodies()] == pytest.approx(mass0)
+    finally:
+        env.close()
+
+
+@needs_maniskill
+def test_a_variant_run_records_the_variant_column(cli, tmp_path):
+    import pandas as pd
+
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", "simpler/push_cube", "--variants", "mass.heavy+camera.left", "--policy",
+        "maniskill_scripted", "--episodes-per-task", "2", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    rows = pd.read_parquet(out / "episodes.parquet")
+    assert sorted(rows["variant"]) == ["camera=left"] * 2 + ["canonical"] * 2 + ["mass=heavy"] * 2
+    assert rows["suite"].unique().tolist() == ["simpler/push_cube:variants=camera.left+mass.heavy"]
+    assert rows.groupby("variant")["seed"].apply(tuple).nunique() == 1  # the same two layouts each

@@ -66,6 +66,13 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--suite", help="suite name (see `dvla-harness list suites`)")
     p.add_argument(
+        "--variants",
+        metavar="SPEC",
+        help="simpler/ suites: canonical (visual matching, the default), all (variant aggregation: "
+        "every level of every axis), or axes/levels joined by + (lighting+camera.left); the same "
+        "as the suite option :variants=SPEC (docs/simpler.md)",
+    )
+    p.add_argument(
         "--tasks",
         metavar="NAME_OR_INDEX,...",
         help="only these tasks of the suite (names or 0-based indices)",
@@ -135,6 +142,16 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def with_variants(suite: str, variants: str) -> str:
+    """`--variants X` as the suite option it stands for (one place decides what a suite
+    name means, so a run's rows and manifest carry the selection)."""
+    base, _, opts = suite.partition(":")
+    if not base.startswith("simpler/"):
+        raise UsageError(f"--variants applies to the simpler/ suites (SimplerEnv-like), not {base!r}")
+    kept = [o for o in opts.split(",") if o.strip() and not o.strip().startswith("variants=")]
+    return f"{base}:" + ",".join([f"variants={variants}", *kept])
+
+
 def config_from_args(args: argparse.Namespace):
     from harness.config import build_config, default_config_data, load_config_file, parse_policy_arg
     from harness.resume import recorded_config_data
@@ -152,6 +169,8 @@ def config_from_args(args: argparse.Namespace):
         data.pop("tasks", None)
         data.pop("episodes_per_task", None)
     data |= overrides
+    if getattr(args, "variants", None):
+        data["suite"] = with_variants(data["suite"], args.variants)
     if args.tasks is not None:
         data["tasks"] = [t.strip() for t in args.tasks.split(",") if t.strip()]
         if not data["tasks"]:

@@ -195,9 +195,8 @@ class ManiSkillExpert:
             self._experts.append(TaskExpert(ep.task, self.params.gain, layout=state_layout(TASKS[ep.task])))
 
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
-        actions = [
-            e.act(np.asarray(o, dtype=np.float32)) for e, o in zip(self._experts, observations, strict=True)
-        ]
+        states = [o["state"] if isinstance(o, dict) else o for o in observations]  # obs=images: its state
+        actions = [e.act(np.asarray(o, dtype=np.float32)) for e, o in zip(self._experts, states, strict=True)]
         return ChunkBatch(actions=np.stack(actions)[:, None, :])
 
 
