@@ -19,6 +19,7 @@ state observations; adapters/vulkan.py provides a private CPU driver.
 from __future__ import annotations
 
 import importlib.util
+import logging
 import warnings
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -119,6 +120,15 @@ class ManiSkillEpisodeEnv(gym.Env):
         # one filter for that message, not a per-step catch_warnings.
         warnings.filterwarnings(
             "ignore", message=r"__array_wrap__ must accept context", category=DeprecationWarning
+        )
+        # Two notices that are expected on a CPU machine and say nothing about a run: SAPIEN
+        # falls back to its own Vulkan loader (the private driver is still the one used),
+        # and ManiSkill renders on the CPU for want of CUDA.
+        warnings.filterwarnings("ignore", message=r"Failed to find system libvulkan", category=UserWarning)
+        # Also ManiSkill's own note that its PushCube/PullCube goal marker has no initial pose,
+        # printed at every scene rebuild (a variant change).
+        logging.getLogger("mani_skill").addFilter(
+            lambda record: not any(n in record.getMessage() for n in ("sapien_cuda", "No initial pose set"))
         )
         import mani_skill.envs  # noqa: F401  (registers the tasks)
 
