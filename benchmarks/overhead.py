@@ -8,10 +8,12 @@ building the row and appending it to pending.jsonl, flushed, as a run does.
 
     python benchmarks/overhead.py [--episodes 5] [--tasks reach-v3,push-v3] [--json PATH]
     python benchmarks/overhead.py --suite libero/object [--episodes 3] [--tasks 0,1,2]
+    python benchmarks/overhead.py --suite simpler/all [--episodes 5]
 
-Targets: overhead <= 3% of wall-clock on Meta-World, <= 5% on LIBERO (state
-observations), as the median over paired episodes; the total is printed too. LIBERO
-results go to benchmarks/results/overhead-libero.json unless --json says otherwise.
+Targets: overhead <= 3% of wall-clock on Meta-World, <= 5% on LIBERO and on the
+SimplerEnv-like ManiSkill3 suites (state observations), as the median over paired
+episodes; the total is printed too. LIBERO and ManiSkill3 results go to
+benchmarks/results/overhead-libero.json and overhead-simpler.json unless --json says otherwise.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from results.store import RunDir
 
 TARGET_PERCENT = 3.0  # Meta-World
 LIBERO_TARGET_PERCENT = 5.0  # issue 4: LIBERO with state observations
+SIMPLER_TARGET_PERCENT = 5.0  # issue 25: simpler/* with state observations
 
 
 def metaworld_expert(suite_name: str, task):
@@ -50,6 +53,14 @@ def libero_expert(suite_name: str, task):
 
     plan = plan_for(SimpleNamespace(suite=suite_name, task=task.name))
     return PickPlaceExpert(plan, LiberoScriptedParams(), None).act
+
+
+def maniskill_expert(suite_name: str, task):
+    """The scripted expert's per-task state machine, as a hand-written loop would call it."""
+    from adapters.simpler import TASKS, state_layout
+    from policies.experts.maniskill_scripted import TaskExpert
+
+    return TaskExpert(task.name, 1.0, layout=state_layout(TASKS[task.name])).act
 
 
 def bare_episode(env, suite_name, task, spec, make_expert) -> tuple[float, int]:
@@ -84,7 +95,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
-        "--suite", default="metaworld/mt10", help="metaworld/mt10 (default) or a libero/ suite"
+        "--suite", default="metaworld/mt10", help="metaworld/mt10 (default), a libero/ or a simpler/ suite"
     )
     parser.add_argument("--episodes", type=int, default=None, help="episodes per task (default 5; LIBERO 3)")
     parser.add_argument(
@@ -97,6 +108,9 @@ def main() -> None:
     if libero:
         policy, make_expert, target = "libero_scripted", libero_expert, LIBERO_TARGET_PERCENT
         default_tasks, default_episodes, default_json = "0,1,2", 3, "overhead-libero.json"
+    elif args.suite.startswith("simpler/"):
+        policy, make_expert, target = "maniskill_scripted", maniskill_expert, SIMPLER_TARGET_PERCENT
+        default_tasks, default_episodes, default_json = "", 5, "overhead-simpler.json"
     else:
         policy, make_expert, target = "scripted", metaworld_expert, TARGET_PERCENT
         default_tasks, default_episodes, default_json = "", 5, "overhead.json"
@@ -142,7 +156,7 @@ def main() -> None:
         "suite": suite.name,
         "tasks": names,
         "episodes_per_task": episodes,
-        "observations": "state" if libero else "state (Meta-World's 39-D vector)",
+        "observations": "state (Meta-World's 39-D vector)" if policy == "scripted" else "state",
         "steps": totals["steps"],
         "episodes_with_different_step_counts": mismatched,
         "bare_s": round(totals["bare_s"], 4),
