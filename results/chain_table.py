@@ -11,13 +11,15 @@ interval, and it needs no normality that a 10-chain run does not have.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from rich.table import Table
 
-from results.render import _num
+from results.render import Cell, _num, finite_or_none
 from results.summary import wilson_interval
 
 BOOTSTRAP_RESAMPLES = 10_000
@@ -170,3 +172,39 @@ def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
             "-" if speedup == "-" else speedup + "x",
         )
     return table
+
+
+# --- cells for leaderboards (results/leaderboard.py) -------------------------------------
+
+
+def chain_cells(
+    chain: ChainStats | None, groups_stats: dict[str, ChainStats], groups: Sequence[str], k_max: int
+) -> list[Cell]:
+    """Average length per scene (with several), reaching 1/k_max ... k_max/k_max, average length."""
+    if chain is None:  # a row of a chain suite without chain columns: none in practice
+        return [Cell("-", None)] * ((len(groups) if len(groups) > 1 else 0) + k_max + 1)
+    per_group = [
+        Cell(groups_stats[g].length_text(), finite_or_none(groups_stats[g].avg_len))
+        if g in groups_stats
+        else Cell("-", None)
+        for g in groups
+    ]
+    return [
+        *(per_group if len(groups) > 1 else []),
+        *(Cell(chain.reach_text(k), finite_or_none(chain.reach(k))) for k in range(1, k_max + 1)),
+        Cell(chain.length_text(), finite_or_none(chain.avg_len)),
+    ]
+
+
+def chain_columns(chain: ChainStats | None, groups_stats: dict[str, ChainStats]) -> dict[str, Any]:
+    """The same numbers as frame columns (rates as fractions), for CSV and notebooks."""
+    assert chain is not None
+    out: dict[str, Any] = {}
+    for k in range(1, len(chain.reached) + 1):
+        low, high = chain.reach_interval(k)
+        out |= {f"reach_{k}": chain.reach(k), f"reach_{k}_low": low, f"reach_{k}_high": high}
+    low, high = chain.avg_len_interval
+    out |= {"avg_len": chain.avg_len, "avg_len_low": low, "avg_len_high": high}
+    for group, stats in groups_stats.items():
+        out[f"avg_len[{group}]"] = stats.avg_len
+    return out

@@ -99,6 +99,8 @@ def table_html(
 def _board_html(board: Leaderboard) -> str:
     headers, rows = board.cells()
     out = [f"<h2>{_e(board.suite)}</h2>", table_html(headers, rows)]
+    if board.ranking is not None:
+        out.append(f"<p>{_e(board.ranking.text())}</p>")
     if board.warnings:
         items = "".join(f"<li>{_e(w)}</li>" for w in board.warnings)
         out.append(f'<div class="warn"><b>Warnings</b><ul>{items}</ul></div>')

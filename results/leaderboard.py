@@ -25,36 +25,24 @@ import pandas as pd
 from rich.table import Table
 
 from results.board_warnings import episode_warnings, provenance_warnings
-from results.chain_table import ChainStats, chain_stats, is_chain_run
+from results.chain_table import ChainStats, chain_cells, chain_columns, chain_stats, is_chain_run
 from results.published import observation_regime, privileged_label
+from results.render import Cell, finite_or_none, number_cell
 from results.runs import Run, combined_episodes, dedupe_episodes
-from results.summary import wilson_interval
+from results.summary import Success
+from results.variant_table import (
+    RankingStability,
+    VariantStats,
+    is_variant_run,
+    ranking_stability,
+    variant_cells,
+    variant_columns,
+    variant_stats,
+)
 
 DEFAULT_BASELINE = "bidirectional"
 MAX_TASK_COLUMNS = 10
 OVERALL = "overall"
-
-
-@dataclass(frozen=True)
-class Success:
-    successes: int
-    episodes: int
-
-    @property
-    def rate(self) -> float:
-        return self.successes / self.episodes if self.episodes else math.nan
-
-    @property
-    def interval(self) -> tuple[float, float]:
-        return wilson_interval(self.successes, self.episodes)
-
-    def text(self) -> str:
-        if not self.episodes:
-            return "-"
-        low, high = self.interval
-        return (
-            f"{100 * self.rate:.1f}% [{100 * low:.0f}, {100 * high:.0f}] ({self.successes}/{self.episodes})"
-        )
 
 
 @dataclass(frozen=True)
@@ -78,12 +66,8 @@ class Entry:
     # Instruction-chain suites only: CALVIN's numbers over all the row's chains, and per group.
     chain: ChainStats | None = None
     chain_groups: dict[str, ChainStats] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class Cell:
-    text: str
-    value: float | str | None  # what the cell sorts by (numbers sort numerically)
+    # SimplerEnv-like variant runs only: canonical, aggregated and per-axis success.
+    variants: VariantStats | None = None
 
 
 @dataclass(frozen=True)
@@ -93,6 +77,8 @@ class Leaderboard:
     entries: tuple[Entry, ...]
     baseline: str
     warnings: tuple[str, ...]
+    # Variant runs with two or more configurations: do the variants keep their order?
+    ranking: RankingStability | None = None
 
     @property
     def machines(self) -> tuple[str, ...]:
@@ -102,6 +88,12 @@ class Leaderboard:
     def is_chain(self) -> bool:
         """An instruction-chain suite: laid out as CALVIN's table (reaching k/5, avg len)."""
         return any(e.chain is not None for e in self.entries)
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        """The variant axes a SimplerEnv-like run covered; () for other runs."""
+        found = [a for e in self.entries if e.variants is not None for a in e.variants.per_axis()]
+        return tuple(dict.fromkeys(found))
 
     def frame(self) -> pd.DataFrame:
         """The numbers, one row per entry, for notebooks and CSV (rates as fractions)."""
@@ -126,7 +118,9 @@ class Leaderboard:
                     f"episodes[{group}]": s.episodes,
                 }
             if e.chain is not None:
-                row |= _chain_columns(e)
+                row |= chain_columns(e.chain, e.chain_groups)
+            if e.variants is not None:
+                row |= variant_columns(e.variants)
             row |= {
                 "errors": e.errors,
                 "nfe_per_chunk": e.nfe_per_chunk,
@@ -144,7 +138,8 @@ class Leaderboard:
         """Headers and formatted cells: the one layout every output format shares. Rows
         measured on privileged state say so beside the policy ('[privileged state]').
         A chain suite gets CALVIN's columns in place of the success ones: average length
-        per scene (with several), reaching 1/5 ... 5/5 and the average length overall."""
+        per scene (with several), reaching 1/5 ... 5/5 and the average length overall; a
+        variant run SimplerEnv's: canonical, variant-aggregated and per-axis success."""
         show_machine = len(self.machines) > 1
         regime = privileged_label([self.suite])
         headers = ["policy", *(["machine"] if show_machine else [])]
@@ -152,6 +147,9 @@ class Leaderboard:
             k_max = max(len(e.chain.reached) for e in self.entries if e.chain is not None)
             groups = [f"{g} avg len" for g in self.groups] if len(self.groups) > 1 else []
             headers += [*groups, *(f"{k}/{k_max}" for k in range(1, k_max + 1)), "avg len (95%)"]
+        elif self.axes:
+            headers += ["canonical (Wilson 95%)", "variant-aggregated (95%)"]
+            headers += [f"{a} (vs canonical)" for a in self.axes]
         else:
             headers += [*self.groups, "success (Wilson 95%)"]
         headers += ["NFE/chunk", "tokens/s", "control Hz", "wall s/episode"]
@@ -162,7 +160,9 @@ class Leaderboard:
             if show_machine:
                 row.append(Cell(e.machine or "unknown", e.machine))
             if self.is_chain:
-                row += _chain_cells(e, self.groups, k_max)
+                row += chain_cells(e.chain, e.chain_groups, self.groups, k_max)
+            elif self.axes:
+                row += variant_cells(e.variants, self.axes)
             else:
                 row += [Cell(e.success[g].text(), finite_or_none(e.success[g].rate)) for g in self.groups]
                 row.append(Cell(e.overall.text(), finite_or_none(e.overall.rate)))
@@ -176,44 +176,6 @@ class Leaderboard:
             ]
             rows.append(row)
         return headers, rows
-
-
-def _chain_cells(e: Entry, groups: Sequence[str], k_max: int) -> list[Cell]:
-    if e.chain is None:  # a row of a chain suite without chain columns: none in practice
-        return [Cell("-", None)] * ((len(groups) if len(groups) > 1 else 0) + k_max + 1)
-    per_group = [
-        Cell(e.chain_groups[g].length_text(), finite_or_none(e.chain_groups[g].avg_len))
-        if g in e.chain_groups
-        else Cell("-", None)
-        for g in groups
-    ]
-    return [
-        *(per_group if len(groups) > 1 else []),
-        *(Cell(e.chain.reach_text(k), finite_or_none(e.chain.reach(k))) for k in range(1, k_max + 1)),
-        Cell(e.chain.length_text(), finite_or_none(e.chain.avg_len)),
-    ]
-
-
-def _chain_columns(e: Entry) -> dict[str, Any]:
-    assert e.chain is not None
-    out: dict[str, Any] = {}
-    for k in range(1, len(e.chain.reached) + 1):
-        low, high = e.chain.reach_interval(k)
-        out |= {f"reach_{k}": e.chain.reach(k), f"reach_{k}_low": low, f"reach_{k}_high": high}
-    low, high = e.chain.avg_len_interval
-    out |= {"avg_len": e.chain.avg_len, "avg_len_low": low, "avg_len_high": high}
-    for group, stats in e.chain_groups.items():
-        out[f"avg_len[{group}]"] = stats.avg_len
-    return out
-
-
-def finite_or_none(value: float) -> float | None:
-    return None if value is None or math.isnan(value) else float(value)
-
-
-def number_cell(value: float, fmt: str) -> Cell:
-    v = finite_or_none(value)
-    return Cell("-" if v is None else format(v, fmt), v)
 
 
 # --- labels -----------------------------------------------------------------------
@@ -363,6 +325,7 @@ def leaderboard(
     keys = list(dict.fromkeys(zip(first["policy_config_id"], first["machine"], strict=True)))
     grouped = {k: g for k, g in df.groupby(["policy_config_id", "machine"], sort=False)}
     chains = is_chain_run(df)
+    variants = is_variant_run(df)
     drafts = []
     for key in keys:
         rows = grouped[key]
@@ -389,6 +352,7 @@ def leaderboard(
                 wall_clock_s=float(rows["wall_clock_s"].mean()),
                 chain=chain_stats(rows["subtasks_completed"].fillna(0)) if chains else None,
                 chain_groups=chain_groups,
+                variants=variant_stats(rows) if variants else None,
             )
         )
     timed = [Timed(e.policy, e.policy_config_id, e.label, e.machine, e.runs, e.tokens_per_s) for e in drafts]
@@ -402,7 +366,10 @@ def leaderboard(
         warnings = provenance_warnings(list(dict.fromkeys(df["run"])), provenance) + warnings
     if duplicates:
         warnings.append(f"{duplicates} episode(s) appear in more than one run; the latest is counted")
-    return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings))
+    ranking = None
+    if variants:
+        ranking = ranking_stability({f"{e.label}@{e.machine}": e.variants for e in entries if e.variants})
+    return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings), ranking)
 
 
 def leaderboards(
@@ -436,6 +403,8 @@ def to_markdown(boards: Sequence[Leaderboard]) -> str:
     for b in boards:
         headers, rows = b.cells()
         parts.append(f"## {b.suite}\n\n" + markdown_table(headers, [[c.text for c in r] for r in rows]))
+        if b.ranking is not None:
+            parts.append(b.ranking.text())
         if b.warnings:
             parts.append("Warnings:\n\n" + "\n".join(f"- {w}" for w in b.warnings))
     return "\n\n".join(parts) + "\n"
@@ -447,7 +416,7 @@ def to_csv(boards: Sequence[Leaderboard]) -> str:
 
 def rich_table(board: Leaderboard) -> Table:
     headers, rows = board.cells()
-    table = Table(title=board.suite)
+    table = Table(title=board.suite, caption=board.ranking.text() if board.ranking else None)
     for i, h in enumerate(headers):
         table.add_column(h, justify="left" if i == 0 or h == "machine" else "right")
     for row in rows:

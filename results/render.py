@@ -3,9 +3,28 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import pandas as pd
 from rich.table import Table
+
+
+@dataclass(frozen=True)
+class Cell:
+    """A formatted table cell and what it sorts by (numbers sort numerically): the one
+    layout unit that terminal, Markdown, CSV and HTML outputs share."""
+
+    text: str
+    value: float | str | None
+
+
+def finite_or_none(value: float) -> float | None:
+    return None if value is None or math.isnan(value) else float(value)
+
+
+def number_cell(value: float, fmt: str) -> Cell:
+    v = finite_or_none(value)
+    return Cell("-" if v is None else format(v, fmt), v)
 
 
 def _num(value: float, fmt: str) -> str:

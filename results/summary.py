@@ -7,6 +7,7 @@ inside [0, 1] and is honest at 0/n and n/n, which is where small evaluations liv
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import pandas as pd
 
@@ -39,6 +40,30 @@ def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, floa
     centre = (p + z * z / (2 * n)) / denom
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
     return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+@dataclass(frozen=True)
+class Success:
+    """Successes of n episodes: a rate with its Wilson 95% interval."""
+
+    successes: int
+    episodes: int
+
+    @property
+    def rate(self) -> float:
+        return self.successes / self.episodes if self.episodes else math.nan
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.episodes)
+
+    def text(self) -> str:
+        if not self.episodes:
+            return "-"
+        low, high = self.interval
+        return (
+            f"{100 * self.rate:.1f}% [{100 * low:.0f}, {100 * high:.0f}] ({self.successes}/{self.episodes})"
+        )
 
 
 def _summarise(group: pd.DataFrame) -> dict[str, float]:

@@ -1,0 +1,115 @@
+"""SimplerEnv-like variant runs in every report: canonical, variant-aggregated and
+per-axis success, and ranking stability (MMRV, Kendall tau), from hand-made rows whose
+numbers can be checked by hand."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from results.leaderboard import leaderboards
+from results.runs import load_run
+from results.variant_table import kendall_tau, mmrv, ranking_stability, variant_stats
+from tests.test_leaderboard import BIDI, FAST, MANIFEST, row, write_run
+
+SUITE = "simpler/pick_cube:variants=lighting+mass.heavy"
+
+
+def rows(policy: str, params: str, config: str, outcomes: dict[str, list[int]], tokens: float = 100.0):
+    """outcomes: variant label -> success of layouts 0, 1, ... (every variant replays them)."""
+    out = []
+    for v, (variant, wins) in enumerate(outcomes.items()):
+        for j, ok in enumerate(wins):
+            r = row(
+                policy, params, config, suite=SUITE, task="pick_cube", episode_index=v * 24 + j, seed=100 + j,
+                init_state_id=None, success=bool(ok), tokens_per_s=tokens,
+                started_at=datetime(2026, 1, 1, tzinfo=UTC) + timedelta(seconds=v * 10 + j),
+            )  # fmt: skip
+            out.append(r | {"variant": variant})
+    return out
+
+
+TEACHER = {
+    "canonical": [1, 1, 1, 1],
+    "lighting=dim": [1, 1, 0, 0],
+    "lighting=bright": [1, 1, 1, 0],
+    "mass=heavy": [0, 0, 0, 0],
+}
+STUDENT = {
+    "canonical": [1, 1, 0, 0],
+    "lighting=dim": [1, 1, 1, 1],
+    "lighting=bright": [1, 0, 0, 0],
+    "mass=heavy": [1, 0, 0, 0],
+}
+
+
+def test_canonical_aggregated_and_per_axis_success_by_hand():
+    stats = variant_stats(pd.DataFrame(rows("bidirectional", BIDI, "b", TEACHER)))
+    assert (stats.canonical.successes, stats.canonical.episodes) == (4, 4)
+    assert stats.per_variant == {
+        "canonical": 1.0,
+        "lighting=dim": 0.5,
+        "lighting=bright": 0.75,
+        "mass=heavy": 0.0,
+    }
+    assert stats.aggregated == pytest.approx((0.5 + 0.75 + 0.0) / 3)  # each variant counts once
+    assert stats.per_axis() == {"lighting": pytest.approx(0.625), "mass": 0.0}
+    low, high = stats.aggregated_interval
+    assert 0 <= low < stats.aggregated < high <= 1
+    assert stats.axis_text("lighting") == "62.5% (-37.5)" and stats.axis_text("mass") == "0.0% (-100.0)"
+    same = variant_stats(pd.DataFrame(rows("bidirectional", BIDI, "b", TEACHER)))
+    assert same.aggregated_interval == stats.aggregated_interval  # fixed bootstrap seed
+
+
+def test_mmrv_and_kendall_tau_by_hand():
+    reference, other = np.array([0.9, 0.5, 0.2]), np.array([0.4, 0.6, 0.1])
+    # policy 0 and 1 swap: each loses the 0.4 canonical gap; policy 2 keeps its place
+    assert mmrv(reference, other) == pytest.approx((0.4 + 0.4 + 0.0) / 3)
+    assert kendall_tau(reference, other) == pytest.approx((2 - 1) / 3)
+    assert mmrv(reference, reference) == 0.0 and kendall_tau(reference, reference) == pytest.approx(1.0)
+    assert kendall_tau(reference, -reference) == pytest.approx(-1.0)
+    assert np.isnan(kendall_tau(reference, np.array([0.3, 0.3, 0.3])))  # one variant ties them all
+
+
+def test_ranking_stability_over_variants_and_axes():
+    t = variant_stats(pd.DataFrame(rows("bidirectional", BIDI, "b", TEACHER)))
+    s = variant_stats(pd.DataFrame(rows("fast_dvla", FAST, "f", STUDENT)))
+    r = ranking_stability({"teacher": t, "student": s})
+    # canonical 1.0 vs 0.5; dim 0.5 vs 1.0 (inverted: both lose 0.5), bright 0.75 vs 0.25 (kept),
+    # heavy 0.0 vs 0.25 (inverted)
+    assert r.mmrv == pytest.approx((0.5 + 0.0 + 0.5) / 3)
+    assert r.kendall_tau == pytest.approx((-1 + 1 - 1) / 3)
+    assert r.per_axis["lighting"] == (pytest.approx(0.25), pytest.approx(0.0))
+    assert r.per_axis["mass"] == (pytest.approx(0.5), pytest.approx(-1.0))
+    assert "MMRV 0.333" in r.text() and "n/a" in ranking_stability({"teacher": t}).text()
+
+
+def test_the_leaderboard_of_a_variant_run_is_simplerenvs_table(tmp_path, cli):
+    manifest = MANIFEST | {"suite": MANIFEST["suite"] | {"name": SUITE, "tasks": ["pick_cube"]}}
+    run = write_run(
+        tmp_path / "v",
+        rows("bidirectional", BIDI, "b", TEACHER) + rows("fast_dvla", FAST, "f", STUDENT, 250.0),
+        manifest,
+    )
+    (board,) = leaderboards([load_run(run)])
+    headers, cells = board.cells()
+    assert headers[1:5] == [
+        "canonical (Wilson 95%)",
+        "variant-aggregated (95%)",
+        "lighting (vs canonical)",
+        "mass (vs canonical)",
+    ]
+    teacher = [c.text for c in cells[0]]
+    assert teacher[1] == "100.0% [51, 100] (4/4)" and teacher[2].startswith("41.7% [")
+    assert board.ranking is not None and board.ranking.mmrv == pytest.approx(1 / 3)
+    frame = board.frame().set_index("policy")
+    assert frame.loc["fast_dvla", "canonical_success"] == 0.5
+    assert frame.loc["fast_dvla", "success[lighting=dim]"] == 1.0
+    code, out, _ = cli("leaderboard", str(run), "--format", "md")
+    assert code == 0 and "| canonical (Wilson 95%) |" in out and "ranking stability vs canonical" in out
+    code, _, _ = cli("report", "html", str(run), "--out", str(tmp_path / "report"))
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert code == 0 and "variant-aggregated" in page and "ranking stability vs canonical" in page
