@@ -99,6 +99,13 @@ def _require_maniskill() -> None:
         )
 
 
+def _quiet(record: logging.LogRecord) -> bool:
+    """Drop ManiSkill's notices that it renders on the CPU for want of CUDA, and that its
+    PushCube/PullCube goal marker has no initial pose (printed at every scene rebuild);
+    SAPIEN's fallback to its own Vulkan loader is a Python warning, filtered beside it."""
+    return not any(note in record.getMessage() for note in ("sapien_cuda", "No initial pose set"))
+
+
 def _numpy(value: Any) -> np.ndarray:
     if hasattr(value, "detach"):
         value = value.detach().cpu().numpy()
@@ -121,15 +128,11 @@ class ManiSkillEpisodeEnv(gym.Env):
         warnings.filterwarnings(
             "ignore", message=r"__array_wrap__ must accept context", category=DeprecationWarning
         )
-        # Two notices that are expected on a CPU machine and say nothing about a run: SAPIEN
-        # falls back to its own Vulkan loader (the private driver is still the one used),
-        # and ManiSkill renders on the CPU for want of CUDA.
+        # Notices that are expected on a CPU machine and say nothing about a run (_quiet).
         warnings.filterwarnings("ignore", message=r"Failed to find system libvulkan", category=UserWarning)
-        # Also ManiSkill's own note that its PushCube/PullCube goal marker has no initial pose,
-        # printed at every scene rebuild (a variant change).
-        logging.getLogger("mani_skill").addFilter(
-            lambda record: not any(n in record.getMessage() for n in ("sapien_cuda", "No initial pose set"))
-        )
+        from mani_skill.utils.logging_utils import logger as maniskill_logger
+
+        maniskill_logger.addFilter(_quiet)  # the same function each time: added once
         import mani_skill.envs  # noqa: F401  (registers the tasks)
 
         try:
