@@ -36,7 +36,7 @@ class EpisodeOutcome:
     success: bool
     steps: int
     chunks: int
-    nfe_total: int
+    nfe_total: int | None  # None: a remote server that does not report its passes
     action_tokens_total: int
     policy_time_s: float
     env_time_s: float
@@ -55,6 +55,16 @@ class EpisodeOutcome:
     # Instruction chains: the env's last `subtasks` records and `subtasks_completed`.
     subtasks: list[dict[str, Any]] | None = None
     subtasks_completed: int | None = None
+    # Remote policies: the part of policy_time_s that was not the server's own policy time.
+    transport_time_s: float | None = None
+
+
+def remote_policy(policy: Any) -> Any:
+    """The policy if it is the built-in `remote` one (policies/remote.py), else None. By
+    class identity, not duck typing: only that client may hand the runner a server's
+    count of forward passes."""
+    cls = type(policy)
+    return policy if (cls.__module__, cls.__name__) == ("policies.remote", "RemotePolicy") else None
 
 
 def in_force(context: EpisodeContext, info: dict[str, Any]) -> EpisodeContext:
@@ -114,6 +124,9 @@ def run_episode(
     traces: list[dict[str, Any]] | None = [] if record_traces else None
     info: dict[str, Any] = {}
     nfe.take()
+    remote = remote_policy(policy)
+    if remote is not None:
+        remote.take_remote()
     start = clock()
     try:
         obs, info = env.reset(seed=spec.seed, options={"episode": spec})
@@ -164,11 +177,18 @@ def run_episode(
         trace = traceback.format_exc()
         success = False
     wall = clock() - start
+    passes: int | None = nfe.take()
+    transport = None
+    if remote is not None:  # the server's hooks counted its passes; None if it reports none
+        totals = remote.take_remote()
+        passes = None if totals.nfe is None else passes + totals.nfe
+        transport = max(0.0, policy_time - totals.server_time_s)
     return EpisodeOutcome(
         success=success,
         steps=steps,
         chunks=chunks,
-        nfe_total=nfe.take(),
+        nfe_total=passes,
+        transport_time_s=transport,
         action_tokens_total=tokens,
         policy_time_s=policy_time,
         env_time_s=env_time,

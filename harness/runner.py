@@ -135,7 +135,7 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "steps": out.steps,
         "chunks": out.chunks,
         "nfe_total": out.nfe_total,
-        "nfe_per_chunk": out.nfe_total / out.chunks if out.chunks else None,
+        "nfe_per_chunk": out.nfe_total / out.chunks if out.chunks and out.nfe_total is not None else None,
         "action_tokens_total": out.action_tokens_total,
         "tokens_per_s": (
             out.action_tokens_total / out.policy_time_s
@@ -143,6 +143,7 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
             else None
         ),
         "policy_time_s": out.policy_time_s,
+        "transport_time_s": out.transport_time_s,
         "env_time_s": out.env_time_s,
         "overhead_s": out.wall_clock_s - out.policy_time_s - out.env_time_s,
         "wall_clock_s": out.wall_clock_s,

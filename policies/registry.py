@@ -60,6 +60,7 @@ class NoParams:
 
 
 def _builtin_specs() -> list[PolicySpec]:
+    from policies import remote
     from policies.dvla import policy as dvla
     from policies.experts import libero_scripted, maniskill_scripted, scripted
 
@@ -68,6 +69,7 @@ def _builtin_specs() -> list[PolicySpec]:
         scripted.RANDOM,
         libero_scripted.LIBERO_SCRIPTED,
         maniskill_scripted.MANISKILL_SCRIPTED,
+        remote.REMOTE,
         *dvla.SPECS,
     ]
 

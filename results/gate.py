@@ -191,6 +191,8 @@ def _side(merged: pd.DataFrame, side: str) -> pd.DataFrame:
 
 
 def _nfe(df: pd.DataFrame) -> float | None:
+    if df["nfe_total"].isna().all():  # a remote server that reports none: not measured
+        return None
     chunks = int(df["chunks"].sum())
     return float(df["nfe_total"].sum()) / chunks if chunks else None
 

@@ -68,6 +68,8 @@ class Entry:
     chain_groups: dict[str, ChainStats] = field(default_factory=dict)
     # SimplerEnv-like variant runs only: canonical, aggregated and per-axis success.
     variants: VariantStats | None = None
+    # False when no row has an NFE count (a remote server that reports none): "not measured".
+    nfe_measured: bool = True
 
 
 @dataclass(frozen=True)
@@ -167,7 +169,7 @@ class Leaderboard:
                 row += [Cell(e.success[g].text(), finite_or_none(e.success[g].rate)) for g in self.groups]
                 row.append(Cell(e.overall.text(), finite_or_none(e.overall.rate)))
             row += [
-                number_cell(e.nfe_per_chunk, ".1f"),
+                number_cell(e.nfe_per_chunk, ".1f") if e.nfe_measured else Cell("not measured", None),
                 number_cell(e.tokens_per_s, ".0f"),
                 number_cell(e.control_hz, ".0f"),
                 number_cell(e.wall_clock_s, ".2f"),
@@ -353,6 +355,7 @@ def leaderboard(
                 chain=chain_stats(rows["subtasks_completed"].fillna(0)) if chains else None,
                 chain_groups=chain_groups,
                 variants=variant_stats(rows) if variants else None,
+                nfe_measured=bool(rows["nfe_total"].notna().any()),
             )
         )
     timed = [Timed(e.policy, e.policy_config_id, e.label, e.machine, e.runs, e.tokens_per_s) for e in drafts]

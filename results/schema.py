@@ -92,7 +92,15 @@ COLUMNS: tuple[Column, ...] = (
     ),
     Column("steps", pa.int64(), "steps", "Environment steps executed (settle steps excluded)."),
     Column("chunks", pa.int64(), "", "Policy calls (action chunks requested)."),
-    Column("nfe_total", pa.int64(), "passes", "Model forward passes, counted by the harness's hooks."),
+    Column(
+        "nfe_total",
+        pa.int64(),
+        "passes",
+        "Model forward passes, counted by the harness's hooks (for a remote policy, by the "
+        "serving dvla-harness's hooks, returned with each reply). Null when a remote server "
+        "reports none (openpi's): not measured, never 0.",
+        nullable=True,
+    ),
     Column("nfe_per_chunk", pa.float64(), "passes", "nfe_total / chunks.", nullable=True),
     Column(
         "action_tokens_total",
@@ -108,6 +116,14 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     Column("policy_time_s", pa.float64(), "s", "Time inside the policy (reset and act calls)."),
+    Column(
+        "transport_time_s",
+        pa.float64(),
+        "s",
+        "Remote policies (docs/remote-policies.md): the part of policy_time_s that was not the "
+        "server's own policy time (encoding, the network, waiting). Null for policies in this process.",
+        nullable=True,
+    ),
     Column("env_time_s", pa.float64(), "s", "Time inside the environment (reset and step calls)."),
     Column(
         "overhead_s", pa.float64(), "s", "wall_clock_s - policy_time_s - env_time_s: the harness's own time."
@@ -211,6 +227,7 @@ COLUMN_NAMES = tuple(c.name for c in COLUMNS)
 TIMING_COLUMNS = frozenset(
     {
         "policy_time_s",
+        "transport_time_s",
         "env_time_s",
         "overhead_s",
         "wall_clock_s",

@@ -1,0 +1,105 @@
+"""`dvla-harness serve`: a registered policy behind openpi's WebSocket policy protocol."""
+
+from __future__ import annotations
+
+import argparse
+
+from harness.errors import UsageError
+
+EPILOG = """\
+examples:
+  dvla-harness serve --policy fast_dvla --suite metaworld/mt10 --port 8000
+  dvla-harness serve --policy scripted --suite metaworld/mt1/reach-v3 --token SECRET
+  dvla-harness serve --policy bidirectional:checkpoint=my.safetensors --suite metaworld/mt10 --host 0.0.0.0
+
+Any openpi client can then connect (openpi-client's WebsocketClientPolicy, with
+api_key=SECRET when --token is set), read the server's metadata (the observation it
+takes, the action it returns) and call infer({"state": ..., "prompt": ...}); each reply
+holds "actions" (chunk x action dim) and the forward passes the call made ("dvla/nfe",
+counted by the harness's own hooks) with the policy's time. The suite (and --task) fix
+the observation and action spaces and the default episode; the simulator is built once
+to read them. Binds 127.0.0.1 unless --host says otherwise. See docs/remote-policies.md.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="serve a policy over openpi's WebSocket protocol (msgpack + numpy)",
+        description="Serve one registered policy to remote clients (openpi-client, dvla-harness's remote policy).",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--policy", required=True, metavar="NAME[:k=v,...]", help="the policy to serve")
+    p.add_argument("--suite", required=True, help="the suite whose observations and actions it serves")
+    p.add_argument("--task", help="the task of the default episode (default: the suite's first)")
+    p.add_argument(
+        "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
+    )
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 picks a free one)")
+    p.add_argument("--token", help="require clients to send 'Authorization: Api-Key TOKEN'")
+    p.add_argument("--state-key", default="state", help="the observation key of the state vector")
+    p.set_defaults(func=cmd_serve)
+
+
+def build_served(args: argparse.Namespace):
+    """The policy resolved as `run` resolves it (same registry, params, checkpoints), and
+    the served task's spaces read from one env of the suite."""
+    from harness.config import build_config, parse_policy_arg, resolve
+    from harness.serve import Served
+
+    data = {"suite": args.suite, "policy": [parse_policy_arg(args.policy)]}
+    if args.task:
+        data["tasks"] = [args.task]
+    resolved = resolve(build_config(data))
+    task = resolved.tasks[0]
+    env = resolved.suite.make_env(task)
+    try:
+        observation_space, action_space = env.observation_space, env.action_space
+    finally:
+        env.close()
+    p = resolved.policies[0]
+    return Served(
+        policy=p.policy,
+        name=p.spec.name,
+        params=p.params_json,
+        suite=resolved.suite.name,
+        task=task.name,
+        instruction=task.instruction,
+        max_steps=task.max_steps,
+        observation_space=observation_space,
+        action_space=action_space,
+        state_key=args.state_key,
+        token=args.token,
+    )
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import importlib.util
+
+    from harness.console import console
+
+    if importlib.util.find_spec("websockets") is None or importlib.util.find_spec("msgpack") is None:
+        raise UsageError("serve needs websockets and msgpack: pip install 'dvla-harness[remote]'")
+    if not 0 <= args.port <= 65535:
+        raise UsageError(f"--port must be 0..65535, got {args.port}")
+    served = build_served(args)
+    from harness.serve import make_server
+
+    try:
+        server = make_server(served, args.host, args.port)
+    except OSError as exc:
+        raise UsageError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
+    host, port = server.socket.getsockname()[:2]
+    console.print(
+        f"serving {served.name} ({served.suite}, task {served.task}) on ws://{host}:{port}"
+        + (" (token required)" if served.token else "")
+        + "; Ctrl-C stops"
+    )
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        console.print("stopped")
+    finally:
+        server.shutdown()
+    return 0

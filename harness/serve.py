@@ -1,0 +1,236 @@
+"""`dvla-harness serve`: any registered policy behind openpi's WebSocket policy protocol.
+
+On connect the server sends its metadata (one msgpack map); then every message from the
+client is one call and gets one reply, as openpi's `WebsocketPolicyServer` does, so
+`openpi-client`'s `WebsocketClientPolicy` (and anything compatible) can evaluate our
+decoders, and our `remote` policy can evaluate openpi-served models. The messages:
+
+    observation map          -> {"actions": (chunk, action_dim) float32, "dvla/nfe": int,
+                                 "dvla/policy_time_s": float, "dvla/action_tokens": int,
+                                 "server_timing": {"infer_ms": float}}
+    {"dvla/reset": context}  -> {"dvla/ok": True, "dvla/nfe": ..., "dvla/policy_time_s": ...}
+
+An observation map holds the state under `state_key` (default "state"), camera images
+under their names, and the instruction under "prompt" (openpi's key). Our client resets
+every episode explicitly (the episode's task, instruction, index, seed); a plain openpi
+client never does, so the first call on a connection, and any call whose prompt differs
+from the instruction in force, starts an episode of the served task with that prompt.
+
+Forward passes are counted with the runner's own hooks (harness/nfe.py) around each
+call and returned with it, with the policy's own time, so a remote row keeps honest NFE
+and splits time into policy and transport. A bad message gets an error text back (the
+protocol's way: openpi clients raise it) and the connection stays open; nothing is
+unpickled; one policy call runs at a time (the NFE hooks count one call at a time).
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from harness.nfe import NFECounter
+from policies.base import EpisodeContext, Policy
+from policies.wire import MAX_MESSAGE_BYTES, WireError, pack, unpack
+
+log = logging.getLogger("dvla_harness.serve")
+PROTOCOL = "openpi-websocket/1"  # openpi's WebsocketPolicyServer message flow, msgpack-numpy
+RESET = "dvla/reset"
+PROMPT = "prompt"
+
+
+@dataclass
+class Served:
+    """The policy a server serves, and what an episode of it looks like."""
+
+    policy: Policy
+    name: str
+    params: str  # the validated params, JSON
+    suite: str
+    task: str
+    instruction: str
+    max_steps: int
+    observation_space: gym.spaces.Space
+    action_space: gym.spaces.Box
+    state_key: str = "state"
+    token: str | None = None
+    counter: NFECounter = field(init=False)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __post_init__(self) -> None:
+        self.counter = NFECounter(self.policy)
+
+    def metadata(self) -> dict[str, Any]:
+        images = {}
+        if isinstance(self.observation_space, gym.spaces.Dict):
+            images = {k: list(s.shape) for k, s in self.observation_space.spaces.items() if k != "state"}
+        state = self.observation_space["state"] if images else self.observation_space
+        return {
+            "server": "dvla-harness",
+            "protocol": PROTOCOL,
+            "policy": self.name,
+            "params": json.loads(self.params),
+            "suite": self.suite,
+            "task": self.task,
+            "observation": {"state_key": self.state_key, "state_shape": list(state.shape), "images": images},
+            "action": {
+                "dim": int(self.action_space.shape[0]),
+                "low": np.asarray(self.action_space.low, np.float32),
+                "high": np.asarray(self.action_space.high, np.float32),
+            },
+            "reports_nfe": True,
+        }
+
+    def context(self, values: dict[str, Any]) -> EpisodeContext:
+        def number(key: str, default: int | None) -> int | None:
+            value = values.get(key, default)
+            if value is not None and not isinstance(value, int | np.integer):
+                raise WireError(f"{RESET}: {key} must be an integer, got {value!r}")
+            return None if value is None else int(value)
+
+        instruction = values.get("instruction", self.instruction)
+        if not isinstance(instruction, str):
+            raise WireError(f"{RESET}: instruction must be text, got {type(instruction).__name__}")
+        return EpisodeContext(
+            suite=self.suite,
+            task=str(values.get("task", self.task)),
+            instruction=instruction,
+            action_space=self.action_space,
+            observation_space=self.observation_space,
+            max_steps=number("max_steps", self.max_steps) or self.max_steps,
+            episode_index=number("episode_index", 0) or 0,
+            seed=number("seed", None),
+            init_state_id=number("init_state_id", None),
+            subtask_index=number("subtask_index", 0) or 0,
+        )
+
+    def observation(self, message: dict[str, Any]) -> Any:
+        """The policy's observation from a message: the state array (and images)."""
+        state = message.get(self.state_key)
+        if not isinstance(state, np.ndarray):
+            raise WireError(
+                f"no {self.state_key!r} array in the observation (keys: {sorted(map(str, message))})"
+            )
+        expected = self.metadata()["observation"]
+        if list(state.shape) != expected["state_shape"]:
+            raise WireError(
+                f"{self.state_key!r} has shape {list(state.shape)}, the policy takes {expected['state_shape']}"
+            )
+        if not np.issubdtype(state.dtype, np.number) or not np.isfinite(state).all():
+            raise WireError(f"{self.state_key!r} must be finite numbers")
+        if not expected["images"]:
+            return state.astype(np.float32)
+        out: dict[str, Any] = {"state": state.astype(np.float32)}
+        for key, shape in expected["images"].items():
+            image = message.get(key)
+            if not isinstance(image, np.ndarray) or list(image.shape) != shape:
+                raise WireError(f"image {key!r} must be an array of shape {shape}")
+            out[key] = image.astype(np.uint8)
+        return out
+
+    def call(self, fn: Callable[[], Any]) -> tuple[Any, int, float]:
+        """Run one policy call under the NFE hooks: (result, passes, seconds)."""
+        with self.lock:
+            start = time.perf_counter()
+            with self.counter.counting():
+                result = fn()
+            return result, self.counter.take(), time.perf_counter() - start
+
+
+class Session:
+    """One client connection: the episode in force on it."""
+
+    def __init__(self, served: Served):
+        self.served = served
+        self.instruction: str | None = None
+
+    def reset(self, values: dict[str, Any]) -> dict[str, Any]:
+        context = self.served.context(values)
+        _, nfe, seconds = self.served.call(lambda: self.served.policy.reset([context]))
+        self.instruction = context.instruction
+        return {"dvla/ok": True, "dvla/nfe": nfe, "dvla/policy_time_s": seconds}
+
+    def handle(self, message: Any) -> dict[str, Any]:
+        if not isinstance(message, dict):
+            raise WireError(f"a message must be a map, got {type(message).__name__}")
+        if RESET in message:
+            if not isinstance(message[RESET], dict):
+                raise WireError(f"{RESET} must be a map of the episode's context")
+            return self.reset(message[RESET])
+        prompt = message.get(PROMPT)
+        if prompt is not None and not isinstance(prompt, str):
+            raise WireError(f"{PROMPT!r} must be text")
+        extra: dict[str, Any] = {}
+        if self.instruction is None or (prompt is not None and prompt != self.instruction):
+            # a client without resets (openpi's): a new prompt is a new episode
+            started = self.reset({"instruction": prompt} if prompt is not None else {})
+            extra = {"dvla/reset_nfe": started["dvla/nfe"]}
+        observation = self.served.observation(message)
+        batch, nfe, seconds = self.served.call(lambda: self.served.policy.act([observation]))
+        actions = np.asarray(batch.actions, dtype=np.float32)
+        if actions.ndim != 3 or actions.shape[0] != 1 or not np.isfinite(actions).all():
+            raise RuntimeError(f"the served policy returned actions of shape {actions.shape} (or not finite)")
+        return {
+            "actions": actions[0],
+            "dvla/nfe": nfe,
+            "dvla/policy_time_s": seconds,
+            "dvla/action_tokens": int(batch.action_tokens),
+            "server_timing": {"infer_ms": 1000 * seconds},
+            **extra,
+        }
+
+
+def _authorised(served: Served, request: Any) -> bool:
+    if not served.token:
+        return True
+    header = request.headers.get("Authorization", "")
+    return hmac.compare_digest(header.encode(), f"Api-Key {served.token}".encode())
+
+
+def handler(served: Served) -> Callable[[Any], None]:
+    def handle(connection: Any) -> None:
+        session = Session(served)
+        connection.send(pack(served.metadata()))
+        for data in connection:
+            try:
+                reply = pack(session.handle(unpack(data)))
+            except WireError as exc:
+                log.warning("rejected a message from %s: %s", connection.remote_address, exc)
+                connection.send(f"bad request: {exc}")
+                continue
+            except Exception as exc:  # the policy failed: say so, keep serving
+                log.exception("policy call failed")
+                connection.send(f"policy error: {type(exc).__name__}: {exc}")
+                continue
+            connection.send(reply)
+
+    return handle
+
+
+def make_server(served: Served, host: str = "127.0.0.1", port: int = 8000) -> Any:
+    """A websockets server (call `serve_forever()`, `shutdown()`); port 0 picks a free one."""
+    from websockets.sync.server import serve
+
+    def process_request(connection: Any, request: Any) -> Any:
+        if not _authorised(served, request):
+            log.warning("refused a connection from %s: wrong or missing token", connection.remote_address)
+            return connection.respond(HTTPStatus.UNAUTHORIZED, "wrong or missing token\n")
+        return None
+
+    return serve(
+        handler(served),
+        host,
+        port,
+        process_request=process_request,
+        max_size=MAX_MESSAGE_BYTES,
+        compression=None,
+    )

@@ -1,0 +1,237 @@
+"""The `remote` policy: a model served anywhere, over openpi's WebSocket policy protocol.
+
+`--policy remote:url=ws://HOST:PORT` evaluates a policy behind a server: `dvla-harness
+serve` (any registered policy), openpi's `serve_policy` script, or anything that speaks
+the same protocol (metadata on connect, one msgpack message with numpy arrays per call,
+a map with the actions back; policies/wire.py). The suite's observation goes out under
+`state_key` (and each camera under its own name) with the instruction under
+`prompt_key`; the reply's `actions_key` holds one action or a chunk of them.
+
+What is counted, and by whom: forward passes happen on the server, so the harness's
+hooks there count them (a dvla-harness server returns them with every reply, and the
+policy's own time); the runner keeps that NFE and splits each call's time into the
+server's policy time and transport (`transport_time_s`). A server that reports no NFE
+(openpi's) gives NFE as null, never 0.
+
+Reliability: every receive has a timeout (`timeout_s`), so a server that stops answering
+fails that episode instead of hanging the run; a server that goes away fails the episode
+with the disconnect named, and the next episode connects again (`retries` attempts with
+doubling back-off). Before anything runs, `check_spaces` compares the server's metadata
+(when it describes its observation and action) with the suite's, so a mismatch is a
+usage error (exit 2) with nothing written.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import time
+from collections.abc import Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from policies.base import ChunkBatch, EpisodeContext, Observation
+from policies.registry import PolicySpec, param
+
+RESET = "dvla/reset"
+
+
+@dataclass(frozen=True)
+class RemoteParams:
+    url: str = param("ws://127.0.0.1:8000", "the server's address (ws:// or wss://)")
+    token: str = param("", "API key, sent as 'Authorization: Api-Key TOKEN' (openpi's header)")
+    timeout_s: float = param(30.0, "seconds to wait for the server's reply before the episode fails", low=0.1)
+    connect_timeout_s: float = param(10.0, "seconds to wait for a connection", low=0.1)
+    retries: int = param(3, "connection attempts per episode, with doubling back-off", low=1, high=20)
+    state_key: str = param("state", "observation key of the state vector on the wire")
+    prompt_key: str = param("prompt", "observation key of the instruction on the wire")
+    actions_key: str = param("actions", "reply key of the action (or action chunk)")
+
+
+@dataclass
+class RemoteTotals:
+    """What the server said about the calls since the last take: its forward passes
+    (None once a reply carried none) and its own policy time."""
+
+    nfe: int | None = 0
+    server_time_s: float = 0.0
+
+
+class RemotePolicy:
+    def __init__(self, params: RemoteParams):
+        if not params.url.startswith(("ws://", "wss://")):
+            raise ValueError(f"url must start with ws:// or wss://, got {params.url!r}")
+        if importlib.util.find_spec("websockets") is None or importlib.util.find_spec("msgpack") is None:
+            raise ValueError("it needs websockets and msgpack: pip install 'dvla-harness[remote]'")
+        self.params = params
+        self._ws: Any = None
+        self._stack = ExitStack()
+        self.metadata: dict[str, Any] = {}
+        self._contexts: Sequence[EpisodeContext] = ()
+        self._totals = RemoteTotals()
+
+    # --- connection ----------------------------------------------------------------
+
+    def _connect(self) -> None:
+        from websockets.sync.client import connect
+
+        from policies.wire import MAX_MESSAGE_BYTES, WireError
+
+        headers = {"Authorization": f"Api-Key {self.params.token}"} if self.params.token else None
+        delay, last = 0.25, None
+        for attempt in range(self.params.retries):
+            try:
+                self._stack = ExitStack()  # websockets wants its connection entered as a context
+                self._ws = self._stack.enter_context(
+                    connect(
+                        self.params.url,
+                        additional_headers=headers,
+                        compression=None,
+                        max_size=MAX_MESSAGE_BYTES,
+                        open_timeout=self.params.connect_timeout_s,
+                    )
+                )
+                self.metadata = self._receive()
+                if not isinstance(self.metadata, dict):
+                    raise WireError("the server's metadata is not a map")
+                return
+            except (OSError, TimeoutError, WireError) as exc:
+                last = exc
+                self.close()
+                if attempt + 1 < self.params.retries:
+                    time.sleep(delay)
+                    delay *= 2
+            except Exception as exc:  # e.g. InvalidStatus (401: wrong token): no point retrying
+                self.close()
+                raise ConnectionError(f"{self.params.url}: {exc}") from None
+        raise ConnectionError(
+            f"{self.params.url}: no connection after {self.params.retries} attempts ({last})"
+        )
+
+    def _receive(self) -> Any:
+        from policies.wire import unpack
+
+        try:
+            return unpack(self._ws.recv(timeout=self.params.timeout_s))
+        except TimeoutError:
+            raise TimeoutError(f"{self.params.url}: no reply within {self.params.timeout_s} s") from None
+
+    def _call(self, message: dict[str, Any]) -> dict[str, Any]:
+        from websockets.exceptions import ConnectionClosed
+
+        from policies.wire import WireError, pack
+
+        if self._ws is None:
+            self._connect()
+        try:
+            self._ws.send(pack(message))
+            reply = self._receive()
+        except ConnectionClosed as exc:
+            self.close()  # the next episode connects again
+            raise ConnectionError(f"{self.params.url}: the server closed the connection ({exc})") from None
+        except (TimeoutError, WireError):
+            self.close()  # a late reply must not be read as the next call's
+            raise
+        if not isinstance(reply, dict):
+            raise WireError(f"the server replied with {type(reply).__name__}, not a map")
+        nfe = reply.get("dvla/nfe")
+        self._totals.nfe = None if nfe is None or self._totals.nfe is None else self._totals.nfe + int(nfe)
+        self._totals.server_time_s += float(reply.get("dvla/policy_time_s", 0.0))
+        return reply
+
+    def close(self) -> None:
+        try:
+            self._stack.close()  # closes the connection, if one is open
+        except Exception:
+            pass  # a connection that is already gone
+        self._ws = None
+
+    # --- the policy contract -------------------------------------------------------
+
+    def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
+        """Refuse a server whose metadata describes another observation or action."""
+        try:
+            self._connect()
+        except ConnectionError as exc:
+            raise ValueError(str(exc)) from None
+        described_obs = self.metadata.get("observation") or {}
+        described_act = self.metadata.get("action") or {}
+        state = (
+            observation_space["state"]
+            if isinstance(observation_space, gym.spaces.Dict)
+            else observation_space
+        )
+        if "state_shape" in described_obs and list(described_obs["state_shape"]) != list(state.shape):
+            raise ValueError(
+                f"the server's policy takes a state of shape {list(described_obs['state_shape'])}, "
+                f"this suite gives {list(state.shape)}"
+            )
+        if "state_key" in described_obs and described_obs["state_key"] != self.params.state_key:
+            raise ValueError(
+                f"the server reads the state under {described_obs['state_key']!r}; pass state_key="
+                f"{described_obs['state_key']} (now {self.params.state_key!r})"
+            )
+        if "dim" in described_act and int(described_act["dim"]) != int(np.prod(action_space.shape)):
+            raise ValueError(
+                f"the server's policy returns {described_act['dim']}-D actions, this suite takes "
+                f"{int(np.prod(action_space.shape))}-D"
+            )
+
+    def reset(self, episodes: Sequence[EpisodeContext]) -> None:
+        if len(episodes) != 1:
+            raise ValueError("the remote policy serves one episode per call (no act_batch)")
+        self._contexts = episodes
+        if self._ws is None:
+            self._connect()
+        if self.metadata.get("server") == "dvla-harness":  # openpi servers have no reset
+            ep = episodes[0]
+            self._call(
+                {
+                    RESET: {
+                        "task": ep.task,
+                        "instruction": ep.instruction,
+                        "episode_index": ep.episode_index,
+                        "seed": ep.seed,
+                        "init_state_id": ep.init_state_id,
+                        "max_steps": ep.max_steps,
+                        "subtask_index": ep.subtask_index,
+                    }
+                }
+            )
+
+    def act(self, observations: Sequence[Observation]) -> ChunkBatch:
+        from policies.wire import WireError
+
+        obs = observations[0]
+        message: dict[str, Any] = {self.params.prompt_key: self._contexts[0].instruction}
+        if isinstance(obs, dict):
+            message |= {self.params.state_key: np.asarray(obs["state"], np.float32)}
+            message |= {k: np.asarray(v) for k, v in obs.items() if k != "state"}
+        else:
+            message[self.params.state_key] = np.asarray(obs, np.float32)
+        reply = self._call(message)
+        if self.params.actions_key not in reply:
+            raise WireError(f"the reply has no {self.params.actions_key!r} (keys: {sorted(map(str, reply))})")
+        actions = np.asarray(reply[self.params.actions_key], dtype=np.float64)
+        if actions.ndim == 1:
+            actions = actions[None]
+        if actions.ndim != 2 or not np.isfinite(actions).all():
+            raise WireError(f"actions of shape {actions.shape} (or not finite); expected (chunk, action_dim)")
+        return ChunkBatch(actions=actions[None], action_tokens=int(reply.get("dvla/action_tokens", 0)))
+
+    def take_remote(self) -> RemoteTotals:
+        """The server's count since the last take (the runner reads it once per episode)."""
+        totals, self._totals = self._totals, RemoteTotals()
+        return totals
+
+
+REMOTE = PolicySpec(
+    name="remote",
+    summary="a policy served over openpi's WebSocket protocol (dvla-harness serve, openpi serve_policy)",
+    params=RemoteParams,
+    build=RemotePolicy,
+    extra="remote",
+)

@@ -1,0 +1,207 @@
+"""The `remote` policy through the real runner: against `dvla-harness serve` (the same
+success, steps and NFE as the local decoder, transport time recorded), and against
+small hand-written servers that speak openpi's protocol badly on purpose: one that
+drops the connection mid-episode, one too slow to answer, one whose policy does not fit
+the suite, one that reports no NFE."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("websockets")
+pytest.importorskip("msgpack")
+pytest.importorskip("metaworld")
+
+from websockets.sync.server import serve
+
+from policies.wire import pack, unpack
+
+SUITE = "metaworld/mt1/reach-v3"
+
+
+@pytest.fixture
+def servers():
+    running = []
+
+    def start(server) -> int:
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        running.append(server)
+        return server.socket.getsockname()[1]
+
+    yield start
+    for server in running:
+        server.shutdown()
+
+
+def openpi_like(reply: Callable[[int, int, dict], dict | None], metadata: dict | None = None):
+    """A server in openpi's manner: metadata, then reply(connection_no, call_no, message)
+    per message; None from `reply` closes the connection."""
+    connections = [0]
+
+    def handle(ws) -> None:
+        connections[0] += 1
+        ws.send(pack(metadata or {"server": "openpi-like"}))
+        for call, data in enumerate(ws):
+            answer = reply(connections[0], call, unpack(data))
+            if answer is None:
+                ws.close()
+                return
+            ws.send(pack(answer))
+
+    return serve(handle, "127.0.0.1", 0, compression=None)
+
+
+def run(cli, tmp_path: Path, url: str, *extra: str, policy_params: str = "") -> tuple[int, str, Path]:
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", SUITE, "--policy", f"remote:url={url}{policy_params}", *extra,
+        "--episodes-per-task", "2", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    return code, err, out
+
+
+@pytest.fixture
+def serve_process():
+    """`dvla-harness serve` in its own process (the runner's NFE hooks and the server's
+    must not share one), on a free port; yields its ws:// address."""
+    procs = []
+
+    def start(*args: str) -> str:
+        repo = Path(__file__).resolve().parent.parent
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "harness", "serve", *args, "--port", "0"],
+            cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            env=os.environ | {"OMP_NUM_THREADS": "1", "COLUMNS": "200"},
+        )  # fmt: skip
+        procs.append(proc)
+        line = proc.stdout.readline()
+        match = re.search(r"on (ws://[0-9.]+:[0-9]+)", line)
+        assert match, line + proc.stdout.read() if proc.poll() is not None else line
+        return match.group(1)
+
+    yield start
+    for proc in procs:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def test_remote_equals_local_through_dvla_harness_serve(cli, tmp_path, serve_process):
+    url = serve_process(
+        "--policy", "fast_dvla", "--suite", "metaworld/mt10", "--task", "reach-v3", "--token", "k"
+    )
+    code, err, out = run(cli, tmp_path, url, "--policy", "fast_dvla", policy_params=",token=k")
+    assert code == 0, err
+    rows = pd.read_parquet(out / "episodes.parquet").set_index(["policy", "episode_index"])
+    remote, local = rows.loc["remote"], rows.loc["fast_dvla"]
+    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total"):
+        assert list(remote[column]) == list(local[column]), column
+    assert (remote["transport_time_s"] >= 0).all() and local["transport_time_s"].isna().all()
+    assert (remote["transport_time_s"] < remote["policy_time_s"]).all()
+
+
+def test_a_server_that_drops_mid_episode_fails_that_episode_and_the_next_reconnects(cli, tmp_path, servers):
+    def reply(connection: int, call: int, message: dict) -> dict | None:
+        if connection == 1 and call == 3:
+            return None  # gone mid-episode
+        return {"actions": np.zeros((4, 4), np.float32), "dvla/nfe": 1}
+
+    port = servers(openpi_like(reply))
+    code, _, out = run(cli, tmp_path, f"ws://127.0.0.1:{port}")
+    assert code == 1  # a run with a failed episode exits 1, and goes on
+    rows = pd.read_parquet(out / "episodes.parquet").sort_values("episode_index")
+    assert "closed the connection" in rows["failure_reason"].iloc[0]
+    assert (
+        pd.isna(rows["failure_reason"].iloc[1]) and rows["steps"].iloc[1] == 500
+    )  # reconnected, ran to the budget
+
+
+def test_a_server_too_slow_to_answer_is_a_timeout_failure_not_a_hang(cli, tmp_path, servers):
+    def reply(connection: int, call: int, message: dict) -> dict | None:
+        if connection == 1 and call == 1:
+            time.sleep(2.0)
+        return {"actions": np.zeros((4, 4), np.float32)}
+
+    port = servers(openpi_like(reply))
+    start = time.perf_counter()
+    code, _, out = run(cli, tmp_path, f"ws://127.0.0.1:{port}", policy_params=",timeout_s=0.5")
+    rows = pd.read_parquet(out / "episodes.parquet").sort_values("episode_index")
+    assert code == 1 and "no reply within 0.5 s" in rows["failure_reason"].iloc[0]
+    assert pd.isna(rows["failure_reason"].iloc[1]) and time.perf_counter() - start < 60
+
+
+def test_a_server_that_reports_no_nfe_leaves_it_null_and_the_leaderboard_says_so(cli, tmp_path, servers):
+    port = servers(openpi_like(lambda c, n, m: {"actions": np.zeros((4, 4), np.float32)}))
+    code, err, out = run(cli, tmp_path, f"ws://127.0.0.1:{port}")
+    assert code == 0, err
+    rows = pd.read_parquet(out / "episodes.parquet")
+    assert rows["nfe_total"].isna().all() and rows["nfe_per_chunk"].isna().all()
+    code, text, _ = cli("leaderboard", str(out), "--format", "md")
+    assert code == 0 and "not measured" in text
+
+
+@pytest.mark.parametrize(
+    ("metadata", "needle"),
+    [
+        ({"server": "x", "action": {"dim": 7}}, "returns 7-D actions, this suite takes 4-D"),
+        ({"server": "x", "observation": {"state_shape": [9]}}, "takes a state of shape [9]"),
+        (
+            {"server": "x", "observation": {"state_key": "observation/state"}},
+            "pass state_key=observation/state",
+        ),
+    ],
+)
+def test_a_server_that_does_not_fit_the_suite_exits_2_before_anything_runs(
+    cli, tmp_path, servers, metadata, needle
+):
+    port = servers(openpi_like(lambda c, n, m: {"actions": np.zeros((4, 4), np.float32)}, metadata))
+    code, err, out = run(cli, tmp_path, f"ws://127.0.0.1:{port}")
+    assert code == 2 and needle in err and not (out / "episodes.parquet").exists()
+
+
+def test_no_server_and_bad_urls_are_clear(cli, tmp_path):
+    code, err, out = run(cli, tmp_path, "ws://127.0.0.1:9", policy_params=",retries=1,connect_timeout_s=1")
+    assert code == 2 and "no connection after 1 attempts" in err and not out.exists()
+    code, err, _ = run(cli, tmp_path, "http://example")
+    assert code == 2 and "url must start with ws:// or wss://" in err
+
+
+def test_the_manifest_and_params_record_the_remote_configuration(cli, tmp_path, servers):
+    port = servers(openpi_like(lambda c, n, m: {"actions": np.zeros((4, 4), np.float32), "dvla/nfe": 2}))
+    code, err, out = run(cli, tmp_path, f"ws://127.0.0.1:{port}")
+    assert code == 0, err
+    params = json.loads(pd.read_parquet(out / "episodes.parquet")["policy_params"].iloc[0])
+    assert params["url"] == f"ws://127.0.0.1:{port}" and params["timeout_s"] == 30.0
+
+
+def test_the_docs_server_snippet_serves_a_model_to_the_remote_policy(cli, tmp_path, servers):
+    """docs/remote-policies.md's 'Serving a model from another repository', as written."""
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "remote-policies.md").read_text()
+    section = doc.split("## Serving a model from another repository", 1)[1]
+    code_text = re.search(r"```python\n(.+?)\n```", section, re.S).group(1)
+    namespace: dict = {}
+    exec(compile(code_text, "docs/remote-policies.md", "exec"), namespace)
+
+    class Model:
+        action_dim = 4
+
+        def act(self, state, prompt):
+            assert state.shape == (39,) and "reach" in prompt
+            return np.tile(np.float32([0.1, 0.0, 0.0, 0.0]), (4, 1))
+
+    port = servers(namespace["serve"](lambda ws: namespace["handler"](ws, Model()), "127.0.0.1", 0))
+    code, err, out = run(cli, tmp_path, f"ws://127.0.0.1:{port}")
+    assert code == 0, err
+    rows = pd.read_parquet(out / "episodes.parquet")
+    assert (rows["steps"] == 500).all() and rows["nfe_total"].isna().all()  # ran; NFE not measured
