@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from adapters.base import Suite, SuiteInfo
-from harness.plugins import load_plugins
+from harness.plugins import HARNESS, load_plugins, warn
 
 ENTRY_POINT_GROUP = "dvla_harness.adapters"
 
@@ -43,12 +43,36 @@ def _builtin_providers() -> list[SuiteProvider]:
     return [metaworld.PROVIDER, libero.PROVIDER, chains.PROVIDER, simpler.PROVIDER]
 
 
-def _plugin_providers() -> list[SuiteProvider]:
-    return load_plugins(ENTRY_POINT_GROUP, SuiteProvider)
+# Who provided each suite prefix, as of the last providers(): "dvla-harness" or a plugin's
+# "<distribution> <version>"; recorded in every run's manifest.
+PROVIDED_BY: dict[str, str] = {}
 
 
 def providers() -> list[SuiteProvider]:
-    return _builtin_providers() + _plugin_providers()
+    """Built-in providers, then plugins'. A plugin whose prefix overlaps one already
+    registered (`metaworld/`, or another plugin's) is refused with a warning naming both,
+    never allowed to shadow it."""
+    found = _builtin_providers()
+    by = dict.fromkeys((p.prefix for p in found), HARNESS)
+    for plugin in load_plugins(ENTRY_POINT_GROUP, SuiteProvider):
+        prefix = plugin.obj.prefix
+        clash = next((p for p in by if prefix.startswith(p) or p.startswith(prefix)), None)
+        if clash is not None:
+            warn(
+                f"plugin {plugin.provider} registers suites under {prefix!r}, which overlaps "
+                f"{clash!r} from {by[clash]}; the plugin's are ignored (choose another prefix)"
+            )
+            continue
+        found.append(plugin.obj)
+        by[prefix] = plugin.provider
+    PROVIDED_BY.clear()
+    PROVIDED_BY.update(by)
+    return found
+
+
+def provider_for(name: str) -> str:
+    """Who provides the suite `name` ("dvla-harness" or a plugin), for manifests and errors."""
+    return next((who for prefix, who in PROVIDED_BY.items() if name.startswith(prefix)), HARNESS)
 
 
 def list_suites() -> list[SuiteInfo]:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from adapters.base import EpisodeSpec, Suite, TaskSpec
-from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite
+from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
 from harness.errors import UsageError
 from policies.base import Policy
 from policies.registry import (
@@ -218,7 +218,8 @@ def sha256_file(path: str) -> str:
 def _check_installed(modules: tuple[str, ...], extra: str, what: str) -> None:
     missing = [m for m in modules if importlib.util.find_spec(m) is None]
     if missing:
-        raise UsageError(f"{what} needs {', '.join(missing)}: pip install 'dvla-harness[{extra}]'")
+        how = f"pip install 'dvla-harness[{extra}]'" if extra else "install them"  # a plugin names no extra
+        raise UsageError(f"{what} needs {', '.join(missing)}: {how}")
 
 
 def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
@@ -226,6 +227,11 @@ def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
         suite = load_suite(config.suite, config.split)
     except (UnknownSuiteError, MissingExtraError, SuiteDataError) as exc:
         raise UsageError(str(exc)) from None
+    except Exception as exc:  # a provider's own bug: name it, exit 2 (1 is an episode that raised)
+        raise UsageError(
+            f"suite {config.suite!r}: its provider ({provider_for(config.suite)}) raised "
+            f"{type(exc).__name__}: {exc}"
+        ) from None
     _check_installed(suite.simulator_packages, suite.extra, f"suite {suite.name!r}")
     tasks: list[TaskSpec] = []
     for name in config.tasks or [t.name for t in suite.tasks]:

@@ -27,10 +27,13 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
+from adapters.registry import provider_for
 from harness.config import ResolvedRun
 from harness.device import device_record, policy_device
+from harness.plugins import HARNESS
 from harness.threads import threads_record
 from policies.dvla.policy import checkpoint_fields
+from policies.registry import PROVIDERS as POLICY_PROVIDERS
 
 MANIFEST_VERSION = 1
 CORE_PACKAGES = ("dvla-harness", "numpy", "torch", "gymnasium", "mujoco", "pandas", "pyarrow")
@@ -260,10 +263,12 @@ def build_manifest(resolved: ResolvedRun, run_id: str) -> dict[str, Any]:
             "render_backend": suite.render_backend,
             "simulator_packages": {p: package_version(p) for p in suite.simulator_packages},
             **({"provenance": dict(suite.provenance)} if suite.provenance else {}),
+            "provided_by": provider_for(suite.name),  # dvla-harness, or a plugin's dist and version
         },
         "policies": [
             {
                 "name": p.spec.name,
+                "provided_by": POLICY_PROVIDERS.get(p.spec.name, HARNESS),
                 "config_id": p.config_id,
                 "params": p.params_json,
                 "checkpoint": p.checkpoint,

@@ -1,21 +1,56 @@
-"""Loads third-party registrations from Python entry points, checking what they name."""
+"""Loads third-party registrations from Python entry points, checking what they name.
+
+One bad package must not break the harness: an entry point that fails to import,
+raises while loading, or names the wrong kind of object is skipped with a one-line
+warning on stderr naming its package and the error, and everything else still lists
+and runs. Each plugin object is returned with the distribution that provided it, so
+registries can refuse a name the harness (or another plugin) already has, and
+manifests can record who provided what.
+"""
 
 from __future__ import annotations
 
-from importlib.metadata import entry_points
-from typing import TypeVar
+import sys
+from dataclasses import dataclass
+from importlib.metadata import EntryPoint, entry_points
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
+HARNESS = "dvla-harness"
+_warned: set[str] = set()
 
 
-def load_plugins(group: str, kind: type[T]) -> list[T]:
-    """Every object named by an entry point of `group`; each must be a `kind`."""
-    found: list[T] = []
+@dataclass(frozen=True)
+class Plugin(Generic[T]):
+    obj: T
+    provider: str  # "<distribution> <version>", e.g. "dvla-line-plugin 0.1"
+
+
+def provider_of(ep: EntryPoint) -> str:
+    dist = ep.dist
+    return f"{dist.name} {dist.version}" if dist is not None else f"the module {ep.module}"
+
+
+def warn(message: str) -> None:
+    """Once per message and process, on stderr (a CLI's warnings channel)."""
+    if message not in _warned:
+        _warned.add(message)
+        print(f"warning: {message}", file=sys.stderr)
+
+
+def load_plugins(group: str, kind: type[T]) -> list[Plugin[T]]:
+    """Every `kind` named by an entry point of `group`, with its provider; the rest
+    skipped with a warning."""
+    found: list[Plugin[T]] = []
     for ep in entry_points(group=group):
-        obj = ep.load()
+        where = f"plugin {provider_of(ep)}: entry point {ep.name!r} ({group})"
+        try:
+            obj = ep.load()
+        except Exception as exc:
+            warn(f"{where} failed to load ({type(exc).__name__}: {exc}); skipped")
+            continue
         if not isinstance(obj, kind):
-            raise TypeError(
-                f"entry point {ep.name!r} in {group} must be a {kind.__name__}, got {type(obj).__name__}"
-            )
-        found.append(obj)
+            warn(f"{where} must name a {kind.__name__}, got {type(obj).__name__}; skipped")
+            continue
+        found.append(Plugin(obj, provider_of(ep)))
     return found

@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from harness.plugins import load_plugins
+from harness.plugins import HARNESS, load_plugins, warn
 from policies.base import Policy
 
 ENTRY_POINT_GROUP = "dvla_harness.policies"
@@ -74,12 +74,29 @@ def _builtin_specs() -> list[PolicySpec]:
     ]
 
 
-def _plugin_specs() -> list[PolicySpec]:
-    return load_plugins(ENTRY_POINT_GROUP, PolicySpec)
-
-
 def all_policies() -> dict[str, PolicySpec]:
-    return {spec.name: spec for spec in _builtin_specs() + _plugin_specs()}
+    """Built-in policies, then plugins'. A plugin may not take a name that is already
+    registered (a built-in's or an earlier plugin's): it is refused with a warning naming
+    both providers, never a silent replacement."""
+    specs = {spec.name: spec for spec in _builtin_specs()}
+    providers = dict.fromkeys(specs, HARNESS)
+    for plugin in load_plugins(ENTRY_POINT_GROUP, PolicySpec):
+        name = plugin.obj.name
+        if name in specs:
+            warn(
+                f"plugin {plugin.provider} registers policy {name!r}, which {providers[name]} already "
+                "provides; the plugin's is ignored (give it another name)"
+            )
+            continue
+        specs[name], providers[name] = plugin.obj, plugin.provider
+    PROVIDERS.clear()
+    PROVIDERS.update(providers)
+    return specs
+
+
+# Who provided each policy name, as of the last all_policies(): "dvla-harness" or a plugin's
+# "<distribution> <version>"; recorded in every run's manifest.
+PROVIDERS: dict[str, str] = {}
 
 
 def get_policy(name: str) -> PolicySpec:

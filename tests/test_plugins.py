@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 import textwrap
 
@@ -65,6 +66,7 @@ def installed_plugin(tmp_path, monkeypatch):
     """)
     (dist / "entry_points.txt").write_text(entry_points)
     monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr("harness.plugins._warned", set())  # each test sees its own warnings
     yield dist
     sys.modules.pop("dvla_line_plugin", None)
 
@@ -90,10 +92,109 @@ def test_plugin_policy_and_suite_run_end_to_end(installed_plugin, cli, tmp_path)
     assert code == 2 and "value=2.0 is out of range; valid range [-1.0, 1.0]" in err
 
 
-def test_a_plugin_naming_the_wrong_kind_of_object_is_reported(installed_plugin):
+def _entry_points(dist, text: str) -> None:
+    (dist / "entry_points.txt").write_text(textwrap.dedent(text))
+
+
+def test_a_plugin_naming_the_wrong_kind_of_object_is_skipped_with_a_warning(installed_plugin, capsys):
     text = (installed_plugin / "entry_points.txt").read_text().replace(":SPEC", ":NOT_A_SPEC")
     (installed_plugin / "entry_points.txt").write_text(text)
-    with pytest.raises(
-        TypeError, match=r"entry point 'constant' in dvla_harness\.policies must be a PolicySpec"
-    ):
-        all_policies()
+    policies = all_policies()
+    assert "constant" not in policies and "random" in policies
+    err = capsys.readouterr().err
+    assert (
+        "plugin dvla-line-plugin 0.1: entry point 'constant' (dvla_harness.policies) must name a PolicySpec"
+        in err
+    )
+
+
+def test_a_broken_plugin_cannot_break_listing_or_running(installed_plugin, cli, tmp_path):
+    _entry_points(
+        installed_plugin,
+        """
+        [dvla_harness.policies]
+        constant = dvla_line_plugin:SPEC
+        broken = dvla_no_such_module:SPEC
+        [dvla_harness.adapters]
+        line = dvla_line_plugin:PROVIDER
+        broken = dvla_line_plugin:MISSING_NAME
+        """,
+    )
+    code, out, err = cli("list", "suites")
+    assert code == 0 and "line/walk" in out and "metaworld/mt10" in out
+    assert "entry point 'broken' (dvla_harness.adapters) failed to load (AttributeError" in err
+    code, out, err = cli("list", "policies")
+    assert code == 0 and "constant" in out and "fast_dvla" in out
+    assert "entry point 'broken' (dvla_harness.policies) failed to load (ModuleNotFoundError" in err
+    code, _, err = cli(
+        "run", "--suite", "line/walk", "--policy", "constant", "--out", str(tmp_path / "r"), "--quiet"
+    )
+    assert code == 0, err
+
+
+def test_a_plugin_may_not_take_a_name_the_harness_has(installed_plugin, cli, tmp_path):
+    plugin = (installed_plugin.parent / "dvla_line_plugin.py").read_text()
+    plugin += "\nRANDOM = PolicySpec(name='random', summary='an impostor', params=Params, build=Constant)\n"
+    plugin += (
+        "META = SuiteProvider(prefix='metaworld/', list_suites=lambda: [], load_suite=lambda n, s: SUITE)\n"
+    )
+    (installed_plugin.parent / "dvla_line_plugin.py").write_text(plugin)
+    _entry_points(
+        installed_plugin,
+        """
+        [dvla_harness.policies]
+        random = dvla_line_plugin:RANDOM
+        [dvla_harness.adapters]
+        meta = dvla_line_plugin:META
+        """,
+    )
+    code, _, err = cli("run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--episodes-per-task", "1",
+                         "--out", str(tmp_path / "r"), "--quiet")  # fmt: skip
+    assert code == 0, err
+    assert "registers policy 'random', which dvla-harness already provides; the plugin's is ignored" in err
+    assert "registers suites under 'metaworld/', which overlaps 'metaworld/' from dvla-harness" in err
+    assert get_policy("random").summary != "an impostor"
+    manifest = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    assert manifest["policies"][0]["provided_by"] == "dvla-harness"
+    assert manifest["suite"]["provided_by"] == "dvla-harness"
+
+
+def test_the_manifest_names_the_plugin_that_provided_policy_and_suite(installed_plugin, cli, tmp_path):
+    code, _, err = cli(
+        "run", "--suite", "line/walk", "--policy", "constant", "--out", str(tmp_path / "r"), "--quiet"
+    )
+    assert code == 0, err
+    manifest = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    assert manifest["policies"][0]["provided_by"] == "dvla-line-plugin 0.1"
+    assert manifest["suite"]["provided_by"] == "dvla-line-plugin 0.1"
+
+
+def test_a_provider_that_raises_is_exit_2_naming_the_plugin(installed_plugin, cli, tmp_path):
+    plugin = (installed_plugin.parent / "dvla_line_plugin.py").read_text()
+    plugin += "\ndef _boom(name, split):\n    raise RuntimeError('the plugin is broken')\n"
+    plugin += "PROVIDER = SuiteProvider(prefix='line/', list_suites=lambda: [], load_suite=_boom)\n"
+    (installed_plugin.parent / "dvla_line_plugin.py").write_text(plugin)
+    out = tmp_path / "r"
+    code, _, err = cli("run", "--suite", "line/walk", "--policy", "constant", "--out", str(out))
+    assert code == 2 and not out.exists()
+    assert (
+        "suite 'line/walk': its provider (dvla-line-plugin 0.1) raised RuntimeError: the plugin is broken"
+        in err
+    )
+
+
+def test_list_suites_shows_the_extra_in_brackets(cli):
+    from adapters import libero
+
+    code, out, _ = cli("list", "suites")
+    assert code == 0
+    if not libero._installed():
+        assert "pip install 'dvla-harness[libero]'" in out
+    else:
+        assert "libero (installed)" in out
+    from rich.console import Console
+    from rich.markup import escape
+
+    console = Console(record=True, width=200)
+    console.print(f"[yellow]pip install 'dvla-harness{escape('[libero]')}'[/yellow]")
+    assert "dvla-harness[libero]" in console.export_text()  # what the listing prints when missing

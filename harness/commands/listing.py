@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from rich.markup import escape
 from rich.table import Table
 
 from harness.console import console
@@ -35,7 +36,7 @@ def cmd_list(args: argparse.Namespace) -> int:
                 else (
                     f"{info.extra} (installed)"
                     if info.installed
-                    else f"[yellow]pip install 'dvla-harness[{info.extra}]'[/yellow]"
+                    else f"[yellow]pip install 'dvla-harness{escape('[' + info.extra + ']')}'[/yellow]"
                 )
             )
             table.add_row(
