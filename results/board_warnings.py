@@ -76,13 +76,16 @@ def episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Mapp
             f"seeds or initial states differ between rows for {len(differing)} episode(s) "
             f"(e.g. {task} #{index}); rows did not start from the same states"
         )
-    for column, what in (
-        ("suite_version", "suite version"),
-        ("replan_every", "replan_every"),
-        ("max_steps", "step budgets"),
-    ):
+    for column, what in (("suite_version", "suite version"), ("replan_every", "replan_every")):
         if df[column].nunique() > 1:
             warnings.append(f"rows differ in {what}: {sorted(map(str, df[column].unique()))}")
+    # Budgets differ between tasks by the suite's own definition (LIBERO-90, chains); only
+    # one task run under two budgets is a difference between rows.
+    budgets = df.groupby("task")["max_steps"].unique()
+    differing = budgets[budgets.map(len) > 1]
+    if len(differing):
+        listed = "; ".join(f"{task}: {sorted(map(int, b))}" for task, b in differing.items())
+        warnings.append(f"rows differ in step budgets for the same task ({listed})")
     sizes = batch_sizes(df)
     if len(sizes) > 1:
         warnings.append(

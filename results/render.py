@@ -47,7 +47,9 @@ CAPTION = (
 )
 
 
-def summary_table(summary: pd.DataFrame, title: str = "") -> Table:
+def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str] | None = None) -> Table:
+    """`labels` (policy_config_id -> label, results.leaderboard.config_labels) tell apart
+    several configurations of one policy ("fast_dvla (tau_conf=0.3)"); else the name."""
     table = Table(title=title or None, show_lines=False, caption=CAPTION)
     for name, justify in (
         ("policy", "left"),
@@ -66,7 +68,8 @@ def summary_table(summary: pd.DataFrame, title: str = "") -> Table:
     previous = None
     for _, row in summary.iterrows():
         is_all = row["task"] == "ALL"
-        policy = row["policy"] if row["policy_config_id"] != previous else ""
+        name = (labels or {}).get(row["policy_config_id"], row["policy"])
+        policy = name if row["policy_config_id"] != previous else ""
         previous = row["policy_config_id"]
         speedup = "-"
         if row["task"] in base.index:

@@ -474,3 +474,14 @@ def test_paper_table_takes_upstream_observation_rows_without_the_flag(cli, tmp_p
     code, stdout, _ = cli("report", "paper-table", str(run))
     assert code == 0 and "Spatial (libero/spatial:obs=upstream,seeding=openvla)" in stdout
     assert "| fast_dvla |" in stdout and "privileged" not in stdout and "Dream-VLA (published)" in stdout
+
+
+def test_step_budgets_warn_only_when_one_task_ran_under_two(tmp_path):
+    per_task = episodes("bidirectional", BIDI, "bidi000001", [1, 0], task="a", max_steps=220)
+    per_task += episodes("bidirectional", BIDI, "bidi000001", [1, 1], task="b", max_steps=300)
+    (board,) = leaderboards([load_run(write_run(tmp_path / "r", per_task))])
+    assert not any("step budgets" in w for w in board.warnings)  # the suite's own per-task budgets
+    other = episodes("fast_dvla", FAST, "fast000001", [1, 0], task="a", max_steps=500)
+    other += episodes("fast_dvla", FAST, "fast000001", [1, 1], task="b", max_steps=300)
+    (board,) = leaderboards([load_run(write_run(tmp_path / "s", per_task + other))])
+    assert "rows differ in step budgets for the same task (a: [220, 500])" in board.warnings

@@ -101,3 +101,15 @@ def test_show_calls_a_run_nobody_writes_interrupted_or_killed(cli, tmp_path):
     (out / "manifest.json").write_text(json.dumps(manifest | {"status": "running"}))  # as a SIGKILL leaves it
     code, text, _ = cli("show", str(out))
     assert code == 0 and "interrupted or killed" in text and "--resume" in text
+
+
+def test_run_and_show_tell_two_configurations_of_one_policy_apart(cli, tmp_path):
+    out = tmp_path / "r"
+    code, text, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random:seed=1", "--policy", "random:seed=2",
+        "--episodes-per-task", "1", "--out", str(out),
+    )  # fmt: skip
+    assert code == 0, err
+    assert "random (seed=1)" in text and "random (seed=2)" in text
+    code, text, _ = cli("show", str(out))
+    assert code == 0 and "random (seed=1)" in text and "random (seed=2)" in text

@@ -231,6 +231,7 @@ def execute_run(
     from harness.device import apply_device
     from harness.runner import run
     from harness.threads import apply_threads
+    from results.leaderboard import config_labels
     from results.render import summary_table
     from results.summary import summarize
 
@@ -266,7 +267,11 @@ def execute_run(
         episodes["policy"] = episodes["policy_config_id"].map(labels).fillna(episodes["policy"])
     if len(episodes):
         console.print(
-            summary_table(summarize(episodes), title=f"{resolved.suite.name} - run {report.run_id}")
+            summary_table(
+                summarize(episodes),
+                title=f"{resolved.suite.name} - run {report.run_id}",
+                labels=config_labels(episodes),
+            )
         )
         print_chain_table(episodes)
     console.print(

@@ -23,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
+    from results.leaderboard import config_labels
     from results.render import summary_table
     from results.runs import speed_warning
     from results.store import ResultsFileError, RunDir
@@ -51,7 +52,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     if len(episodes):
         from harness.commands.run import print_chain_table
 
-        console.print(summary_table(summarize(episodes)))
+        console.print(summary_table(summarize(episodes), labels=config_labels(episodes)))
         print_chain_table(episodes)
     return 0
 
