@@ -385,6 +385,15 @@ def pareto_plot(
     df = plot_frame(episodes)
     x = _resolve(df, x, "x", numeric=True)
     y = _resolve(df, y, "y", numeric=True)
+    # Configurations with no value on an axis (tokens/s of a policy that decodes no tokens:
+    # scripted, random) have no place on the plot; none at all means another axis.
+    measured = df.groupby("policy_config_id")[[x, y]].apply(lambda g: g.notna().any().all())
+    if not measured.any():
+        raise PlotInputError(
+            f"no configuration has values for both {x} and {y} (policies that decode no tokens have "
+            "no tokens_per_s); pass another axis, e.g. --x control_hz or --x wall_clock_s"
+        )
+    df = df[df["policy_config_id"].isin(measured[measured].index)]
     points = []
     for _, part in df.groupby("policy_config_id", sort=False):
         ex = interval(_numeric(part[x]), x == "success")

@@ -207,3 +207,19 @@ def test_a_noise_schedule_ablation_sweeps_checkpoints_and_plots_by_header(cli, t
     )  # fmt: skip
     assert code == 0, err
     assert out.read_bytes()[:8] == PNG
+
+
+@pytest.mark.metaworld
+def test_experts_say_why_there_is_no_pareto_or_decoding_order(cli, tmp_path):
+    out = tmp_path / "r"
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3", "--policy", "scripted", "--policy", "random",
+        "--episodes-per-task", "1", "--traces", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    code, _, err = cli("plot", "pareto", str(out), "--out", str(tmp_path / "p.png"))
+    assert code == 2 and "no numeric column 'tokens_per_s' for x" in err and "control_hz" in err
+    code, _, err = cli("plot", "pareto", str(out), "--x", "control_hz", "--out", str(tmp_path / "p.png"))
+    assert code == 0, err
+    code, _, err = cli("plot", "decoding-order", str(out), "--out", str(tmp_path / "o.png"))
+    assert code == 2 and "its policies (random, scripted) returned no decode trace" in err

@@ -93,7 +93,18 @@ def cmd_plot(args: argparse.Namespace) -> int:
         elif args.kind == "pareto":
             plots.pareto_plot(episodes, args.x, args.y, out=args.out)
         else:
-            untraced = [str(r.path) for r in runs if not RunDir(r.path).has_traces()]
+            untraced = [r for r in runs if not RunDir(r.path).has_traces()]
+            silent = [r for r in untraced if (r.manifest or {}).get("traces")]  # asked, got none
+            if silent:
+                policies = sorted(
+                    set(episodes.loc[episodes["run"].isin([r.label for r in silent]), "policy"])
+                )
+                raise plots.PlotInputError(
+                    f"{', '.join(str(r.path) for r in silent)}: no traces.jsonl, though made with --traces: "
+                    f"its policies ({', '.join(policies)}) returned no decode trace (only the dVLA "
+                    "decoders report one), or the file was removed"
+                )
+            untraced = [str(r.path) for r in untraced]
             if untraced:
                 raise plots.PlotInputError(
                     f"{', '.join(untraced)}: no traces.jsonl; record decode traces with "
