@@ -198,3 +198,48 @@ def test_list_suites_shows_the_extra_in_brackets(cli):
     console = Console(record=True, width=200)
     console.print(f"[yellow]pip install 'dvla-harness{escape('[libero]')}'[/yellow]")
     assert "dvla-harness[libero]" in console.export_text()  # what the listing prints when missing
+
+
+def test_the_plugin_guide_installs_with_pip_and_runs(tmp_path, monkeypatch, cli):
+    """docs/plugins.md's example package, as written: pip installs it, the harness lists and
+    runs its policy and suite, and its validate() and check_spaces() rules hold."""
+    import re
+    import subprocess
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "plugins.md").read_text()
+
+    def block(marker: str) -> str:
+        return re.search(rf"<!-- plugin:{marker} -->\n```\w+\n(.+?)\n```", doc, re.S).group(1)
+
+    package = tmp_path / "dvla-line-plugin"
+    package.mkdir()
+    (package / "pyproject.toml").write_text(block("pyproject"))
+    (package / "dvla_line_plugin.py").write_text(block("module"))
+    site = tmp_path / "site"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(site), str(package)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    monkeypatch.syspath_prepend(str(site))
+    monkeypatch.setattr("harness.plugins._warned", set())
+    try:
+        code, out, err = cli("list", "policies")
+        assert code == 0 and "constant" in out and "a plugin example" in out, err
+        out_dir = tmp_path / "run"
+        code, out, err = cli(
+            "run", "--suite", "line/walk", "--policy", "constant:value=1.0", "--out", str(out_dir)
+        )
+        assert code == 0 and "5/5" in out, err
+        manifest = json.loads((out_dir / "manifest.json").read_text())
+        assert manifest["policies"][0]["provided_by"] == "dvla-line-plugin 0.1.0"
+        code, _, err = cli(
+            "run", "--suite", "line/walk", "--policy", "constant:value=0", "--out", str(tmp_path / "z")
+        )
+        assert code == 2 and "value=0 never moves" in err
+        code, _, err = cli(
+            "run", "--suite", "line/nope", "--policy", "constant", "--out", str(tmp_path / "n")
+        )
+        assert code == 2 and "line suites: line/walk" in err
+    finally:
+        sys.modules.pop("dvla_line_plugin", None)
