@@ -229,6 +229,14 @@ class MetaWorldEpisodeEnv(gym.Wrapper):
         super().__init__(metaworld.env_dict.ALL_V3_ENVIRONMENTS[task_name]())
         self.task_name = task_name
         self.benchmark = benchmark
+        # Meta-World computes its observation space once, while the goal is still hidden
+        # (bounds 0 for 36:39), then reveals the goal in every observation (set_task makes
+        # the task fully observable): the space must say what the env returns. Found by
+        # `dvla-harness check suite`.
+        space, goal = self.env.observation_space, self.env.unwrapped.goal_space
+        low, high = space.low.copy(), space.high.copy()
+        low[36:39], high[36:39] = goal.low, goal.high
+        self.observation_space = gym.spaces.Box(low, high, dtype=space.dtype)
 
     def layouts(self, seed: int) -> tuple[Any, ...]:
         """The task's 50 layouts (`metaworld.Task`s) that `seed` draws, in Meta-World's order
