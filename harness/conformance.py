@@ -47,7 +47,9 @@ def _inside(space: gym.Space, obs: Any) -> bool:
         return isinstance(obs, dict) and all(k in obs and _inside(s, obs[k]) for k, s in space.spaces.items())
     if isinstance(space, gym.spaces.Box):
         x = np.asarray(obs)
-        return x.shape == space.shape and bool(np.all(x >= space.low - 1e-6) and np.all(x <= space.high + 1e-6))
+        return x.shape == space.shape and bool(
+            np.all(x >= space.low - 1e-6) and np.all(x <= space.high + 1e-6)
+        )
     return space.contains(obs)
 
 
