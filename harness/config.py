@@ -19,6 +19,7 @@ from typing import Any
 from adapters.base import EpisodeSpec, Suite, TaskSpec
 from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
 from harness.errors import UsageError
+from harness.plugins import HARNESS
 from policies.base import Policy
 from policies.registry import (
     PolicyParamError,
@@ -218,7 +219,7 @@ def sha256_file(path: str) -> str:
 def _check_installed(modules: tuple[str, ...], extra: str, what: str) -> None:
     missing = [m for m in modules if importlib.util.find_spec(m) is None]
     if missing:
-        how = f"pip install 'dvla-harness[{extra}]'" if extra else "install them"  # a plugin names no extra
+        how = f"pip install 'dvla-harness[{extra}]'" if extra else "install them"  # a plugin's own suite
         raise UsageError(f"{what} needs {', '.join(missing)}: {how}")
 
 
@@ -232,7 +233,9 @@ def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
             f"suite {config.suite!r}: its provider ({provider_for(config.suite)}) raised "
             f"{type(exc).__name__}: {exc}"
         ) from None
-    _check_installed(suite.simulator_packages, suite.extra, f"suite {suite.name!r}")
+    who = provider_for(config.suite)
+    what = f"suite {suite.name!r}" + ("" if who == HARNESS else f" (from {who})")
+    _check_installed(suite.simulator_packages, suite.extra, what)
     tasks: list[TaskSpec] = []
     for name in config.tasks or [t.name for t in suite.tasks]:
         try:
