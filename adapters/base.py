@@ -94,6 +94,9 @@ class SuiteInfo:
     episodes_per_task: int
     extra: str
     installed: bool
+    # The distribution the extra belongs to: this harness, or the plugin that lists the suite
+    # (set by adapters.registry.list_suites), so `list suites` says what to pip install.
+    package: str = "dvla-harness"
 
 
 def derive_seed(*parts: object) -> int:

@@ -6,6 +6,7 @@ importing its simulator: which suites it has, and how to load one by name.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -76,7 +77,11 @@ def provider_for(name: str) -> str:
 
 
 def list_suites() -> list[SuiteInfo]:
-    return [info for p in providers() for info in p.list_suites()]
+    out = []
+    for p in providers():
+        package = PROVIDED_BY.get(p.prefix, HARNESS).split(" ")[0]  # "<dist> <version>" -> dist
+        out += [dataclasses.replace(info, package=package) for info in p.list_suites()]
+    return out
 
 
 def load_suite(name: str, split: str = "eval") -> Suite:

@@ -216,10 +216,10 @@ def sha256_file(path: str) -> str:
     return digest.hexdigest()
 
 
-def _check_installed(modules: tuple[str, ...], extra: str, what: str) -> None:
+def _check_installed(modules: tuple[str, ...], extra: str, what: str, package: str = HARNESS) -> None:
     missing = [m for m in modules if importlib.util.find_spec(m) is None]
     if missing:
-        how = f"pip install 'dvla-harness[{extra}]'" if extra else "install them"  # a plugin's own suite
+        how = f"pip install '{package}[{extra}]'" if extra else "install them"
         raise UsageError(f"{what} needs {', '.join(missing)}: {how}")
 
 
@@ -235,7 +235,7 @@ def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
         ) from None
     who = provider_for(config.suite)
     what = f"suite {suite.name!r}" + ("" if who == HARNESS else f" (from {who})")
-    _check_installed(suite.simulator_packages, suite.extra, what)
+    _check_installed(suite.simulator_packages, suite.extra, what, who.split(" ")[0])
     tasks: list[TaskSpec] = []
     for name in config.tasks or [t.name for t in suite.tasks]:
         try:

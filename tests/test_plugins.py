@@ -190,7 +190,7 @@ def test_list_suites_shows_the_extra_in_brackets(installed_plugin, cli):
     )
     module.write_text(text)
     code, out, _ = cli("list", "suites")
-    assert code == 0 and "pip install 'dvla-harness[linesim]'" in out  # rich once ate "[linesim]"
+    assert code == 0 and "pip install 'dvla-line-plugin[linesim]'" in out  # the plugin's extra, brackets kept
 
 
 def test_the_plugin_guide_installs_with_pip_and_runs(tmp_path, monkeypatch, cli):
@@ -242,13 +242,17 @@ def test_a_plugin_suite_missing_its_simulator_names_the_plugin_not_an_empty_extr
     installed_plugin, cli, tmp_path
 ):
     module = installed_plugin.parent / "dvla_line_plugin.py"
-    text = module.read_text().replace(
-        'SUITE = Suite("line/walk", "1", (TASK,), lambda task: Line())',
-        'SUITE = Suite("line/walk", "1", (TASK,), lambda task: Line(), simulator_packages=("no_such_sim",))',
-    )
-    module.write_text(text)
+    plain = module.read_text()
+    missing = 'Suite("line/walk", "1", (TASK,), lambda task: Line(), simulator_packages=("no_such_sim",)'
+    module.write_text(plain.replace('Suite("line/walk", "1", (TASK,), lambda task: Line()', missing))
     code, _, err = cli("run", "--suite", "line/walk", "--policy", "constant", "--out", str(tmp_path / "r"))
     assert (
         code == 2 and "suite 'line/walk' (from dvla-line-plugin 0.1) needs no_such_sim: install them" in err
     )
     assert "dvla-harness[]" not in err
+    module.write_text(
+        plain.replace('Suite("line/walk", "1", (TASK,), lambda task: Line()', missing + ', extra="linesim"')
+    )
+    sys.modules.pop("dvla_line_plugin", None)
+    code, _, err = cli("run", "--suite", "line/walk", "--policy", "constant", "--out", str(tmp_path / "s"))
+    assert code == 2 and "pip install 'dvla-line-plugin[linesim]'" in err  # the plugin's extra, not ours

@@ -36,7 +36,7 @@ def cmd_list(args: argparse.Namespace) -> int:
                 else (
                     f"{info.extra} (installed)"
                     if info.installed
-                    else f"[yellow]pip install 'dvla-harness{escape('[' + info.extra + ']')}'[/yellow]"
+                    else f"[yellow]pip install '{info.package}{escape('[' + info.extra + ']')}'[/yellow]"
                 )
             )
             table.add_row(
