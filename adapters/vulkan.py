@@ -255,7 +255,10 @@ def check() -> tuple[bool, str]:
         [sys.executable, "-c", CHECK], capture_output=True, text=True, env=env, timeout=300, check=False
     )
     ok = out.returncode == 0 and out.stdout.strip().endswith("ok")
-    return ok, (out.stdout + out.stderr).strip().splitlines()[-1] if not ok else describe()
+    if ok:
+        return True, describe()
+    said = (out.stdout + out.stderr).strip().splitlines()
+    return False, said[-1] if said else f"the check process exited {out.returncode} without a message"
 
 
 def main(argv: list[str] | None = None) -> int:

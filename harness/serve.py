@@ -32,6 +32,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from http import HTTPStatus
 from typing import Any
 
@@ -69,7 +70,10 @@ class Served:
     def __post_init__(self) -> None:
         self.counter = NFECounter(self.policy)
 
+    @cached_property
     def metadata(self) -> dict[str, Any]:
+        """What the policy takes and returns, sent on connect and checked on every call:
+        built once."""
         images = {}
         if isinstance(self.observation_space, gym.spaces.Dict):
             images = {k: list(s.shape) for k, s in self.observation_space.spaces.items() if k != "state"}
@@ -120,7 +124,7 @@ class Served:
             raise WireError(
                 f"no {self.state_key!r} array in the observation (keys: {sorted(map(str, message))})"
             )
-        expected = self.metadata()["observation"]
+        expected = self.metadata["observation"]
         if list(state.shape) != expected["state_shape"]:
             raise WireError(
                 f"{self.state_key!r} has shape {list(state.shape)}, the policy takes {expected['state_shape']}"
@@ -199,7 +203,7 @@ def _authorised(served: Served, request: Any) -> bool:
 def handler(served: Served) -> Callable[[Any], None]:
     def handle(connection: Any) -> None:
         session = Session(served)
-        connection.send(pack(served.metadata()))
+        connection.send(pack(served.metadata))
         for data in connection:
             try:
                 reply = pack(session.handle(unpack(data)))

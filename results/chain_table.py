@@ -40,6 +40,16 @@ def length_interval(lengths: np.ndarray) -> tuple[float, float]:
     return (float(low), float(high))
 
 
+def reach_text(rate: float, low: float, high: float) -> str:
+    """'80.0 [49, 94]': percent of chains reaching k, Wilson 95% bounds."""
+    return f"{rate * 100:.1f} [{low * 100:.0f}, {high * 100:.0f}]"
+
+
+def length_text(mean: float, low: float, high: float) -> str:
+    """'3.00 [1.70, 4.20]': average length, bootstrap 95% bounds."""
+    return f"{mean:.2f} [{low:.2f}, {high:.2f}]"
+
+
 @dataclass(frozen=True)
 class ChainStats:
     """A set of chains in CALVIN's terms: how many reach k of 5, and the average length.
@@ -58,17 +68,10 @@ class ChainStats:
         return wilson_interval(self.reached[k - 1], self.chains)
 
     def reach_text(self, k: int) -> str:
-        """'80.0 [49, 94]': percent of chains reaching k, Wilson 95% bounds."""
-        if not self.chains:
-            return "-"
-        low, high = self.reach_interval(k)
-        return f"{self.reach(k) * 100:.1f} [{low * 100:.0f}, {high * 100:.0f}]"
+        return reach_text(self.reach(k), *self.reach_interval(k)) if self.chains else "-"
 
     def length_text(self) -> str:
-        if not self.chains:
-            return "-"
-        low, high = self.avg_len_interval
-        return f"{self.avg_len:.2f} [{low:.2f}, {high:.2f}]"
+        return length_text(self.avg_len, *self.avg_len_interval) if self.chains else "-"
 
 
 def chain_stats(lengths: np.ndarray | pd.Series, max_length: int = 5) -> ChainStats:
@@ -122,10 +125,6 @@ def chain_summary(episodes: pd.DataFrame, max_length: int = 5) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _pct(row: pd.Series, k: int) -> str:
-    return f"{row[f'reach_{k}'] * 100:.1f} [{row[f'reach_{k}_low'] * 100:.0f}, {row[f'reach_{k}_high'] * 100:.0f}]"
-
-
 def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
     """CALVIN's layout: % of chains reaching 1/5 ... 5/5 (Wilson 95%), average length
     (bootstrap 95%), then NFE per chunk, tokens/s and speedup over bidirectional."""
@@ -159,13 +158,16 @@ def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
         base_speed = float(base[row["task"]]) if row["task"] in base.index else math.nan
         policy = str(row["policy"]) if row["policy_config_id"] != previous else ""
         previous = row["policy_config_id"]
-        length = f"{row['avg_len']:.2f} [{row['avg_len_low']:.2f}, {row['avg_len_high']:.2f}]"
+        length = length_text(row["avg_len"], row["avg_len_low"], row["avg_len_high"])
         speedup = _num(row["tokens_per_s"] / base_speed, ".2f")
         table.add_row(
             policy,
             str(row["task"]),
             str(row["chains"]),
-            *(_pct(row, k) for k in range(1, 6)),
+            *(
+                reach_text(row[f"reach_{k}"], row[f"reach_{k}_low"], row[f"reach_{k}_high"])
+                for k in range(1, 6)
+            ),
             length,
             _num(row["nfe_per_chunk"], ".1f"),
             _num(row["tokens_per_s"], ".0f"),

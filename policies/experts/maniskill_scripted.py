@@ -48,14 +48,7 @@ def _wrap(angle: float, period: float) -> float:
     return (angle + period / 2) % period - period / 2
 
 
-@dataclass
-class Reading:
-    """The state vector by name."""
-
-    fields: dict[str, np.ndarray]
-
-    def __getitem__(self, key: str) -> np.ndarray:
-        return self.fields[key]
+Reading = dict[str, np.ndarray]  # the state vector by name (adapters/simpler.py's layout)
 
 
 @dataclass
@@ -70,7 +63,7 @@ class TaskExpert:
     grasp_yaw: float | None = None
 
     def read(self, state: np.ndarray) -> Reading:
-        return Reading({name: state[a:b] for name, a, b in self.layout})
+        return {name: state[a:b] for name, a, b in self.layout}
 
     def move(self, s: Reading, target: np.ndarray, grip: float, yaw_to: float | None = None) -> np.ndarray:
         action = np.zeros(7, dtype=np.float32)
