@@ -45,7 +45,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import EpisodeSpec
-from harness.episode import EpisodeOutcome, chain_fields, check_chunk, in_force
+from harness.episode import EpisodeOutcome, chain_fields, check_chunk, in_force, remote_policy
 from harness.errors import UsageError
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext, can_batch
@@ -63,7 +63,17 @@ def check_batching(policies: Sequence[Any], batch_envs: int) -> None:
     if batch_envs == 1:
         return
     for p in policies:
-        if not can_batch(p.policy):
+        try:
+            batchable = can_batch(p.policy)  # a remote policy asks its server
+        except ConnectionError as exc:
+            raise UsageError(f"policy {p.spec.name}: {exc}") from None
+        if not batchable and remote_policy(p.policy) is not None:
+            raise UsageError(
+                f"policy {p.spec.name}: the server at {p.policy.params.url} cannot decode batches (its "
+                "metadata has no act_batch: true; openpi servers and experts cannot); serve a decoder "
+                f"with dvla-harness serve, or run with --batch-envs 1 (not {batch_envs})"
+            )
+        if not batchable:
             raise UsageError(
                 f"policy {p.spec.name} cannot batch across environments (--batch-envs {batch_envs}): "
                 "it must declare act_batch(episodes, observations) and keep no per-episode state "
@@ -83,9 +93,10 @@ class _Slot:
     actions: deque = field(default_factory=deque)
     steps: int = 0
     chunks: int = 0
-    nfe: int = 0
+    nfe: int | None = 0  # None once a remote server did not report its passes
     tokens: int = 0
     policy_time: float = 0.0
+    server_time: float = 0.0  # remote policies: the server's own share of policy_time
     env_time: float = 0.0
     overhead: float = 0.0  # its share of the loop's own time (wall = policy + env + this)
     success: bool = False
@@ -99,7 +110,7 @@ class _Slot:
         self.failure, self.trace = f"{type(exc).__name__}: {exc}", traceback.format_exc()
         self.success, self.done = False, True
 
-    def outcome(self, batch_envs: int) -> EpisodeOutcome:
+    def outcome(self, batch_envs: int, remote: bool) -> EpisodeOutcome:
         return EpisodeOutcome(
             success=self.success,
             steps=self.steps,
@@ -114,8 +125,13 @@ class _Slot:
             traceback=self.trace,
             traces=self.traces,
             batch_envs=batch_envs,
+            transport_time_s=max(0.0, self.policy_time - self.server_time) if remote else None,
             **chain_fields(self.info),
         )
+
+    def charge(self, passes: int | None, server_time: float) -> None:
+        self.nfe = None if passes is None or self.nfe is None else self.nfe + passes
+        self.server_time += server_time
 
 
 def _shares(total: int, parts: int) -> list[int]:
@@ -131,6 +147,16 @@ class _Loop:
         self.envs, self.make_env, self.policy, self.nfe = envs, make_env, policy, nfe
         self.context_for, self.replan_every, self.record_traces = context_for, replan_every, traces
         self.finished: list[tuple[int, _Slot | EpisodeOutcome]] = []
+        self.remote = remote_policy(policy)
+
+    def passes(self) -> tuple[int | None, float]:
+        """Forward passes since the last take, here and (remote policies) on the server,
+        with the server's own policy time; passes None when the server reports none."""
+        local = self.nfe.take()
+        if self.remote is None:
+            return local, 0.0
+        totals = self.remote.take_remote()
+        return (None if totals.nfe is None else local + totals.nfe), totals.server_time_s
 
     def close_env(self, i: int) -> None:
         env, self.envs[i] = self.envs[i], None
@@ -158,13 +184,13 @@ class _Loop:
             t = clock()
             slot.env_time += t - t0
             slot.context = in_force(slot.context, slot.info)
-            self.nfe.take()
+            self.passes()
             try:
                 with self.nfe.counting():
                     self.policy.reset([slot.context])
             finally:
                 slot.policy_time += clock() - t
-                slot.nfe += self.nfe.take()
+                slot.charge(*self.passes())
         except KeyboardInterrupt:
             raise
         except BaseException as exc:
@@ -178,7 +204,7 @@ class _Loop:
 
     def act(self, slots: list[tuple[int, _Slot]]) -> float:
         """One act_batch call for `slots` (their chunks are used up); returns its time."""
-        self.nfe.take()
+        self.passes()
         t = clock()
         try:
             with self.nfe.counting():
@@ -192,20 +218,20 @@ class _Loop:
         except KeyboardInterrupt:
             raise
         except BaseException as exc:
-            elapsed, passes = clock() - t, self.nfe.take()
+            elapsed, (passes, server) = clock() - t, self.passes()
             for _, slot in slots:
                 slot.policy_time += elapsed / len(slots)
-                slot.nfe += passes
+                slot.charge(passes, server / len(slots))
                 if len(slots) == 1:
                     slot.fail(exc)
             if len(slots) > 1:  # which episode raised? ask each alone (the failed call stays charged)
                 elapsed += sum(self.act([served]) for served in slots)
             return elapsed
-        elapsed, passes = clock() - t, self.nfe.take()
+        elapsed, (passes, server) = clock() - t, self.passes()
         tokens = _shares(int(batch.action_tokens), len(slots))
         for row, (_, slot) in enumerate(slots):
             slot.policy_time += elapsed / len(slots)
-            slot.nfe += passes
+            slot.charge(passes, server / len(slots))
             slot.tokens += tokens[row]
             slot.chunks += 1
             if slot.traces is not None and batch.trace:
@@ -249,7 +275,7 @@ class _Loop:
         returns the policy's time."""
         slot.context = context
         slot.actions.clear()
-        self.nfe.take()
+        self.passes()
         t = clock()
         try:
             with self.nfe.counting():
@@ -260,7 +286,7 @@ class _Loop:
             slot.fail(exc)
         elapsed = clock() - t
         slot.policy_time += elapsed
-        slot.nfe += self.nfe.take()
+        slot.charge(*self.passes())
         return elapsed
 
 
@@ -330,7 +356,13 @@ def batch_events(
     def flush() -> Iterator[tuple[str, Any]]:
         while loop.finished:
             index, done = loop.finished.pop(0)
-            yield DONE, (index, done.outcome(batch_envs) if isinstance(done, _Slot) else done)
+            yield (
+                DONE,
+                (
+                    index,
+                    done.outcome(batch_envs, loop.remote is not None) if isinstance(done, _Slot) else done,
+                ),
+            )
 
     for i in range(batch_envs):
         yield from fill(i)

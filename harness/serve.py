@@ -9,12 +9,23 @@ decoders, and our `remote` policy can evaluate openpi-served models. The message
                                  "dvla/policy_time_s": float, "dvla/action_tokens": int,
                                  "server_timing": {"infer_ms": float}}
     {"dvla/reset": context}  -> {"dvla/ok": True, "dvla/nfe": ..., "dvla/policy_time_s": ...}
+    {"dvla/batch": {"episodes": [context, ...], "observations": [observation map, ...]}}
+                             -> {"actions": (K, chunk, action_dim) float32, "dvla/nfe": int,
+                                 "dvla/policy_time_s": float, "dvla/action_tokens": int,
+                                 "dvla/batch_size": K}
 
 An observation map holds the state under `state_key` (default "state"), camera images
 under their names, and the instruction under "prompt" (openpi's key). Our client resets
 every episode explicitly (the episode's task, instruction, index, seed); a plain openpi
 client never does, so the first call on a connection, and any call whose prompt differs
 from the instruction in force, starts an episode of the served task with that prompt.
+
+Batches (`--batch-envs K` on the client): when the served policy can decode several
+episodes in one call (`act_batch`, policies/base.py), the metadata says `"act_batch":
+true` and a `dvla/batch` message carries K observations with each one's episode context
+(the episodes are at different steps; openpi has no such message, so only our client
+sends it). One `act_batch` call serves them all; its NFE is the passes of that call (the
+client charges them to each of the K episodes, as the local batched loop does).
 
 Forward passes are counted with the runner's own hooks (harness/nfe.py) around each
 call and returned with it, with the policy's own time, so a remote row keeps honest NFE
@@ -40,12 +51,13 @@ import gymnasium as gym
 import numpy as np
 
 from harness.nfe import NFECounter
-from policies.base import EpisodeContext, Policy
+from policies.base import EpisodeContext, Policy, can_batch
 from policies.wire import MAX_MESSAGE_BYTES, WireError, pack, unpack
 
 log = logging.getLogger("dvla_harness.serve")
 PROTOCOL = "openpi-websocket/1"  # openpi's WebsocketPolicyServer message flow, msgpack-numpy
 RESET = "dvla/reset"
+BATCH = "dvla/batch"
 PROMPT = "prompt"
 
 
@@ -92,6 +104,7 @@ class Served:
                 "high": np.asarray(self.action_space.high, np.float32),
             },
             "reports_nfe": True,
+            "act_batch": can_batch(self.policy),
         }
 
     def context(self, values: dict[str, Any]) -> EpisodeContext:
@@ -163,9 +176,42 @@ class Session:
         self.instruction = context.instruction
         return {"dvla/ok": True, "dvla/nfe": nfe, "dvla/policy_time_s": seconds}
 
+    def batch(self, values: Any) -> dict[str, Any]:
+        """K episodes' observations in one act_batch call (the client's --batch-envs)."""
+        if not self.served.metadata["act_batch"]:
+            raise WireError(f"{self.served.name} cannot decode a batch (no act_batch); send one observation")
+        if not isinstance(values, dict):
+            raise WireError(f"{BATCH} must be a map with 'episodes' and 'observations'")
+        episodes, observations = values.get("episodes"), values.get("observations")
+        if not isinstance(episodes, list) or not isinstance(observations, list):
+            raise WireError(f"{BATCH} needs lists 'episodes' and 'observations'")
+        if not observations or len(episodes) != len(observations):
+            raise WireError(
+                f"{BATCH}: {len(episodes)} episodes and {len(observations)} observations (one each, at least one)"
+            )
+        for value in episodes + observations:
+            if not isinstance(value, dict):
+                raise WireError(f"{BATCH}: every episode and observation must be a map")
+        contexts = [self.served.context(e) for e in episodes]
+        obs = [self.served.observation(o) for o in observations]
+        batch, nfe, seconds = self.served.call(lambda: self.served.policy.act_batch(contexts, obs))  # type: ignore[attr-defined]
+        actions = np.asarray(batch.actions, dtype=np.float32)
+        if actions.ndim != 3 or actions.shape[0] != len(obs) or not np.isfinite(actions).all():
+            raise RuntimeError(f"the served policy returned actions of shape {actions.shape} (or not finite)")
+        return {
+            "actions": actions,
+            "dvla/nfe": nfe,
+            "dvla/policy_time_s": seconds,
+            "dvla/action_tokens": int(batch.action_tokens),
+            "dvla/batch_size": len(obs),
+            "server_timing": {"infer_ms": 1000 * seconds},
+        }
+
     def handle(self, message: Any) -> dict[str, Any]:
         if not isinstance(message, dict):
             raise WireError(f"a message must be a map, got {type(message).__name__}")
+        if BATCH in message:
+            return self.batch(message[BATCH])
         if RESET in message:
             if not isinstance(message[RESET], dict):
                 raise WireError(f"{RESET} must be a map of the episode's context")

@@ -19,6 +19,12 @@ with the disconnect named, and the next episode connects again (`retries` attemp
 doubling back-off). Before anything runs, `check_spaces` compares the server's metadata
 (when it describes its observation and action) with the suite's, so a mismatch is a
 usage error (exit 2) with nothing written.
+
+Batches: with `--batch-envs K`, a server whose metadata says `"act_batch": true` (a
+dvla-harness server serving a decoder) gets the K observations, each with its episode's
+context, in one `dvla/batch` message and decodes them in one call; its NFE is charged to
+each of the K episodes and its policy time shared among them, as the local batched loop
+does. Against any other server `--batch-envs K > 1` is refused before anything runs.
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.registry import PolicySpec, param
 
 RESET = "dvla/reset"
+BATCH = "dvla/batch"
 
 
 @dataclass(frozen=True)
@@ -154,7 +161,8 @@ class RemotePolicy:
     def check_spaces(self, observation_space: gym.Space, action_space: gym.Space) -> None:
         """Refuse a server whose metadata describes another observation or action."""
         try:
-            self._connect()
+            if self._ws is None:
+                self._connect()
         except ConnectionError as exc:
             raise ValueError(str(exc)) from None
         described_obs = self.metadata.get("observation") or {}
@@ -180,52 +188,90 @@ class RemotePolicy:
                 f"{int(np.prod(action_space.shape))}-D"
             )
 
+    @property
+    def act_batch(self) -> Any:
+        """`act_batch` when the server decodes batches, else None (so `can_batch` says no):
+        asks the server (connects) the first time."""
+        if self._ws is None and not self.metadata:
+            self._connect()
+        return self._act_batch if self.metadata.get("act_batch") is True else None
+
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         if len(episodes) != 1:
-            raise ValueError("the remote policy serves one episode per call (no act_batch)")
+            raise ValueError("the remote policy starts one episode per reset call")
         self._contexts = episodes
         if self._ws is None:
             self._connect()
         if self.metadata.get("server") == "dvla-harness":  # openpi servers have no reset
-            ep = episodes[0]
-            self._call(
-                {
-                    RESET: {
-                        "task": ep.task,
-                        "instruction": ep.instruction,
-                        "episode_index": ep.episode_index,
-                        "seed": ep.seed,
-                        "init_state_id": ep.init_state_id,
-                        "max_steps": ep.max_steps,
-                        "subtask_index": ep.subtask_index,
-                    }
-                }
-            )
+            self._call({RESET: _context_map(episodes[0])})
 
-    def act(self, observations: Sequence[Observation]) -> ChunkBatch:
+    def _observation(self, obs: Observation) -> dict[str, Any]:
+        if isinstance(obs, dict):
+            message = {self.params.state_key: np.asarray(obs["state"], np.float32)}
+            return message | {k: np.asarray(v) for k, v in obs.items() if k != "state"}
+        return {self.params.state_key: np.asarray(obs, np.float32)}
+
+    def _actions(self, reply: dict[str, Any], rows: int | None) -> np.ndarray:
+        """The reply's actions as (rows, chunk, action_dim); rows None: one episode, whose
+        reply may hold one action or one chunk."""
         from policies.wire import WireError
 
-        obs = observations[0]
-        message: dict[str, Any] = {self.params.prompt_key: self._contexts[0].instruction}
-        if isinstance(obs, dict):
-            message |= {self.params.state_key: np.asarray(obs["state"], np.float32)}
-            message |= {k: np.asarray(v) for k, v in obs.items() if k != "state"}
-        else:
-            message[self.params.state_key] = np.asarray(obs, np.float32)
-        reply = self._call(message)
         if self.params.actions_key not in reply:
             raise WireError(f"the reply has no {self.params.actions_key!r} (keys: {sorted(map(str, reply))})")
         actions = np.asarray(reply[self.params.actions_key], dtype=np.float64)
-        if actions.ndim == 1:
-            actions = actions[None]
-        if actions.ndim != 2 or not np.isfinite(actions).all():
-            raise WireError(f"actions of shape {actions.shape} (or not finite); expected (chunk, action_dim)")
-        return ChunkBatch(actions=actions[None], action_tokens=int(reply.get("dvla/action_tokens", 0)))
+        if rows is None:
+            actions = actions[None] if actions.ndim == 1 else actions
+            if actions.ndim != 2 or not np.isfinite(actions).all():
+                raise WireError(
+                    f"actions of shape {actions.shape} (or not finite); expected (chunk, action_dim)"
+                )
+            return actions[None]
+        if actions.ndim != 3 or actions.shape[0] != rows or not np.isfinite(actions).all():
+            raise WireError(
+                f"a batch of {rows} got actions of shape {actions.shape} (or not finite); "
+                f"expected ({rows}, chunk, action_dim)"
+            )
+        return actions
+
+    def act(self, observations: Sequence[Observation]) -> ChunkBatch:
+        message = {self.params.prompt_key: self._contexts[0].instruction} | self._observation(observations[0])
+        reply = self._call(message)
+        return ChunkBatch(
+            actions=self._actions(reply, None), action_tokens=int(reply.get("dvla/action_tokens", 0))
+        )
+
+    def _act_batch(
+        self, episodes: Sequence[EpisodeContext], observations: Sequence[Observation]
+    ) -> ChunkBatch:
+        batch = {
+            "episodes": [_context_map(ep) for ep in episodes],
+            "observations": [
+                {self.params.prompt_key: ep.instruction} | self._observation(obs)
+                for ep, obs in zip(episodes, observations, strict=True)
+            ],
+        }
+        reply = self._call({BATCH: batch})
+        return ChunkBatch(
+            actions=self._actions(reply, len(episodes)), action_tokens=int(reply.get("dvla/action_tokens", 0))
+        )
 
     def take_remote(self) -> RemoteTotals:
         """The server's count since the last take (the runner reads it once per episode)."""
         totals, self._totals = self._totals, RemoteTotals()
         return totals
+
+
+def _context_map(ep: EpisodeContext) -> dict[str, Any]:
+    """What a dvla-harness server needs of an episode's context (its reset message)."""
+    return {
+        "task": ep.task,
+        "instruction": ep.instruction,
+        "episode_index": ep.episode_index,
+        "seed": ep.seed,
+        "init_state_id": ep.init_state_id,
+        "max_steps": ep.max_steps,
+        "subtask_index": ep.subtask_index,
+    }
 
 
 REMOTE = PolicySpec(

@@ -111,6 +111,34 @@ def test_remote_equals_local_through_dvla_harness_serve(cli, tmp_path, serve_pro
     assert (remote["transport_time_s"] < remote["policy_time_s"]).all()
 
 
+def test_batched_remote_equals_batched_local_and_charges_each_episode_the_servers_passes(
+    cli, tmp_path, serve_process
+):
+    """--batch-envs 2: one dvla/batch message per lockstep call, the server's passes charged
+    to each episode of the call, as the local batched loop charges its own."""
+    url = serve_process("--policy", "fast_dvla", "--suite", "metaworld/mt10", "--task", "reach-v3")
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", SUITE, "--policy", f"remote:url={url}", "--policy", "fast_dvla",
+        "--batch-envs", "2", "--episodes-per-task", "3", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    rows = pd.read_parquet(out / "episodes.parquet").set_index(["policy", "episode_index"])
+    remote, local = rows.loc["remote"], rows.loc["fast_dvla"]
+    assert (remote["batch_envs"] == 2).all() and (local["batch_envs"] == 2).all()
+    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total"):
+        assert list(remote[column]) == list(local[column]), column
+    assert (remote["nfe_total"] > 0).all()
+    assert (remote["transport_time_s"] >= 0).all() and local["transport_time_s"].isna().all()
+
+
+def test_batching_against_a_server_that_cannot_batch_exits_2_before_anything_runs(cli, tmp_path, servers):
+    port = servers(openpi_like(lambda c, n, m: {"actions": np.zeros((4, 4), np.float32)}))
+    code, err, out = run(cli, tmp_path, f"ws://127.0.0.1:{port}", "--batch-envs", "2")
+    assert code == 2 and "cannot decode batches" in err and "--batch-envs 1" in err
+    assert not out.exists()
+
+
 def test_a_server_that_drops_mid_episode_fails_that_episode_and_the_next_reconnects(cli, tmp_path, servers):
     def reply(connection: int, call: int, message: dict) -> dict | None:
         if connection == 1 and call == 3:

@@ -114,6 +114,62 @@ def test_bad_messages_get_an_error_text_and_the_connection_stays_open(server, me
         assert unpack(ws.recv())["actions"].shape[-1] == 4  # still serving
 
 
+def test_a_batch_message_decodes_each_episode_as_alone_in_one_call(server):
+    from websockets.sync.client import connect
+
+    served, port = server("fast_dvla")
+    assert served.metadata["act_batch"] is True
+    observations = [_observation(0), _observation(1)]
+    episodes = [{"instruction": served.instruction, "episode_index": i} for i in range(2)]
+    with connect(f"ws://127.0.0.1:{port}", compression=None) as ws:
+        unpack(ws.recv())
+        batch = {"episodes": episodes, "observations": [{"state": o} for o in observations]}
+        ws.send(pack({"dvla/batch": batch}))
+        reply = unpack(ws.recv())
+    assert reply["actions"].shape[0] == 2 and reply["dvla/batch_size"] == 2
+    alone = _served("fast_dvla").policy  # each row equals that observation decoded alone
+    for i, obs in enumerate(observations):
+        context = served.context(episodes[i])
+        alone.reset([context])
+        np.testing.assert_allclose(alone.act([obs]).actions[0], reply["actions"][i], atol=1e-6)
+    assert 0 < reply["dvla/nfe"] <= 2 * 12  # one pass per step serves both rows
+
+
+@pytest.mark.parametrize(
+    ("policy", "batch", "needle"),
+    [
+        (
+            "random",
+            {"episodes": [{}], "observations": [{"state": np.zeros(39, np.float32)}]},
+            "cannot decode a batch",
+        ),
+        (
+            "fast_dvla",
+            {"episodes": [{}, {}], "observations": [{"state": np.zeros(39, np.float32)}]},
+            "2 episodes and 1 observations",
+        ),
+        ("fast_dvla", {"episodes": [], "observations": []}, "at least one"),
+        ("fast_dvla", [1, 2], "must be a map"),
+        (
+            "fast_dvla",
+            {"episodes": [{}], "observations": [{"state": np.zeros(5, np.float32)}]},
+            "has shape [5]",
+        ),
+    ],
+)
+def test_bad_batches_get_an_error_text_and_the_server_keeps_serving(server, policy, batch, needle):
+    from websockets.sync.client import connect
+
+    _, port = server(policy)
+    with connect(f"ws://127.0.0.1:{port}", compression=None) as ws:
+        unpack(ws.recv())
+        ws.send(pack({"dvla/batch": batch}))
+        reply = ws.recv()
+        assert isinstance(reply, str) and needle in reply
+        ws.send(pack({"state": np.zeros(39, np.float32)}))
+        assert unpack(ws.recv())["actions"].shape[-1] == 4
+
+
 def test_the_codec_is_openpis_and_refuses_what_pickle_would_need():
     from openpi_client import msgpack_numpy
 
