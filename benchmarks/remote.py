@@ -106,8 +106,14 @@ def main() -> None:
     for name, value in result.items():
         if name not in ("machine", "benchmark"):
             print(f"{name:32}{value}")
-    ok = result["transport_ms_per_call"] <= TARGET_MS and all(same.values())
-    print(f"target: transport <= {TARGET_MS} ms per call and identical outcomes: {'PASS' if ok else 'FAIL'}")
+    if args.batch_envs == 1:
+        ok = result["transport_ms_per_call"] <= TARGET_MS and all(same.values())
+        verdict = "PASS" if ok else "FAIL"
+        print(f"target: transport <= {TARGET_MS} ms per call and identical outcomes: {verdict}")
+    else:  # the target is per call, unbatched; a batch's figure is per observation served
+        print(
+            f"identical outcomes: {'PASS' if all(same.values()) else 'FAIL'} (the transport target is judged unbatched)"
+        )
     path = Path(
         args.json
         or f"benchmarks/results/remote{'' if args.batch_envs == 1 else f'-batch{args.batch_envs}'}.json"
