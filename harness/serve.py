@@ -50,6 +50,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from harness.coalesce import Coalescer
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext, Policy, can_batch
 from policies.wire import MAX_MESSAGE_BYTES, WireError, pack, unpack
@@ -76,11 +77,21 @@ class Served:
     action_space: gym.spaces.Box
     state_key: str = "state"
     token: str | None = None
+    max_batch: int = 1  # > 1: coalesce concurrent clients' calls (harness/coalesce.py)
+    batch_wait_s: float = 0.005
     counter: NFECounter = field(init=False)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    coalescer: Coalescer | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         self.counter = NFECounter(self.policy)
+        if self.max_batch > 1:
+            if not can_batch(self.policy):
+                raise ValueError(
+                    f"{self.name} cannot decode a batch (no act_batch): serve it with --max-batch 1"
+                )
+            act_batch = self.policy.act_batch  # type: ignore[attr-defined]
+            self.coalescer = Coalescer(self.call, act_batch, self.max_batch, self.batch_wait_s)
 
     @cached_property
     def metadata(self) -> dict[str, Any]:
@@ -105,6 +116,7 @@ class Served:
             },
             "reports_nfe": True,
             "act_batch": can_batch(self.policy),
+            "max_batch": self.max_batch,
         }
 
     def context(self, values: dict[str, Any]) -> EpisodeContext:
@@ -168,13 +180,48 @@ class Session:
 
     def __init__(self, served: Served):
         self.served = served
-        self.instruction: str | None = None
+        self.context: EpisodeContext | None = None
 
     def reset(self, values: dict[str, Any]) -> dict[str, Any]:
         context = self.served.context(values)
         _, nfe, seconds = self.served.call(lambda: self.served.policy.reset([context]))
-        self.instruction = context.instruction
+        self.context = context
         return {"dvla/ok": True, "dvla/nfe": nfe, "dvla/policy_time_s": seconds}
+
+    def decode(self, contexts: list[EpisodeContext], observations: list[Any], single: bool) -> dict[str, Any]:
+        """Chunks for the rows: through the coalescer when the server batches clients
+        together, else in one call of this connection's own."""
+        served = self.served
+        extra: dict[str, Any] = {}
+        if served.coalescer is not None:
+            request = served.coalescer.submit(contexts, observations, client=id(self))
+            actions, nfe, seconds, tokens = (
+                request.actions,
+                request.nfe,
+                request.policy_time_s,
+                request.action_tokens,
+            )
+            extra = {"dvla/queue_time_s": request.queue_time_s, "dvla/batch_size": request.call_rows}
+        else:
+            if single:
+                batch, nfe, seconds = served.call(lambda: served.policy.act(observations))
+            else:
+                act_batch = served.policy.act_batch  # type: ignore[attr-defined]
+                batch, nfe, seconds = served.call(lambda: act_batch(contexts, observations))
+                extra = {"dvla/batch_size": len(observations)}
+            actions, tokens = np.asarray(batch.actions, dtype=np.float32), int(batch.action_tokens)
+            if actions.ndim != 3 or actions.shape[0] != len(observations) or not np.isfinite(actions).all():
+                raise RuntimeError(
+                    f"the served policy returned actions of shape {actions.shape} (or not finite)"
+                )
+        return {
+            "actions": actions[0] if single else actions,
+            "dvla/nfe": nfe,
+            "dvla/policy_time_s": seconds,
+            "dvla/action_tokens": tokens,
+            "server_timing": {"infer_ms": 1000 * seconds},
+            **extra,
+        }
 
     def batch(self, values: Any) -> dict[str, Any]:
         """K episodes' observations in one act_batch call (the client's --batch-envs)."""
@@ -193,19 +240,7 @@ class Session:
             if not isinstance(value, dict):
                 raise WireError(f"{BATCH}: every episode and observation must be a map")
         contexts = [self.served.context(e) for e in episodes]
-        obs = [self.served.observation(o) for o in observations]
-        batch, nfe, seconds = self.served.call(lambda: self.served.policy.act_batch(contexts, obs))  # type: ignore[attr-defined]
-        actions = np.asarray(batch.actions, dtype=np.float32)
-        if actions.ndim != 3 or actions.shape[0] != len(obs) or not np.isfinite(actions).all():
-            raise RuntimeError(f"the served policy returned actions of shape {actions.shape} (or not finite)")
-        return {
-            "actions": actions,
-            "dvla/nfe": nfe,
-            "dvla/policy_time_s": seconds,
-            "dvla/action_tokens": int(batch.action_tokens),
-            "dvla/batch_size": len(obs),
-            "server_timing": {"infer_ms": 1000 * seconds},
-        }
+        return self.decode(contexts, [self.served.observation(o) for o in observations], single=False)
 
     def handle(self, message: Any) -> dict[str, Any]:
         if not isinstance(message, dict):
@@ -219,24 +254,14 @@ class Session:
         prompt = message.get(PROMPT)
         if prompt is not None and not isinstance(prompt, str):
             raise WireError(f"{PROMPT!r} must be text")
-        extra: dict[str, Any] = {}
-        if self.instruction is None or (prompt is not None and prompt != self.instruction):
+        started: dict[str, Any] = {}
+        if self.context is None or (prompt is not None and prompt != self.context.instruction):
             # a client without resets (openpi's): a new prompt is a new episode
             started = self.reset({"instruction": prompt} if prompt is not None else {})
-            extra = {"dvla/reset_nfe": started["dvla/nfe"]}
         observation = self.served.observation(message)
-        batch, nfe, seconds = self.served.call(lambda: self.served.policy.act([observation]))
-        actions = np.asarray(batch.actions, dtype=np.float32)
-        if actions.ndim != 3 or actions.shape[0] != 1 or not np.isfinite(actions).all():
-            raise RuntimeError(f"the served policy returned actions of shape {actions.shape} (or not finite)")
-        return {
-            "actions": actions[0],
-            "dvla/nfe": nfe,
-            "dvla/policy_time_s": seconds,
-            "dvla/action_tokens": int(batch.action_tokens),
-            "server_timing": {"infer_ms": 1000 * seconds},
-            **extra,
-        }
+        assert self.context is not None
+        reply = self.decode([self.context], [observation], single=True)
+        return reply | ({"dvla/reset_nfe": started["dvla/nfe"]} if started else {})
 
 
 def _authorised(served: Served, request: Any) -> bool:
@@ -248,7 +273,18 @@ def _authorised(served: Served, request: Any) -> bool:
 
 def handler(served: Served) -> Callable[[Any], None]:
     def handle(connection: Any) -> None:
+        from websockets.exceptions import ConnectionClosed
+
         session = Session(served)
+        try:
+            serve_connection(connection, session)
+        except ConnectionClosed:  # a client process that exited without closing: not an error
+            log.info("%s went away without closing", connection.remote_address)
+        finally:
+            if served.coalescer is not None:
+                served.coalescer.gone(id(session))
+
+    def serve_connection(connection: Any, session: Session) -> None:
         connection.send(pack(served.metadata))
         for data in connection:
             try:

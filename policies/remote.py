@@ -146,7 +146,9 @@ class RemotePolicy:
             raise WireError(f"the server replied with {type(reply).__name__}, not a map")
         nfe = reply.get("dvla/nfe")
         self._totals.nfe = None if nfe is None or self._totals.nfe is None else self._totals.nfe + int(nfe)
+        # a batching server's queue wait is the server's time too: transport stays transport
         self._totals.server_time_s += float(reply.get("dvla/policy_time_s", 0.0))
+        self._totals.server_time_s += float(reply.get("dvla/queue_time_s", 0.0))
         return reply
 
     def close(self) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -91,9 +92,11 @@ def serve_process():
         assert match, line + proc.stdout.read() if proc.poll() is not None else line
         return match.group(1)
 
+    start.procs = procs  # type: ignore[attr-defined]
     yield start
     for proc in procs:
-        proc.terminate()
+        if proc.poll() is None:
+            proc.terminate()
         proc.wait(timeout=30)
 
 
@@ -130,6 +133,37 @@ def test_batched_remote_equals_batched_local_and_charges_each_episode_the_server
         assert list(remote[column]) == list(local[column]), column
     assert (remote["nfe_total"] > 0).all()
     assert (remote["transport_time_s"] >= 0).all() and local["transport_time_s"].isna().all()
+
+
+def test_a_shared_server_batches_two_workers_calls_and_their_rows_equal_local_ones(
+    cli, tmp_path, serve_process
+):
+    """serve --max-batch: two env workers' calls decoded together (mean batch > 1), each
+    episode's outcome and NFE those of the same decoder run locally and alone."""
+    url = serve_process("--policy", "bidirectional", "--suite", "metaworld/mt10", "--max-batch", "4")
+    tasks = ("--tasks", "reach-v3,push-v3", "--episodes-per-task", "3", "--quiet")
+    remote_out, local_out = tmp_path / "remote", tmp_path / "local"
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt10", "--policy", f"remote:url={url}", "--workers", "2",
+        *tasks, "--out", str(remote_out),
+    )  # fmt: skip
+    assert code == 0, err
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt10", "--policy", "bidirectional", *tasks, "--out", str(local_out)
+    )
+    assert code == 0, err
+    key = ["task", "episode_index"]
+    remote = pd.read_parquet(remote_out / "episodes.parquet").set_index(key).sort_index()
+    local = pd.read_parquet(local_out / "episodes.parquet").set_index(key).sort_index()
+    assert remote["worker_id"].nunique() == 2
+    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total"):
+        assert list(remote[column]) == list(local[column]), column
+    assert (remote["transport_time_s"] >= 0).all()
+    server = serve_process.procs[0]
+    server.send_signal(signal.SIGINT)
+    text = server.communicate(timeout=30)[0]
+    mean = float(re.search(r"mean batch ([0-9.]+)", text).group(1))
+    assert mean > 1.0, text  # the two workers' calls did share decodes
 
 
 def test_batching_against_a_server_that_cannot_batch_exits_2_before_anything_runs(cli, tmp_path, servers):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from harness.device import DEFAULT_DEVICE, DEVICES
 from harness.errors import UsageError
 
 EPILOG = """\
@@ -11,6 +12,9 @@ examples:
   dvla-harness serve --policy fast_dvla --suite metaworld/mt10 --port 8000
   dvla-harness serve --policy scripted --suite metaworld/mt1/reach-v3 --token SECRET
   dvla-harness serve --policy bidirectional:checkpoint=my.safetensors --suite metaworld/mt10 --host 0.0.0.0
+  # one policy process for many env workers: their calls share one batched decode
+  dvla-harness serve --policy fast_dvla --suite metaworld/mt10 --max-batch 8 --device cuda &
+  dvla-harness run --suite metaworld/mt10 --policy remote:url=ws://127.0.0.1:8000 --workers 8
 
 Any openpi client can then connect (openpi-client's WebsocketClientPolicy, with
 api_key=SECRET when --token is set), read the server's metadata (the observation it
@@ -18,7 +22,14 @@ takes, the action it returns) and call infer({"state": ..., "prompt": ...}); eac
 holds "actions" (chunk x action dim) and the forward passes the call made ("dvla/nfe",
 counted by the harness's own hooks) with the policy's time. The suite (and --task) fix
 the observation and action spaces and the default episode; the simulator is built once
-to read them. Binds 127.0.0.1 unless --host says otherwise. See docs/remote-policies.md.
+to read them. Binds 127.0.0.1 unless --host says otherwise.
+
+--max-batch B (policies with act_batch: the five decoders) makes the server a shared
+policy process: calls from different clients that arrive together are decoded in one
+act_batch call of up to B observations, waiting at most --batch-wait-ms for more while
+another active client (one that asked within 2 s) could still send one. Each reply
+carries the call's passes (charged to each episode it served), its policy time and the
+time the call waited in the queue. See docs/remote-policies.md.
 """
 
 
@@ -39,6 +50,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 picks a free one)")
     p.add_argument("--token", help="require clients to send 'Authorization: Api-Key TOKEN'")
     p.add_argument("--state-key", default="state", help="the observation key of the state vector")
+    p.add_argument(
+        "--max-batch",
+        type=int,
+        default=1,
+        metavar="B",
+        help="decode concurrent clients' calls together, up to B observations a call (default 1: one at a time)",
+    )
+    p.add_argument(
+        "--batch-wait-ms",
+        type=float,
+        default=5.0,
+        metavar="MS",
+        help="with --max-batch: longest wait for more calls once one is waiting (default 5)",
+    )
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default=DEFAULT_DEVICE,
+        help="where a model policy decodes: cpu (default), cuda (refused without a GPU), auto (as run's --device)",
+    )
     p.set_defaults(func=cmd_serve)
 
 
@@ -59,6 +90,9 @@ def build_served(args: argparse.Namespace):
     finally:
         env.close()
     p = resolved.policies[0]
+    from harness.device import apply_device
+
+    apply_device(resolved.policies, getattr(args, "device", DEFAULT_DEVICE))
     return Served(
         policy=p.policy,
         name=p.spec.name,
@@ -71,6 +105,8 @@ def build_served(args: argparse.Namespace):
         action_space=action_space,
         state_key=args.state_key,
         token=args.token,
+        max_batch=getattr(args, "max_batch", 1),
+        batch_wait_s=getattr(args, "batch_wait_ms", 5.0) / 1000,
     )
 
 
@@ -83,7 +119,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise UsageError("serve needs websockets and msgpack: pip install 'dvla-harness[remote]'")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port must be 0..65535, got {args.port}")
-    served = build_served(args)
+    if args.max_batch < 1:
+        raise UsageError(f"--max-batch must be at least 1, got {args.max_batch}; 1 serves one call at a time")
+    if not 0 <= args.batch_wait_ms <= 10_000:
+        raise UsageError(f"--batch-wait-ms must be 0..10000, got {args.batch_wait_ms}")
+    try:
+        served = build_served(args)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     from harness.serve import make_server
 
     try:
@@ -94,12 +137,20 @@ def cmd_serve(args: argparse.Namespace) -> int:
     console.print(
         f"serving {served.name} ({served.suite}, task {served.task}) on ws://{host}:{port}"
         + (" (token required)" if served.token else "")
+        + (f" (batching up to {served.max_batch})" if served.max_batch > 1 else "")
         + "; Ctrl-C stops"
     )
     try:
         server.serve_forever()
     except KeyboardInterrupt:
-        console.print("stopped")
+        coalescer = served.coalescer
+        if coalescer is not None and coalescer.calls:
+            console.print(
+                f"stopped: {coalescer.rows} observations in {coalescer.calls} calls "
+                f"(mean batch {coalescer.rows / coalescer.calls:.2f})"
+            )
+        else:
+            console.print("stopped")
     finally:
         server.shutdown()
     return 0
