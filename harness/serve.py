@@ -26,6 +26,9 @@ true` and a `dvla/batch` message carries K observations with each one's episode 
 (the episodes are at different steps; openpi has no such message, so only our client
 sends it). One `act_batch` call serves them all; its NFE is the passes of that call (the
 client charges them to each of the K episodes, as the local batched loop does).
+With `--max-batch B` the server batches across clients too (harness/coalesce.py): calls
+that arrive together, from any connections, share one act_batch call, and the replies
+add the queue wait ("dvla/queue_time_s") and the decode's size ("dvla/batch_size").
 
 Forward passes are counted with the runner's own hooks (harness/nfe.py) around each
 call and returned with it, with the policy's own time, so a remote row keeps honest NFE
