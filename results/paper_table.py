@@ -28,6 +28,7 @@ from results.published import (
     CALVIN,
     LIBERO,
     PRIVILEGED,
+    SIMPLERENV,
     check_comparable,
     libero_column,
     privileged_label,
@@ -59,6 +60,7 @@ class PaperTable:
     baseline: str
     warnings: tuple[str, ...]
     chain_boards: tuple[Leaderboard, ...] = ()
+    variant_boards: tuple[Leaderboard, ...] = ()  # SimplerEnv-like suites: their own layout
 
 
 def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
@@ -68,7 +70,8 @@ def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
     is the mean over those suites likewise, so each suite counts once."""
     every = leaderboards(runs, baseline)
     chain_boards = tuple(b for b in every if b.is_chain)  # CALVIN's layout: not averaged with LIBERO's
-    boards = [b for b in every if not b.is_chain]
+    variant_boards = tuple(b for b in every if is_simpler(b))  # SimplerEnv's: canonical vs aggregated
+    boards = [b for b in every if not b.is_chain and not is_simpler(b)]
     baseline = baseline or DEFAULT_BASELINE
     keys = list(dict.fromkeys((e.policy_config_id, e.machine) for b in boards for e in b.entries))
     out = []
@@ -91,8 +94,18 @@ def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
         out.append(PaperRow(first.label, cid, machine, success, average, tokens, speedup, note, runs_of))
     warnings = [f"{b.suite}: {w}" for b in every for w in b.warnings]
     return PaperTable(
-        tuple(b.suite for b in boards), tuple(out), baseline, tuple(dict.fromkeys(warnings)), chain_boards
+        tuple(b.suite for b in boards),
+        tuple(out),
+        baseline,
+        tuple(dict.fromkeys(warnings)),
+        chain_boards,
+        variant_boards,
     )
+
+
+def is_simpler(board: Leaderboard) -> bool:
+    """A SimplerEnv-like suite (simpler/*, or any run with variant rows)."""
+    return board.suite.lower().startswith("simpler/") or any(e.variants is not None for e in board.entries)
 
 
 def _suite_mean_speedup(entries: dict[str, Entry]) -> tuple[float | None, str]:
@@ -181,10 +194,26 @@ def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
         else:
             pub_headers = ["method", *table.columns, "tokens/s", "speedup", "source"]
             blocks.append(Block(f"published: {table.name}", pub_headers, pub_rows, (note,), 0))
-    return blocks + [calvin_block(board, pt.baseline) for board in pt.chain_boards]
+    return (
+        blocks
+        + [calvin_block(board, pt.baseline) for board in pt.chain_boards]
+        + [simpler_block(board, pt.baseline) for board in pt.variant_boards]
+    )
 
 
 NOT_CALVIN = "CALVIN-like: CALVIN's protocol on LIBERO scenes, not CALVIN's scene or tasks (docs/chains.md)"
+
+
+def _entry_row(e: Entry, machines: bool, cells: Sequence[Cell]) -> list[Cell]:
+    """A measured row of a benchmark's own layout: label, the layout's cells, tokens/s,
+    speedup and where it was measured."""
+    return [
+        Cell(e.label + (f" @ {e.machine}" if machines else ""), e.label),
+        *cells,
+        number_cell(e.tokens_per_s, ".0f"),
+        Cell(f"{e.speedup:.2f}x", e.speedup) if e.speedup is not None else Cell(e.speedup_note, None),
+        Cell("measured: " + ", ".join(e.runs), "measured"),
+    ]
 
 
 def calvin_block(board: Leaderboard, baseline: str) -> Block:
@@ -197,15 +226,9 @@ def calvin_block(board: Leaderboard, baseline: str) -> Block:
     machines = len(board.machines) > 1
     for e in board.entries:
         assert e.chain is not None
+        reach = [Cell(e.chain.reach_text(k), finite_or_none(e.chain.reach(k))) for k in range(1, 6)]
         rows.append(
-            [
-                Cell(e.label + (f" @ {e.machine}" if machines else ""), e.label),
-                *(Cell(e.chain.reach_text(k), finite_or_none(e.chain.reach(k))) for k in range(1, 6)),
-                Cell(e.chain.length_text(), finite_or_none(e.chain.avg_len)),
-                number_cell(e.tokens_per_s, ".0f"),
-                Cell(f"{e.speedup:.2f}x", e.speedup) if e.speedup is not None else Cell(e.speedup_note, None),
-                Cell("measured: " + ", ".join(e.runs), "measured"),
-            ]
+            _entry_row(e, machines, [*reach, Cell(e.chain.length_text(), finite_or_none(e.chain.avg_len))])
         )
     label = f"published: {CALVIN.source}"
     published = [
@@ -225,6 +248,64 @@ def calvin_block(board: Leaderboard, baseline: str) -> Block:
         f"{CALVIN.name}, {label}; {CALVIN.note}; not measured here, and not the same benchmark",
     )
     return Block(f"{board.suite} (CALVIN layout)", headers, [*rows, *published], notes, len(rows))
+
+
+NOT_SIMPLERENV = (
+    "SimplerEnv-like: SimplerEnv's protocol (visual matching, variant aggregation) on ManiSkill3 "
+    "tasks, not SimplerEnv's scenes, real-to-sim assets or robots (docs/simpler.md)"
+)
+
+
+def simpler_block(board: Leaderboard, baseline: str) -> Block:
+    """One SimplerEnv-like suite as SimplerEnv reports it: the canonical scene ("visual
+    matching") and the mean over variants ("variant aggregation") side by side, never
+    pooled into one rate, with the published SimplerEnv row beneath, labelled as a
+    different benchmark (its split is not even stated)."""
+    headers = [
+        "method",
+        "visual matching (canonical, Wilson 95%)",
+        "variant aggregation (bootstrap 95%)",
+        "published Avg",
+        "tokens/s",
+        f"speedup vs {baseline}",
+        "source",
+    ]
+    rows = []
+    machines = len(board.machines) > 1
+    for e in board.entries:
+        canonical = e.variants.canonical if e.variants is not None else e.overall
+        aggregated = (
+            Cell(e.variants.aggregated_text(), finite_or_none(e.variants.aggregated))
+            if e.variants is not None
+            else Cell("-", None)
+        )
+        rows.append(
+            _entry_row(
+                e,
+                machines,
+                [Cell(canonical.text(), finite_or_none(canonical.rate)), aggregated, Cell("-", None)],
+            )
+        )
+    label = f"published: {SIMPLERENV.source}"
+    published = [
+        [
+            Cell(f"{p.method} (published, SimplerEnv: not comparable)", p.method),
+            Cell("-", None),
+            Cell("-", None),
+            Cell(SIMPLERENV.text("Avg", p.values.get("Avg")), p.values.get("Avg")),
+            Cell(SIMPLERENV.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
+            Cell("-", None),
+            Cell(label, label),
+        ]
+        for p in SIMPLERENV.rows
+    ]
+    notes = [f"{board.suite}: {NOT_SIMPLERENV}"]
+    if board.ranking is not None:
+        notes.append(board.ranking.text())
+    notes.append(
+        f"{SIMPLERENV.name}, {label}; {SIMPLERENV.note}; not measured here, and not the same benchmark"
+    )
+    return Block(f"{board.suite} (SimplerEnv layout)", headers, [*rows, *published], tuple(notes), len(rows))
 
 
 def blocks_markdown(blocks: Sequence[Block]) -> str:

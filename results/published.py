@@ -177,11 +177,8 @@ def check_comparable(suites: list[str] | tuple[str, ...], allow_privileged: bool
 
 
 def tables_for(suites: list[str]) -> list[PublishedTable]:
-    """The published tables worth showing beside these measured suites (LIBERO always).
-    CALVIN's rows go beneath each instruction-chain suite in its own layout instead
-    (results.paper_table.calvin_block)."""
-    names = " ".join(suites).lower()
-    out = [LIBERO]
-    if "simpler" in names:
-        out.append(SIMPLERENV)
-    return out
+    """The published tables worth showing beside these measured suites (LIBERO).
+    CALVIN's and SimplerEnv's rows go beneath each instruction-chain or SimplerEnv-like
+    suite in that benchmark's own layout instead (results.paper_table.calvin_block and
+    simpler_block)."""
+    return [LIBERO]

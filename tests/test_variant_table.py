@@ -87,13 +87,17 @@ def test_ranking_stability_over_variants_and_axes():
     assert "MMRV 0.333" in r.text() and "n/a" in ranking_stability({"teacher": t}).text()
 
 
-def test_the_leaderboard_of_a_variant_run_is_simplerenvs_table(tmp_path, cli):
+def _two_policy_run(tmp_path):
     manifest = MANIFEST | {"suite": MANIFEST["suite"] | {"name": SUITE, "tasks": ["pick_cube"]}}
-    run = write_run(
+    return write_run(
         tmp_path / "v",
         rows("bidirectional", BIDI, "b", TEACHER) + rows("fast_dvla", FAST, "f", STUDENT, 250.0),
         manifest,
     )
+
+
+def test_the_leaderboard_of_a_variant_run_is_simplerenvs_table(tmp_path, cli):
+    run = _two_policy_run(tmp_path)
     (board,) = leaderboards([load_run(run)])
     headers, cells = board.cells()
     assert headers[1:5] == [
@@ -113,3 +117,16 @@ def test_the_leaderboard_of_a_variant_run_is_simplerenvs_table(tmp_path, cli):
     code, _, _ = cli("report", "html", str(run), "--out", str(tmp_path / "report"))
     page = (tmp_path / "report" / "index.html").read_text()
     assert code == 0 and "variant-aggregated" in page and "ranking stability vs canonical" in page
+
+
+def test_paper_table_gives_a_variant_run_simplerenvs_layout_never_a_pooled_rate(tmp_path, cli):
+    run = _two_policy_run(tmp_path)
+    code, out, err = cli("report", "paper-table", str(run))
+    assert code == 0, err
+    assert "(SimplerEnv layout)" in out and "| visual matching (canonical, Wilson 95%) |" in out
+    teacher = next(line for line in out.splitlines() if line.startswith("| bidirectional"))
+    assert "100.0% [51, 100] (4/4)" in teacher and "41.7% [" in teacher  # canonical; aggregated
+    assert "(published, SimplerEnv: not comparable)" in out and "59.3" in out
+    assert "ranking stability vs canonical" in out and "not SimplerEnv's scenes" in out
+    pooled = f"{100 * 9 / 16:.1f}%"  # the teacher's 9 of 16 episodes over all variants
+    assert pooled not in teacher and "### measured" not in out  # no LIBERO-layout row pooling them
