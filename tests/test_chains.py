@@ -320,7 +320,9 @@ def test_the_expert_completes_a_chain_and_resume_extends_the_run(cli, tmp_path):
     df = RunDir(out).read_episodes().sort_values("episode_index")
     assert list(df["chain_id"]) == [f"{SCENE}/0", f"{SCENE}/1"]
     first = df.iloc[0]
-    assert first["success"] and first["subtasks_completed"] == 5  # measured: chains 0 and 1 complete
+    # both complete (revision 4's free spot in the tray: revision 3 put chain 1's fifth can
+    # on top of the other four, above the contain region, and timed out)
+    assert df["success"].all() and list(df["subtasks_completed"]) == [5, 5]
     stored = cs.load_chains(SCENE).chains[0]
     assert [r["id"] for r in first["subtasks"]] == list(stored)
     assert first["instruction"].split(" | ")[0] == cs.load_scene(SCENE).subtask(stored[0]).instruction
@@ -479,3 +481,33 @@ def test_a_failed_chain_keeps_the_steps_of_its_completed_subtasks_only():
     plain = EpisodeOutcome(True, 5, 1, 1, 1, 0.0, 0.0, 0.0, datetime.now(UTC))
     assert _kept_steps(plain, SimpleNamespace(instructions=[None] * 5, actions=[0] * 5)) == 5
     assert _kept_steps(dataclasses.replace(plain, success=False), env) == 0
+
+
+def test_the_expert_puts_a_trays_next_object_on_its_free_spot():
+    """Revision 4 aims at the floor point farthest from what the tray already holds (the
+    region's centre when empty); revision 3 aims at the centre whatever is there."""
+    from policies.experts.libero_scripted import (
+        GEOMETRY,
+        LiberoScriptedParams,
+        PickPlace,
+        PickPlaceExpert,
+    )
+
+    tray = GEOMETRY["wooden_tray"]
+    obs = np.zeros(40)
+    obs[10:17] = [0.0, 0.3, 0.44, 0.0, 0.0, 1.0, 0.0]  # the tray, turned 180 degrees about z
+    obs[17:20] = [0.0, 0.3, 0.48]  # its contain region's centre
+    obs[20:23] = [0.05, 0.3, 0.5]  # a can already in the tray, right of centre
+    obs[23:26] = [0.5, 0.5, 0.45]  # a box on the table, not in the tray
+    plan = PickPlace(
+        obj=slice(30, 37), obj_geom=GEOMETRY["ketchup"], target=slice(17, 20), target_geom=None, into=True,
+        others=(slice(10, 17), slice(20, 27), slice(23, 30)), container=slice(10, 17), container_geom=tray,
+    )  # fmt: skip
+    spot = PickPlaceExpert(plan, LiberoScriptedParams(revision=4), None)._place_point(obs)
+    assert spot[0] < -0.05 and abs(spot[1] - 0.3) <= tray.inner[1]  # the far end of the long axis
+    assert abs(spot[0]) <= tray.inner[0] and spot[2] == pytest.approx(0.48)
+    old = PickPlaceExpert(plan, LiberoScriptedParams(revision=3), None)._place_point(obs)
+    assert old[:2] == pytest.approx([0.0, 0.3])
+    obs[20:23] = [0.5, -0.5, 0.45]  # nothing in the tray: its centre
+    empty = PickPlaceExpert(plan, LiberoScriptedParams(revision=4), None)._place_point(obs)
+    assert empty[:2] == pytest.approx([0.0, 0.3])
