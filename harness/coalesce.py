@@ -39,6 +39,14 @@ from policies.base import EpisodeContext
 ACTIVE_S = 2.0  # a client that asked within this long is expected to ask again soon
 
 
+def checked_actions(actions: Any, rows: int) -> np.ndarray:
+    """A served policy's chunks as float32 (rows, chunk, action_dim), or why not."""
+    out = np.asarray(actions, dtype=np.float32)
+    if out.ndim != 3 or out.shape[0] != rows or not np.isfinite(out).all():
+        raise RuntimeError(f"the served policy returned actions of shape {out.shape} (or not finite)")
+    return out
+
+
 @dataclass
 class Request:
     """One client call waiting for its rows' chunks."""
@@ -116,15 +124,7 @@ class Coalescer:
             started = time.perf_counter()
             try:
                 batch, passes, seconds = self.call(lambda c=contexts, o=observations: self.act_batch(c, o))
-                actions = np.asarray(batch.actions, dtype=np.float32)
-                if (
-                    actions.ndim != 3
-                    or actions.shape[0] != len(observations)
-                    or not np.isfinite(actions).all()
-                ):
-                    raise RuntimeError(
-                        f"the served policy returned actions of shape {actions.shape} (or not finite)"
-                    )
+                actions = checked_actions(batch.actions, len(observations))
             except Exception as exc:  # every request of the call gets the error
                 for request in taken:
                     request.error = exc

@@ -53,7 +53,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from harness.coalesce import Coalescer
+from harness.coalesce import Coalescer, checked_actions
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext, Policy, can_batch
 from policies.wire import MAX_MESSAGE_BYTES, WireError, pack, unpack
@@ -212,11 +212,7 @@ class Session:
                 act_batch = served.policy.act_batch  # type: ignore[attr-defined]
                 batch, nfe, seconds = served.call(lambda: act_batch(contexts, observations))
                 extra = {"dvla/batch_size": len(observations)}
-            actions, tokens = np.asarray(batch.actions, dtype=np.float32), int(batch.action_tokens)
-            if actions.ndim != 3 or actions.shape[0] != len(observations) or not np.isfinite(actions).all():
-                raise RuntimeError(
-                    f"the served policy returned actions of shape {actions.shape} (or not finite)"
-                )
+            actions, tokens = checked_actions(batch.actions, len(observations)), int(batch.action_tokens)
         return {
             "actions": actions[0] if single else actions,
             "dvla/nfe": nfe,
