@@ -217,8 +217,21 @@ def run(
         finally:
             while envs:  # the run stopped before its episodes took them over
                 envs.popitem()[1].close()
+            close_policies(resolved)
     finally:
         lock.release()
+
+
+def close_policies(resolved: ResolvedRun) -> None:
+    """Let policies that hold something open (a remote policy's connection) let go when
+    the run ends; a later call on the same policy opens it again."""
+    for p in resolved.policies:
+        close = getattr(p.policy, "close", None)
+        if callable(close):
+            try:
+                close()
+            except Exception:  # a policy that fails to let go must not hide the run's outcome
+                pass
 
 
 def _run_planned(

@@ -270,16 +270,23 @@ def _authorised(served: Served, request: Any) -> bool:
     return hmac.compare_digest(header.encode(), f"Api-Key {served.token}".encode())
 
 
-def handler(served: Served) -> Callable[[Any], None]:
+def handler(served: Served, open_connections: set[Any] | None = None) -> Callable[[Any], None]:
+    """The per-connection loop; `open_connections` (if given) holds the live ones, so that
+    stopping the server can close them (their threads would keep the process alive)."""
+    live: set[Any] = set() if open_connections is None else open_connections
+
     def handle(connection: Any) -> None:
         from websockets.exceptions import ConnectionClosed
 
         session = Session(served)
+        address = connection.remote_address  # read now: a dropped socket has none
+        live.add(connection)
         try:
             serve_connection(connection, session)
         except ConnectionClosed:  # a client process that exited without closing: not an error
-            log.info("%s went away without closing", connection.remote_address)
+            log.info("%s went away without closing", address)
         finally:
+            live.discard(connection)
             if served.coalescer is not None:
                 served.coalescer.gone(id(session))
 
@@ -311,11 +318,26 @@ def make_server(served: Served, host: str = "127.0.0.1", port: int = 8000) -> An
             return connection.respond(HTTPStatus.UNAUTHORIZED, "wrong or missing token\n")
         return None
 
-    return serve(
-        handler(served),
+    live: set[Any] = set()
+    server = serve(
+        handler(served, live),
         host,
         port,
         process_request=process_request,
         max_size=MAX_MESSAGE_BYTES,
         compression=None,
     )
+    server.open_connections = live  # stop_server closes them
+    return server
+
+
+def stop_server(server: Any) -> None:
+    """Stop accepting, then close every client's connection (each client sees a close and
+    connects again for its next episode), so the process can exit with clients attached:
+    websockets >= 13 closes them in `shutdown` itself, 12 (which the extra allows) does not."""
+    server.shutdown()
+    for connection in list(getattr(server, "open_connections", ())):
+        try:
+            connection.close()
+        except Exception:
+            pass  # already gone

@@ -160,10 +160,24 @@ def test_a_shared_server_batches_two_workers_calls_and_their_rows_equal_local_on
         assert list(remote[column]) == list(local[column]), column
     assert (remote["transport_time_s"] >= 0).all()
     server = serve_process.procs[0]
-    server.send_signal(signal.SIGINT)
-    text = server.communicate(timeout=30)[0]
+    server.send_signal(signal.SIGINT)  # stops with clients still attached: it closes them
+    text = server.communicate(timeout=60)[0]
     mean = float(re.search(r"mean batch ([0-9.]+)", text).group(1))
     assert mean > 1.0, text  # the two workers' calls did share decodes
+
+
+def test_ctrl_c_stops_the_server_with_a_client_still_connected(serve_process):
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    url = serve_process("--policy", "random", "--suite", SUITE)
+    with connect(url, compression=None) as ws:
+        unpack(ws.recv())  # connected, idle: its thread must not keep the server alive
+        server = serve_process.procs[0]
+        server.send_signal(signal.SIGINT)
+        assert "stopped" in server.communicate(timeout=60)[0] and server.returncode == 0
+        with pytest.raises(ConnectionClosed):
+            ws.recv(timeout=10)  # the server closed it on the way out
 
 
 def test_batching_against_a_server_that_cannot_batch_exits_2_before_anything_runs(cli, tmp_path, servers):

@@ -127,7 +127,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         served = build_served(args)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    from harness.serve import make_server
+    from harness.serve import make_server, stop_server
 
     try:
         server = make_server(served, args.host, args.port)
@@ -152,5 +152,5 @@ def cmd_serve(args: argparse.Namespace) -> int:
         else:
             console.print("stopped")
     finally:
-        server.shutdown()
+        stop_server(server)
     return 0
