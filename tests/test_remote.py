@@ -79,12 +79,14 @@ def serve_process():
     must not share one), on a free port; yields its ws:// address."""
     procs = []
 
-    def start(*args: str) -> str:
+    def start(*args: str, ignore_sigint: bool = False) -> str:
         repo = Path(__file__).resolve().parent.parent
         proc = subprocess.Popen(
             [sys.executable, "-m", "harness", "serve", *args, "--port", "0"],
             cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             env=os.environ | {"OMP_NUM_THREADS": "1", "COLUMNS": "200"},
+            # as a shell leaves a background job: SIGINT ignored from the start
+            preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if ignore_sigint else None,
         )  # fmt: skip
         procs.append(proc)
         line = proc.stdout.readline()
@@ -160,21 +162,24 @@ def test_a_shared_server_batches_two_workers_calls_and_their_rows_equal_local_on
         assert list(remote[column]) == list(local[column]), column
     assert (remote["transport_time_s"] >= 0).all()
     server = serve_process.procs[0]
-    server.send_signal(signal.SIGINT)  # stops with clients still attached: it closes them
+    server.send_signal(signal.SIGTERM)  # stops with clients still attached: it closes them
     text = server.communicate(timeout=60)[0]
     mean = float(re.search(r"mean batch ([0-9.]+)", text).group(1))
     assert mean > 1.0, text  # the two workers' calls did share decodes
 
 
-def test_ctrl_c_stops_the_server_with_a_client_still_connected(serve_process):
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_stops_the_server_with_a_client_still_connected(serve_process, stop):
+    """SIGTERM (a service manager, CI) or Ctrl-C, even when started in the background
+    with SIGINT ignored: the server closes its clients and exits, printing why."""
     from websockets.exceptions import ConnectionClosed
     from websockets.sync.client import connect
 
-    url = serve_process("--policy", "random", "--suite", SUITE)
+    url = serve_process("--policy", "random", "--suite", SUITE, ignore_sigint=stop == signal.SIGINT)
     with connect(url, compression=None) as ws:
         unpack(ws.recv())  # connected, idle: its thread must not keep the server alive
         server = serve_process.procs[0]
-        server.send_signal(signal.SIGINT)
+        server.send_signal(stop)
         assert "stopped" in server.communicate(timeout=60)[0] and server.returncode == 0
         with pytest.raises(ConnectionClosed):
             ws.recv(timeout=10)  # the server closed it on the way out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 
 from harness.device import DEFAULT_DEVICE, DEVICES
 from harness.errors import UsageError
@@ -113,7 +114,7 @@ def build_served(args: argparse.Namespace):
 def cmd_serve(args: argparse.Namespace) -> int:
     import importlib.util
 
-    from harness.console import console
+    from harness.console import console, raise_interrupt
 
     if importlib.util.find_spec("websockets") is None or importlib.util.find_spec("msgpack") is None:
         raise UsageError("serve needs websockets and msgpack: pip install 'dvla-harness[remote]'")
@@ -140,6 +141,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
         + (f" (batching up to {served.max_batch})" if served.max_batch > 1 else "")
         + "; Ctrl-C stops"
     )
+    # Ctrl-C and SIGTERM (how services and CI stop a process) both stop it cleanly, also
+    # where the shell that started it in the background left SIGINT ignored.
+    signal.signal(signal.SIGINT, raise_interrupt)
+    signal.signal(signal.SIGTERM, raise_interrupt)
     try:
         server.serve_forever()
     except KeyboardInterrupt:
