@@ -354,15 +354,10 @@ def batch_events(
                 slots[i] = slot
 
     def flush() -> Iterator[tuple[str, Any]]:
+        remote = loop.remote is not None
         while loop.finished:
             index, done = loop.finished.pop(0)
-            yield (
-                DONE,
-                (
-                    index,
-                    done.outcome(batch_envs, loop.remote is not None) if isinstance(done, _Slot) else done,
-                ),
-            )
+            yield DONE, (index, done.outcome(batch_envs, remote) if isinstance(done, _Slot) else done)
 
     for i in range(batch_envs):
         yield from fill(i)

@@ -10,9 +10,9 @@ requests until the call holds `max_batch` observations, or `wait_s` has passed s
 call opened, or every active client has a request in it (a client sends one request at a
 time, so none can come: with one client nothing ever waits). Active: it asked for a
 chunk within the last `ACTIVE_S` seconds; a connection that only checked the server's
-metadata (the parent process of `run --workers N`) or sits between runs is not waited for. A request is never
-split: a client's own batch (`--batch-envs K`) goes into one call whole, even past
-`max_batch`. Requests from different tasks and episodes share a call: `act_batch` takes
+metadata (the parent process of `run --workers N`) or sits between runs is not waited
+for. A request is never split: a client's own batch (`--batch-envs K`) goes into one
+call whole, even past `max_batch`. Requests from different tasks and episodes share a call: `act_batch` takes
 each row's own episode context (policies/base.py).
 
 What each request is told (and its row charged): every forward pass of the call (a pass
