@@ -5,7 +5,8 @@ minus the server's own policy time). This script finds the floor under it: an ec
 server that answers a remote-policy-sized message with a reply of the same size as the
 decoder's, after spinning for `--compute-ms` (the policy's compute, during which the
 client waits), over raw TCP and over websockets with its sync and asyncio servers and
-clients. Each server runs in its own process, as `dvla-harness serve` does.
+clients, and the remote policy's own client (policies/wsclient.py, `raw` below) against
+both servers. Each server runs in its own process, as `dvla-harness serve` does.
 
     python benchmarks/transport_floor.py [--compute-ms 0,23] [--calls 80] [--rounds 5]
 
@@ -100,6 +101,15 @@ def round_trips(kind: str, port: int, calls: int) -> list[float]:
                 ws.send(MESSAGE)
                 unpack(ws.recv())
                 times.append(time.perf_counter() - start)
+    elif kind == "raw":  # the remote policy's own client (policies/wsclient.py)
+        from policies.wsclient import WebSocket
+
+        with WebSocket(f"ws://127.0.0.1:{port}") as ws:
+            for _ in range(calls + 10):
+                start = time.perf_counter()
+                ws.send(MESSAGE)
+                unpack(ws.recv())
+                times.append(time.perf_counter() - start)
     else:
         from websockets.asyncio.client import connect as async_connect
 
@@ -119,7 +129,15 @@ def round_trips(kind: str, port: int, calls: int) -> list[float]:
     return times[10:]
 
 
-COMBINATIONS = [("tcp", "tcp"), ("sync", "sync"), ("sync", "async"), ("async", "sync"), ("async", "async")]
+COMBINATIONS = [
+    ("tcp", "tcp"),
+    ("sync", "sync"),
+    ("sync", "async"),
+    ("sync", "raw"),
+    ("async", "sync"),
+    ("async", "async"),
+    ("async", "raw"),
+]
 
 
 def free_port() -> int:

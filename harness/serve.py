@@ -334,7 +334,7 @@ def make_server(served: Served, host: str = "127.0.0.1", port: int = 8000) -> An
 def stop_server(server: Any) -> None:
     """Stop accepting, then close every client's connection (each client sees a close and
     connects again for its next episode), so the process can exit with clients attached:
-    websockets >= 13 closes them in `shutdown` itself, 12 (which the extra allows) does not."""
+    some websockets versions close them in `shutdown` itself, not all."""
     server.shutdown()
     for connection in list(getattr(server, "open_connections", ())):
         try:

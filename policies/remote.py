@@ -32,7 +32,6 @@ from __future__ import annotations
 import importlib.util
 import time
 from collections.abc import Sequence
-from contextlib import ExitStack
 from dataclasses import dataclass
 from typing import Any
 
@@ -71,11 +70,10 @@ class RemotePolicy:
     def __init__(self, params: RemoteParams):
         if not params.url.startswith(("ws://", "wss://")):
             raise ValueError(f"url must start with ws:// or wss://, got {params.url!r}")
-        if importlib.util.find_spec("websockets") is None or importlib.util.find_spec("msgpack") is None:
-            raise ValueError("it needs websockets and msgpack: pip install 'dvla-harness[remote]'")
+        if importlib.util.find_spec("msgpack") is None:
+            raise ValueError("it needs msgpack: pip install 'dvla-harness[remote]'")
         self.params = params
         self._ws: Any = None
-        self._stack = ExitStack()
         self.metadata: dict[str, Any] = {}
         self._contexts: Sequence[EpisodeContext] = ()
         self._totals = RemoteTotals()
@@ -83,37 +81,32 @@ class RemotePolicy:
     # --- connection ----------------------------------------------------------------
 
     def _connect(self) -> None:
-        from websockets.sync.client import connect
-
         from policies.wire import MAX_MESSAGE_BYTES, WireError
+        from policies.wsclient import HandshakeRefused, WebSocket
 
         headers = {"Authorization": f"Api-Key {self.params.token}"} if self.params.token else None
         delay, last = 0.25, None
         for attempt in range(self.params.retries):
             try:
-                self._stack = ExitStack()  # websockets wants its connection entered as a context
-                self._ws = self._stack.enter_context(
-                    connect(
-                        self.params.url,
-                        additional_headers=headers,
-                        compression=None,
-                        max_size=MAX_MESSAGE_BYTES,
-                        open_timeout=self.params.connect_timeout_s,
-                    )
+                self._ws = WebSocket(
+                    self.params.url,
+                    headers=headers,
+                    open_timeout=self.params.connect_timeout_s,
+                    max_size=MAX_MESSAGE_BYTES,
                 )
                 self.metadata = self._receive()
                 if not isinstance(self.metadata, dict):
                     raise WireError("the server's metadata is not a map")
                 return
-            except (OSError, TimeoutError, WireError) as exc:
+            except HandshakeRefused as exc:  # e.g. 401 (a wrong token): no point retrying
+                self.close()
+                raise ConnectionError(f"{self.params.url}: {exc}") from None
+            except (OSError, WireError) as exc:
                 last = exc
                 self.close()
                 if attempt + 1 < self.params.retries:
                     time.sleep(delay)
                     delay *= 2
-            except Exception as exc:  # e.g. InvalidStatus (401: wrong token): no point retrying
-                self.close()
-                raise ConnectionError(f"{self.params.url}: {exc}") from None
         raise ConnectionError(
             f"{self.params.url}: no connection after {self.params.retries} attempts ({last})"
         )
@@ -127,9 +120,8 @@ class RemotePolicy:
             raise TimeoutError(f"{self.params.url}: no reply within {self.params.timeout_s} s") from None
 
     def _call(self, message: dict[str, Any]) -> dict[str, Any]:
-        from websockets.exceptions import ConnectionClosed
-
         from policies.wire import WireError, pack
+        from policies.wsclient import ConnectionClosed, ProtocolError
 
         if self._ws is None:
             self._connect()
@@ -139,6 +131,9 @@ class RemotePolicy:
         except ConnectionClosed as exc:
             self.close()  # the next episode connects again
             raise ConnectionError(f"{self.params.url}: the server closed the connection ({exc})") from None
+        except ProtocolError as exc:
+            self.close()
+            raise ConnectionError(f"{self.params.url}: {exc}") from None
         except (TimeoutError, WireError):
             self.close()  # a late reply must not be read as the next call's
             raise
@@ -152,10 +147,8 @@ class RemotePolicy:
         return reply
 
     def close(self) -> None:
-        try:
-            self._stack.close()  # closes the connection, if one is open
-        except Exception:
-            pass  # a connection that is already gone
+        if self._ws is not None:
+            self._ws.close()  # never raises, even when the connection is already gone
         self._ws = None
 
     # --- the policy contract -------------------------------------------------------
