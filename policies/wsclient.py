@@ -20,6 +20,7 @@ import os
 import socket
 import ssl
 import struct
+import time
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -144,16 +145,26 @@ class WebSocket:
             raise ConnectionClosed(f"sending failed ({exc})") from None
 
     def recv(self, timeout: float | None = None) -> bytes | str:
-        """The next data message; TimeoutError after `timeout` seconds without one (the
-        connection is then unusable: a late reply must not be read as the next one's)."""
+        """The next data message; TimeoutError once `timeout` seconds pass without a whole
+        one (the connection is then unusable: a late reply must not be read as the next
+        one's)."""
         if self.closed:
             raise ConnectionClosed("the connection is closed")
-        self._sock.settimeout(timeout)
+        deadline = None if timeout is None else time.monotonic() + timeout
         parts: list[bytes] = []
         opcode_of_message = None
         size = 0
         try:
             while True:
+                # one deadline for the whole message: a server that keeps pinging, or
+                # trickles a reply frame by frame, still times out
+                if deadline is not None:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise TimeoutError(f"no reply within {timeout} s")
+                    self._sock.settimeout(left)
+                else:
+                    self._sock.settimeout(None)
                 fin, opcode, payload = self._read_frame(self.max_size - size)
                 if opcode >= _CLOSE:
                     self._control(opcode, payload)

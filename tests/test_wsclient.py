@@ -69,6 +69,30 @@ def test_a_ping_is_answered_while_waiting_for_the_reply() -> None:
         assert ws.recv(timeout=5) == b"pong arrived"
 
 
+def test_a_server_that_keeps_pinging_and_never_replies_still_times_out() -> None:
+    """The timeout is one deadline for the reply, not per read: pings every 0.1 s must
+    not keep a call waiting past it."""
+    stop = threading.Event()
+
+    def handle(ws) -> None:
+        ws.recv()
+        while not stop.is_set():
+            try:
+                ws.ping()
+            except Exception:
+                return
+            time.sleep(0.1)
+
+    with server(handle) as url, WebSocket(url) as ws:
+        ws.send(b"go")
+        started = time.monotonic()
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=0.5)
+        assert time.monotonic() - started < 2.0
+        assert ws.closed
+        stop.set()
+
+
 def test_headers_reach_the_server_and_a_refused_handshake_names_its_status() -> None:
     from http import HTTPStatus
 
