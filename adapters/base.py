@@ -17,7 +17,10 @@ The environment contract is Gymnasium's (`reset`/`step`) plus two conventions:
 An env may also say where world-frame 3-D positions sit in its state vector:
 `state_positions`, a tuple of start indices, the end effector's first. `collect` records
 it, and `train --state-features relative` gives the model each position's offset from
-the end effector (policies/observations.py).
+the end effector (policies/observations.py). An env may also say how many leading entries
+of its state are the robot's own (`proprio_dim`: hand pose, gripper, joints); `train
+--state-features proprio` then reads only those, so a camera policy cannot lean on the
+privileged object poses the scripted experts need.
 """
 
 from __future__ import annotations

@@ -107,6 +107,7 @@ class ChainEpisodeEnv(gym.Env):
         self.observation_space = self.inner.observation_space
         self.action_space = self.inner.action_space
         self.state_positions = self.inner.state_positions
+        self.proprio_dim = self.inner.proprio_dim
         self.layout = self.inner.layout
         self._chain: tuple[cs.Subtask, ...] = ()
         self._records: list[dict[str, Any]] = []

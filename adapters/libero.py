@@ -315,9 +315,11 @@ class LiberoEpisodeEnv(gym.Env):
         )
         self.layout = state_layout(self.problem, joints)
         self.state_positions = state_positions(self.layout)
+        self.proprio_dim = PROPRIO_DIM  # the robot's own entries lead the state
         if options.obs == "upstream":  # no object poses: the 8-D proprioception, the hand at 0
             self.layout = [("eef_pos", 0, 3), ("eef_axis_angle", 3, 6), ("gripper_qpos", 6, 8)]
             self.state_positions = (0,)
+            self.proprio_dim = 8
         self._bodies = [inner.obj_body_id[name] for name in entity_names(self.problem)]
         self._sites = [model.site_name2id(name) for name in goal_sites(self.problem)]
         self._qpos = [model.get_joint_qpos_addr(name) for name in joints]

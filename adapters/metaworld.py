@@ -222,6 +222,7 @@ class MetaWorldEpisodeEnv(gym.Wrapper):
     # objects' position + quaternion (4:11, 11:18; zeros where a task has one), the
     # previous frame's 18 (18:36), the goal position (36:39). World frame throughout.
     state_positions = (0, 4, 11, 36)
+    proprio_dim = 4  # hand position and gripper opening
 
     def __init__(self, task_name: str, benchmark: str = "MT1"):
         import metaworld.env_dict

@@ -156,6 +156,7 @@ class ManiSkillEpisodeEnv(gym.Env):
             raise
         self.layout = state_layout(task)
         self.state_positions = state_positions(task)
+        self.proprio_dim = sum(width for _, width in PROPRIO)  # the robot's own, leading
         self.variant = sv.CANONICAL_VARIANT  # what the scene holds now (distractors read it)
         scene_loader = self.env.unwrapped._load_scene
 

@@ -164,6 +164,7 @@ class CollectReport:
     # Per task, where the env's state vector holds world positions (adapters/base.py);
     # training reads them for --state-features relative.
     state_positions: dict[str, list[int]] = field(default_factory=dict)
+    proprio_dims: dict[str, int] = field(default_factory=dict)
 
 
 def check_demos_out(out: Path, overwrite: bool) -> None:
@@ -209,6 +210,9 @@ def collect(
             positions = _state_positions(env)
             if positions:
                 report.state_positions[task.name] = positions
+            proprio = _proprio_dim(env)
+            if proprio:
+                report.proprio_dims[task.name] = proprio
             for spec in resolved.episodes(task):
                 context = episode_context(resolved.suite.name, task, spec, env)
                 outcome = run_episode(
@@ -276,6 +280,13 @@ def _state_positions(env: gym.Env) -> list[int]:
         return []
 
 
+def _proprio_dim(env: gym.Env) -> int:
+    try:
+        return int(env.get_wrapper_attr("proprio_dim"))
+    except AttributeError:
+        return 0
+
+
 def _append_episode(
     rows: dict[str, list[Any]],
     env: RecordingEnv,
@@ -340,6 +351,7 @@ def _write(
         "observation_dim": len(table["observation"][0]),
         "action_dim": len(table["action"][0]),
         "state_positions": report.state_positions,
+        "proprio_dims": report.proprio_dims,
         # Fresh initial states (LIBERO's train split): per task, how many were drawn and
         # the closest any came to an evaluation state; none equals one (checked by hash).
         "initial_states": {

@@ -149,3 +149,15 @@ def test_state_positions_that_do_not_fit_the_state_are_refused(tmp_path):
         load(save(good, tmp_path / "bad.safetensors"))
     good.state_positions = (0, 33)
     assert load(save(good, tmp_path / "ok.safetensors")).raw_state_dim == 36
+
+
+def test_a_state_prefix_that_does_not_fit_the_model_is_refused(tmp_path):
+    good = load(make_checkpoint(tmp_path / "m.safetensors", "causal"))
+    good.state_prefix = 39  # all 39 inputs are the head of the state: a proprio model
+    good.meta = {**good.meta, "state_dims": [45]}
+    ok = load(save(good, tmp_path / "ok.safetensors"))
+    assert ok.state_prefix == 39 and ok.raw_state_dim == 45 and ok.state_features == "proprio"
+    for prefix, needle in ((16, "a prefix is all the model reads"), (-1, "non-negative integer")):
+        good.state_prefix = prefix
+        with pytest.raises(CheckpointError, match=needle):
+            load(save(good, tmp_path / "bad.safetensors"))

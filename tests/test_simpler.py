@@ -344,3 +344,72 @@ def test_an_episode_replays_exactly_in_the_same_env():
             np.testing.assert_array_equal(runs[0], runs[1])
     finally:
         env.close()
+
+
+@needs_maniskill
+def test_a_camera_policy_reads_only_the_robots_state_and_its_images(cli, tmp_path):
+    """`train --state-features proprio` on image demonstrations: the model reads the
+    robot's 16 entries (the env's `proprio_dim`, recorded by collect) and the camera, so
+    the object and goal entries of the state change nothing it computes; a student keeps
+    the choice; state-only demonstrations are refused (the model would see no objects)."""
+    from harness.backends.local import episode_context
+    from policies.dvla.checkpoint import load, to_tensors
+    from policies.registry import get_policy, parse_params
+
+    demos = tmp_path / "demos"
+    suite_name = "simpler/push_cube:obs=images,image_size=32"
+    code, _, err = cli(
+        "collect", "--suite", suite_name, "--policy", "maniskill_scripted", "--episodes-per-task", "1",
+        "--out", str(demos), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    manifest = json.loads((demos / "manifest.json").read_text())
+    assert manifest["proprio_dims"] == {"push_cube": 16} and manifest["cameras"] == [simpler.CAMERA]
+    tiny = ["--steps", "3", "--batch-size", "8", "--width", "32", "--layers", "1", "--ffn", "64",
+            "--chunk-len", "4", "--quiet"]  # fmt: skip
+    teacher = tmp_path / "t.safetensors"
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--state-features", "proprio",
+        "--out", str(teacher), *tiny,
+    )  # fmt: skip
+    assert code == 0, err
+    ckpt = load(teacher)
+    assert ckpt.state_prefix == 16 and ckpt.model.cfg.state_dim == 16 and ckpt.raw_state_dim == 26
+    assert ckpt.state_features == "proprio" and ckpt.model.cfg.cameras == (simpler.CAMERA,)
+    state = np.arange(26, dtype=np.float32)[None]
+    moved = state.copy()
+    moved[0, 16:] += 5.0  # the cube and the target elsewhere: the model cannot tell
+    assert np.array_equal(to_tensors(ckpt, ["x"], state)[1], to_tensors(ckpt, ["x"], moved)[1])
+
+    student = tmp_path / "s.safetensors"
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "distill", "--teacher", str(teacher),
+        "--out", str(student), *tiny,
+    )  # fmt: skip
+    assert code == 0, err
+    assert load(student).state_prefix == 16
+
+    spec = get_policy("fast_dvla")
+    policy = spec.build(parse_params(spec, {"checkpoint": str(student)}))
+    suite = load_suite(suite_name)
+    task = suite.tasks[0]
+    env = suite.make_env(task)
+    try:
+        context = episode_context(suite_name, task, task.episodes[0], env)
+        obs, _ = env.reset(options={"episode": task.episodes[0]})
+        policy.reset([context])
+        assert policy.act([obs]).actions.shape == (1, 4, 7)
+    finally:
+        env.close()
+
+    state_only = tmp_path / "state-demos"
+    code, _, err = cli(
+        "collect", "--suite", "simpler/push_cube", "--policy", "maniskill_scripted", "--episodes-per-task",
+        "1", "--out", str(state_only), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    code, _, err = cli(
+        "train", "--demos", str(state_only), "--recipe", "bidirectional", "--state-features", "proprio",
+        "--out", str(tmp_path / "x.safetensors"), *tiny,
+    )  # fmt: skip
+    assert code == 2 and "no camera images" in err and not (tmp_path / "x.safetensors").exists()

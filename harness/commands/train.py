@@ -102,9 +102,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--state-features",
         choices=STATE_FEATURES,
-        help="what the model reads of the state: raw, or relative (also each object's and goal "
+        help="what the model reads of the state: raw; relative (also each object's and goal "
         "region's offset from the end effector, where the demonstrations record where positions "
-        "sit: LIBERO, Meta-World). Default: what --init/--teacher reads, else raw",
+        "sit: LIBERO, Meta-World, ManiSkill); or proprio (only the robot's own entries: hand, "
+        "gripper, joints; needs camera demonstrations, where the model must find the objects, "
+        "as upstream VLAs do). Default: what --init/--teacher reads, else raw",
     )
     p.add_argument(
         "--action-range",

@@ -46,16 +46,30 @@ class Checkpoint:
     # model reads each one's offset from the end effector too (observations.relative_positions).
     # Empty: the raw state only (every checkpoint before this field).
     state_positions: tuple[int, ...] = ()
+    # > 0: the model reads only the first `state_prefix` entries of the raw state, the
+    # robot's own (`train --state-features proprio`), and finds objects in its camera
+    # images. 0: the whole state (every checkpoint before this field).
+    state_prefix: int = 0
 
     @property
     def raw_state_dim(self) -> int:
-        """The length of the state the env gives, before the offsets are appended."""
+        """The length of the state the env gives, before the offsets are appended (with
+        a state prefix: the longest state trained on, of which the model reads the head)."""
+        if self.state_prefix:
+            return max([self.state_prefix, *(int(d) for d in self.meta.get("state_dims") or ())])
         extra = 3 * (len(self.state_positions) - 1) if self.state_positions else 0
         return self.model.cfg.state_dim - extra
+
+    @property
+    def state_features(self) -> str:
+        """What it reads of the state, in `train --state-features` words."""
+        return "proprio" if self.state_prefix else "relative" if self.state_positions else "raw"
 
     def features(self, states: np.ndarray) -> np.ndarray:
         """What the model reads of raw states, before normalisation; training and the
         policies both go through here, so the two cannot drift apart."""
+        if self.state_prefix:
+            return np.asarray(states, dtype=np.float32)[..., : self.state_prefix]
         return relative_positions(states, self.state_positions)
 
     def encode_instruction(self, text: str) -> list[int]:
@@ -71,6 +85,7 @@ class Checkpoint:
             "state_mean": self.state_mean.tolist(),
             "state_std": self.state_std.tolist(),
             "state_positions": list(self.state_positions),
+            "state_prefix": self.state_prefix,
             "meta": self.meta,
         }
 
@@ -116,6 +131,14 @@ def load(path: str | Path) -> Checkpoint:
         model = ActionTokenModel(cfg)
         tokenizer = ActionTokenizer.from_dict(header["tokenizer"])
         positions = tuple(int(p) for p in header.get("state_positions") or ())
+        prefix = header.get("state_prefix") or 0
+        if isinstance(prefix, bool) or not isinstance(prefix, int) or prefix < 0:
+            raise CheckpointError(f"{path}: invalid header (state_prefix {prefix!r}: a non-negative integer)")
+        if prefix and (positions or prefix != cfg.state_dim):
+            raise CheckpointError(
+                f"{path}: invalid header (state_prefix {prefix} with a {cfg.state_dim}-D state input"
+                f"{' and state_positions' if positions else ''}: a prefix is all the model reads)"
+            )
     except (json.JSONDecodeError, KeyError, TypeError, ValueError, RecursionError) as exc:
         if isinstance(exc, CheckpointError):
             raise
@@ -150,6 +173,7 @@ def load(path: str | Path) -> Checkpoint:
         state_std=np.asarray(header["state_std"], dtype=np.float32),
         meta=header.get("meta", {}),
         state_positions=positions,
+        state_prefix=prefix,
     )
     if positions and (len(positions) < 2 or min(positions) < 0 or max(positions) + 3 > ckpt.raw_state_dim):
         raise CheckpointError(

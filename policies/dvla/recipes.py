@@ -15,7 +15,7 @@ NOISE_SCHEDULES = ("clean_context", "frontier", "d2f", "linear", "sorted_uniform
 DEFAULT_NOISE_SCHEDULE = {"block_diffusion": "clean_context", "distill": "frontier"}
 SAMPLING = ("task", "step")
 NOISY_TARGETS = ("first_action", "chunk")
-STATE_FEATURES = ("raw", "relative")
+STATE_FEATURES = ("raw", "relative", "proprio")
 # Which training actions the tokenizer's bins span, as percentiles per dimension.
 ACTION_RANGES = {"percentile": (1.0, 99.0), "full": (0.0, 100.0)}
 PATTERN = {
@@ -55,8 +55,10 @@ class TrainConfig:
     noisy_targets: str = "first_action"
     # What the model reads of the state: "raw", or "relative" (the raw state plus each
     # world position's offset from the end effector, where the demonstrations say where
-    # positions are; policies/observations.py). "" = the --init or --teacher checkpoint's
-    # choice, else raw.
+    # positions are; policies/observations.py), or "proprio" (only the robot's own leading
+    # entries, where the demonstrations record how many: a camera policy that must find
+    # the objects in its images, as upstream VLAs do). "" = the --init or --teacher
+    # checkpoint's choice, else raw.
     state_features: str = ""
     # "percentile": bins span the 1st-99th percentile of each action dimension (DD-VLA;
     # outliers clipped); "full": every training action (nothing clipped). A fresh model's

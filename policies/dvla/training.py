@@ -83,6 +83,31 @@ class Demos:
     # Per folder, what the checkpoint's meta says it was trained on: suite (LIBERO's names
     # `initial_states=fresh` when the starts were held out from evaluation), split, hash.
     sources: list[dict[str, Any]] = field(default_factory=list)
+    # How many leading state entries are the robot's own (the envs' `proprio_dim`), per task.
+    proprio_dims: dict[str, int] = field(default_factory=dict)
+
+    def proprio(self) -> int:
+        """The one proprioception length every task shares; raises saying why not."""
+        missing = sorted(self.tasks - set(self.proprio_dims))
+        if missing:
+            raise ValueError(
+                f"--state-features proprio: the demonstrations do not record how much of task "
+                f"{missing[0]!r}'s state is the robot's own (collected before `proprio_dims` was "
+                "recorded, or the suite's env does not declare it); collect them again or use "
+                "--state-features raw"
+            )
+        found = {self.proprio_dims[t] for t in self.tasks}
+        if len(found) > 1:
+            raise ValueError(
+                f"--state-features proprio: the tasks' robot states differ in length ({sorted(found)}); "
+                "train tasks of one robot"
+            )
+        if not self.cameras:
+            raise ValueError(
+                "--state-features proprio: the demonstrations have no camera images, so the model "
+                "would see no objects at all; collect with images (e.g. simpler/all:obs=images)"
+            )
+        return found.pop()
 
     def positions(self) -> tuple[int, ...]:
         """The one set of state positions every task shares; raises saying why not."""
@@ -135,10 +160,14 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
                     "demonstrations trained on together must match"
                 )
     positions: dict[str, tuple[int, ...]] = {}
+    proprio: dict[str, int] = {}
     for path, m in zip(paths, manifests, strict=True):
         for task, found in (m.get("state_positions") or {}).items():
             if positions.setdefault(task, tuple(found)) != tuple(found):
                 raise ValueError(f"{path}: task {task!r} records other state positions than before")
+        for task, size in (m.get("proprio_dims") or {}).items():
+            if proprio.setdefault(task, int(size)) != int(size):
+                raise ValueError(f"{path}: task {task!r} records another proprioception length than before")
     offset = 0
     for df, m in zip(frames, manifests, strict=True):
         df["episode_id"] += offset  # episode ids unique across folders: chunks never cross
@@ -178,6 +207,7 @@ def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> De
         positions,
         frozenset(df["task"].unique()),
         [_source(m) for m in manifests],
+        proprio,
     )
 
 
@@ -257,7 +287,9 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
             teacher.vocab,
             teacher.state_mean,
             teacher.state_std,
+            meta={"state_dims": list(demos.state_dims)},
             state_positions=teacher.state_positions,
+            state_prefix=teacher.state_prefix,
         )
         return ckpt, teacher.model.eval()
     if cfg.init:
@@ -267,7 +299,8 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
     vocab = {w: i + 2 for i, w in enumerate(words)}
     max_words = max(1, max(len(words_of(t)) for t in set(demos.instructions)))
     positions = demos.positions() if cfg.state_features == "relative" else ()
-    states = relative_positions(demos.observations, positions)
+    prefix = demos.proprio() if cfg.state_features == "proprio" else 0
+    states = demos.observations[:, :prefix] if prefix else relative_positions(demos.observations, positions)
     mean = states.mean(0)
     std = np.maximum(states.std(0), 1e-2)
     model_cfg = ModelConfig(
@@ -287,7 +320,14 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         image_size=demos.image_size,
     )
     return Checkpoint(
-        ActionTokenModel(model_cfg), tokenizer, vocab, mean, std, state_positions=positions
+        ActionTokenModel(model_cfg),
+        tokenizer,
+        vocab,
+        mean,
+        std,
+        meta={"state_dims": list(demos.state_dims)},
+        state_positions=positions,
+        state_prefix=prefix,
     ), None
 
 
@@ -343,7 +383,7 @@ def _block_causal(model: ModelConfig, block_size: int) -> ModelConfig:
 def _check_features(cfg: TrainConfig, path: str, ckpt: Checkpoint, demos: Demos) -> None:
     """A continued model or a student reads states exactly as the checkpoint it grows
     from: asking for other features is an error, not a silent switch."""
-    has = "relative" if ckpt.state_positions else "raw"
+    has = ckpt.state_features
     if cfg.state_features and cfg.state_features != has:
         raise ValueError(
             f"--state-features {cfg.state_features}: {path} reads {has} states, and a continued "
@@ -353,6 +393,11 @@ def _check_features(cfg: TrainConfig, path: str, ckpt: Checkpoint, demos: Demos)
         raise ValueError(
             f"{path}: reads positions at {list(ckpt.state_positions)} of the state, the demonstrations "
             f"keep them at {list(demos.positions())}"
+        )
+    if ckpt.state_prefix and demos.proprio_dims and demos.proprio() != ckpt.state_prefix:
+        raise ValueError(
+            f"{path}: reads the first {ckpt.state_prefix} state entries as the robot's, the "
+            f"demonstrations' robot state has {demos.proprio()}"
         )
 
 
