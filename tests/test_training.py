@@ -466,7 +466,11 @@ def test_relative_state_features_need_recorded_positions(demos, tmp_path, cli):
         "train", "--demos", str(old), "--recipe", "bidirectional", "--state-features", "relative",
         "--out", str(tmp_path / "x.safetensors"),
     )  # fmt: skip
-    assert code == 2 and "do not record where positions sit" in err and "--state-features raw" in err
+    assert (
+        code == 2
+        and "do not record where positions sit in the state" in err
+        and "--state-features raw" in err
+    )
     code, _, err = cli(
         "train", "--demos", str(demos), "--recipe", "bidirectional", "--state-features", "nearby",
         "--out", str(tmp_path / "x.safetensors"),

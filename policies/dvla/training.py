@@ -88,45 +88,31 @@ class Demos:
 
     def proprio(self) -> int:
         """The one proprioception length every task shares; raises saying why not."""
-        missing = sorted(self.tasks - set(self.proprio_dims))
-        if missing:
-            raise ValueError(
-                f"--state-features proprio: the demonstrations do not record how much of task "
-                f"{missing[0]!r}'s state is the robot's own (collected before `proprio_dims` was "
-                "recorded, or the suite's env does not declare it); collect them again or use "
-                "--state-features raw"
-            )
-        found = {self.proprio_dims[t] for t in self.tasks}
-        if len(found) > 1:
-            raise ValueError(
-                f"--state-features proprio: the tasks' robot states differ in length ({sorted(found)}); "
-                "train tasks of one robot"
-            )
         if not self.cameras:
             raise ValueError(
                 "--state-features proprio: the demonstrations have no camera images, so the model "
                 "would see no objects at all; collect with images (e.g. simpler/all:obs=images)"
             )
-        return found.pop()
+        return _shared(
+            "proprio",
+            self.tasks,
+            self.proprio_dims,
+            "how much of the state is the robot's own",
+            "`proprio_dims`",
+            "the tasks' robot states differ in length; train tasks of one robot",
+        )
 
     def positions(self) -> tuple[int, ...]:
         """The one set of state positions every task shares; raises saying why not."""
-        missing = sorted(self.tasks - set(self.state_positions))
-        if missing:
-            raise ValueError(
-                f"--state-features relative: the demonstrations do not record where positions sit "
-                f"in the state of task {missing[0]!r} (collected before `state_positions` was "
-                "recorded, or the suite's env does not declare them); collect them again or use "
-                "--state-features raw"
-            )
-        found = {self.state_positions[t] for t in self.tasks}
-        if len(found) > 1:
-            raise ValueError(
-                "--state-features relative: the tasks keep positions at different places in their "
-                f"states ({len(found)} layouts, e.g. LIBERO goal/10/90); train one suite of one "
-                "layout, or use --state-features raw"
-            )
-        return found.pop()
+        return _shared(
+            "relative",
+            self.tasks,
+            self.state_positions,
+            "where positions sit in the state",
+            "`state_positions`",
+            "the tasks keep positions at different places in their states (e.g. LIBERO goal/10/90); "
+            "train one suite of one layout, or use --state-features raw",
+        )
 
     def image_batch(self, rows: torch.Tensor) -> torch.Tensor | None:
         """(B, cameras, H, W, 3) uint8 for some rows, decoded on demand: the PNGs of a
@@ -138,6 +124,24 @@ class Demos:
         idx = rows.tolist()
         frames = [[unpng(column[i]) for column in self.images] for i in idx]
         return torch.from_numpy(np.asarray(frames, dtype=np.uint8))
+
+
+def _shared(
+    feature: str, tasks: frozenset[str], per_task: dict[str, Any], what: str, field_name: str, differ: str
+) -> Any:
+    """The one value of a per-task state property (recorded by collect) every task
+    shares, for `--state-features FEATURE`; a missing or differing one is an error."""
+    missing = sorted(tasks - set(per_task))
+    if missing:
+        raise ValueError(
+            f"--state-features {feature}: the demonstrations do not record {what} for task "
+            f"{missing[0]!r} (collected before {field_name} was recorded, or the suite's env does "
+            "not declare it); collect them again or use --state-features raw"
+        )
+    found = {per_task[t] for t in tasks}
+    if len(found) > 1:
+        raise ValueError(f"--state-features {feature}: {differ}")
+    return found.pop()
 
 
 def load_demos(folders: str | Path | Sequence[str | Path], chunk_len: int) -> Demos:
