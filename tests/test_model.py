@@ -193,3 +193,26 @@ def test_image_config_is_validated():
         _model("causal", cameras=["a"], image_size=32, image_tokens=3)
     with pytest.raises(ValueError, match="at least 16 pixels"):
         _model("causal", cameras=["a"], image_size=8)
+
+
+def test_coordinate_inputs_let_the_image_encoder_tell_where_a_thing_is():
+    """CoordConv: one globally pooled token is the same for a spot moved by the encoder's
+    stride (8 px) without coordinates (convolution is shift-equivariant, pooling forgets
+    where), and differs with them."""
+    from policies.dvla.model import ImageEncoder
+
+    torch.manual_seed(0)
+    frames = torch.zeros(2, 1, 128, 128, 3, dtype=torch.uint8)
+    frames[0, 0, 48:51, 48:51] = 255  # far from the borders the padding touches
+    frames[1, 0, 56:59, 56:59] = 255
+    for coords in (False, True):
+        cfg = _model(
+            "bidirectional", cameras=["cam"], image_size=128, image_tokens=1, image_coords=coords
+        ).cfg
+        encoder = ImageEncoder(cfg)
+        with torch.no_grad():
+            if coords:
+                encoder.convs[0].weight[:, 3:] *= 100  # a filter that has learned to read them
+            a, b = encoder(frames)[:, 0]
+        # a 3x3 spot in a 128 px frame moves the pooled token a little, but only with coordinates
+        assert (torch.max(torch.abs(a - b)).item() > 1e-6) == coords

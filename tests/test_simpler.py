@@ -370,10 +370,12 @@ def test_a_camera_policy_reads_only_the_robots_state_and_its_images(cli, tmp_pat
     teacher = tmp_path / "t.safetensors"
     code, _, err = cli(
         "train", "--demos", str(demos), "--recipe", "bidirectional", "--state-features", "proprio",
-        "--out", str(teacher), *tiny,
+        "--image-tokens", "16", "--image-coords", "--out", str(teacher), *tiny,
     )  # fmt: skip
     assert code == 0, err
     ckpt = load(teacher)
+    assert ckpt.model.cfg.image_tokens == 16 and ckpt.model.cfg.image_coords
+    assert ckpt.model.images.convs[0].in_channels == 5  # RGB + x + y
     assert ckpt.state_prefix == 16 and ckpt.model.cfg.state_dim == 16 and ckpt.raw_state_dim == 26
     assert ckpt.state_features == "proprio" and ckpt.model.cfg.cameras == (simpler.CAMERA,)
     state = np.arange(26, dtype=np.float32)[None]
@@ -410,6 +412,11 @@ def test_a_camera_policy_reads_only_the_robots_state_and_its_images(cli, tmp_pat
     assert code == 0, err
     code, _, err = cli(
         "train", "--demos", str(state_only), "--recipe", "bidirectional", "--state-features", "proprio",
+        "--out", str(tmp_path / "x.safetensors"), *tiny,
+    )  # fmt: skip
+    assert code == 2 and "no camera images" in err and not (tmp_path / "x.safetensors").exists()
+    code, _, err = cli(
+        "train", "--demos", str(state_only), "--recipe", "bidirectional", "--image-coords",
         "--out", str(tmp_path / "x.safetensors"), *tiny,
     )  # fmt: skip
     assert code == 2 and "no camera images" in err and not (tmp_path / "x.safetensors").exists()

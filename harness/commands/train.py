@@ -143,6 +143,20 @@ def register(sub: argparse._SubParsersAction) -> None:
             else "action tokens per block, block-causal recipes (default 0: one action step, or "
             "with --init / --teacher that checkpoint's)",
         )
+    p.add_argument(
+        "--image-tokens",
+        type=int,
+        default=d.image_tokens,
+        metavar="N",
+        help=f"camera demonstrations: tokens per camera, a square number (the pooled feature grid; "
+        f"default {d.image_tokens})",
+    )
+    p.add_argument(
+        "--image-coords",
+        action="store_true",
+        help="camera demonstrations: the image encoder also reads each pixel's x and y (CoordConv), "
+        "so a policy without object poses (--state-features proprio) can tell where things are",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
@@ -181,6 +195,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         noisy_targets=args.noisy_targets,
         state_features=args.state_features or "",
         action_range=args.action_range or "percentile",
+        image_tokens=args.image_tokens,
+        image_coords=args.image_coords,
     )
     if args.action_range and (cfg.init or cfg.recipe == "distill"):
         raise UsageError(

@@ -51,6 +51,10 @@ class ModelConfig:
     cameras: tuple[str, ...] = ()  # observation keys of the camera images, in token order
     image_size: int = 0  # square images of this many pixels (with cameras)
     image_tokens: int = 4  # tokens per camera (a square number: the pooled feature grid)
+    # The first convolution also reads each pixel's x and y (CoordConv, Liu et al. 2018):
+    # average pooling keeps what is in a cell, not where in it; with the coordinates a
+    # filter can say where, which a policy without object poses needs to reach a cube.
+    image_coords: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cameras", tuple(self.cameras))  # JSON gives a list
@@ -229,7 +233,7 @@ class ImageEncoder(nn.Module):
         self.cfg = cfg
         w = cfg.width
         self.convs = nn.Sequential(
-            nn.Conv2d(3, 32, 5, stride=2, padding=2),
+            nn.Conv2d(5 if cfg.image_coords else 3, 32, 5, stride=2, padding=2),
             nn.GELU(),
             nn.Conv2d(32, 64, 3, stride=2, padding=1),
             nn.GELU(),
@@ -242,6 +246,10 @@ class ImageEncoder(nn.Module):
         """(B, cameras, H, W, 3) uint8 -> (B, cameras * image_tokens, width)."""
         b, c, h, w, _ = images.shape
         x = images.reshape(b * c, h, w, 3).permute(0, 3, 1, 2).float() / 255.0 - 0.5
+        if self.cfg.image_coords:
+            ys = torch.linspace(-0.5, 0.5, h, device=x.device).view(1, 1, h, 1).expand(b * c, 1, h, w)
+            xs = torch.linspace(-0.5, 0.5, w, device=x.device).view(1, 1, 1, w).expand(b * c, 1, h, w)
+            x = torch.cat([x, xs, ys], dim=1)
         feats = self.convs(x).flatten(2).transpose(1, 2)  # (B*C, tokens, width)
         feats = feats.view(b, c, -1, feats.shape[-1]) + self.camera.weight[None, :, None, :]
         return feats.reshape(b, -1, feats.shape[-1])

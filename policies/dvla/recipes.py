@@ -42,6 +42,8 @@ class TrainConfig:
     heads: int = 4
     ffn: int = 512
     block_size: int = 0  # 0 = one action step
+    image_tokens: int = 4  # camera demonstrations: tokens per camera (a square number)
+    image_coords: bool = False  # camera demonstrations: CoordConv's x/y inputs (model.py)
     noise_schedule: str = ""  # "" = the recipe's default (DEFAULT_NOISE_SCHEDULE)
     obs_noise: float = 0.01  # std of Gaussian noise on normalised states
     teacher: str = ""  # distill: the bidirectional checkpoint
@@ -101,7 +103,7 @@ class TrainConfig:
             raise ValueError(f"action_range {self.action_range!r} is not one of {', '.join(ACTION_RANGES)}")
         if self.recipe == "distill" and not self.teacher:
             raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
-        for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn"):
+        for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn", "image_tokens"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.warmup_steps is not None and self.warmup_steps < 1:

@@ -298,6 +298,15 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         return ckpt, teacher.model.eval()
     if cfg.init:
         return _initial(cfg, demos), None
+    defaults = TrainConfig(recipe=cfg.recipe)
+    if not demos.cameras and (cfg.image_tokens, cfg.image_coords) != (
+        defaults.image_tokens,
+        defaults.image_coords,
+    ):
+        raise ValueError(
+            "--image-tokens/--image-coords shape an image encoder; these demonstrations have no camera "
+            "images (collect with the suite's images, e.g. simpler/all:obs=images)"
+        )
     tokenizer = ActionTokenizer.fit(demos.actions, bins=cfg.bins, percentiles=ACTION_RANGES[cfg.action_range])
     words = sorted({w for text in set(demos.instructions) for w in words_of(text)})
     vocab = {w: i + 2 for i, w in enumerate(words)}
@@ -322,6 +331,8 @@ def _prepare(cfg: TrainConfig, demos: Demos) -> tuple[Checkpoint, ActionTokenMod
         block_size=cfg.block_size,
         cameras=demos.cameras,
         image_size=demos.image_size,
+        image_tokens=cfg.image_tokens,
+        image_coords=cfg.image_coords,
     )
     return Checkpoint(
         ActionTokenModel(model_cfg),
