@@ -391,7 +391,7 @@ def test_the_calvin_table_from_hand_made_rows():
 
 
 def test_the_next_subtasks_expert_starts_from_the_chains_starting_pose():
-    from policies.experts.libero_scripted import HOME_STEPS, Handover
+    from policies.experts.libero_select import HOME_STEPS, Handover
 
     class Next:
         def act(self, obs):
@@ -486,12 +486,8 @@ def test_a_failed_chain_keeps_the_steps_of_its_completed_subtasks_only():
 def test_the_expert_puts_a_trays_next_object_on_its_free_spot():
     """Revision 4 aims at the floor point farthest from what the tray already holds (the
     region's centre when empty); revision 3 aims at the centre whatever is there."""
-    from policies.experts.libero_scripted import (
-        GEOMETRY,
-        LiberoScriptedParams,
-        PickPlace,
-        PickPlaceExpert,
-    )
+    from policies.experts.libero_geometry import GEOMETRY
+    from policies.experts.libero_scripted import LiberoScriptedParams, PickPlace, PickPlaceExpert
 
     tray = GEOMETRY["wooden_tray"]
     obs = np.zeros(40)
@@ -511,3 +507,77 @@ def test_the_expert_puts_a_trays_next_object_on_its_free_spot():
     obs[20:23] = [0.5, -0.5, 0.45]  # nothing in the tray: its centre
     empty = PickPlaceExpert(plan, LiberoScriptedParams(revision=4), None)._place_point(obs)
     assert empty[:2] == pytest.approx([0.0, 0.3])
+
+
+def test_the_expert_puts_an_object_on_a_cabinet_top_beside_what_stands_there():
+    """Revision 5 puts an object going on a cabinet's top near the robot (at -x) and
+    SURFACE_CLEAR from what already stands there, the first leaving the second room no
+    farther than the centre; revisions 1-4 aimed at the top's centre, where a wine bottle
+    (4 cm in radius) meets a bowl (5.5 cm) standing by it (chains/libero_goal)."""
+    from policies.experts.libero_geometry import GEOMETRY
+    from policies.experts.libero_scripted import (
+        ROBOT_XY,
+        SURFACE_CLEAR,
+        LiberoScriptedParams,
+        PickPlace,
+        PickPlaceExpert,
+    )
+
+    obs = np.zeros(40)
+    obs[10:17] = [0.04, -0.234, 0.905, 0.0, 0.0, 1.0, 0.0]  # the cabinet, turned 180 degrees
+    obs[17:20] = [0.036, -0.25, 1.127]  # its top_side site
+    obs[20:23] = [0.036, -0.25, 1.127]  # the top's centre, for the first object
+    obs[23:26] = [-0.05, 0.13, 0.909]  # cream cheese on the table
+    plan = PickPlace(
+        obj=slice(30, 37), obj_geom=GEOMETRY["wine_bottle"], target=slice(17, 20), target_geom=None,
+        into=False, others=(slice(20, 27), slice(23, 30)), surface=slice(10, 17),
+        surface_geom=GEOMETRY["wooden_cabinet"],
+    )  # fmt: skip
+    obs[22] = 0.0  # nothing on the top yet: the first object takes a corner near the robot
+    first = PickPlaceExpert(plan, LiberoScriptedParams(revision=5), None)._place_point(obs)
+    reach = np.linalg.norm(obs[17:19] - ROBOT_XY)  # the top's centre, where revision 4 aims
+    assert np.linalg.norm(first[:2] - ROBOT_XY) < reach - 0.04
+    obs[20:23] = first  # a bowl standing there: the next one goes beside it, no farther than the centre
+    spot = PickPlaceExpert(plan, LiberoScriptedParams(revision=5), None)._place_point(obs)
+    assert np.linalg.norm(spot[:2] - first[:2]) >= SURFACE_CLEAR
+    assert np.linalg.norm(spot[:2] - ROBOT_XY) < reach + 0.015
+    assert abs(spot[0] - 0.036) <= 0.125 and abs(spot[1] + 0.25) <= 0.094  # on the top
+    old = PickPlaceExpert(plan, LiberoScriptedParams(revision=4), None)._place_point(obs)
+    assert old[:2] == pytest.approx([0.036, -0.25])  # the centre, against the bowl's rim
+    assert np.linalg.norm(old[:2] - obs[20:22]) < 0.055 + 0.04
+
+
+@needs_libero
+@pytest.mark.parametrize(("revision", "completed"), [(4, 2), (5, 3)])
+def test_the_expert_drags_the_plate_from_under_the_drawer_it_opened(revision, completed):
+    """Chain 21 of chains/libero_goal: the bowl onto the cabinet, the middle drawer, then
+    the plate to the stove's front. Revision 4's pitched hand swept the plate further
+    under the drawer it opened, and the open drawer covers the plate's far half: no
+    revision-4 chain pushed the plate after opening that drawer. Revision 5 lines up on
+    the handle from above and pushes the drawer back in before it drags the plate."""
+    from adapters import chains
+    from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams
+
+    suite = chains.load_suite("chains/libero_goal")
+    task = suite.tasks[0]
+    spec = task.episodes[21]
+    assert spec.chain[:3] == ("bowl_on_cabinet", "open_middle_drawer", "plate_to_stove_front")
+    env = suite.make_env(task)
+    try:
+        obs, info = env.reset(seed=spec.seed, options={"episode": spec})
+        expert = LiberoScripted(LiberoScriptedParams(revision=revision))
+        k = -1
+        while info["subtasks_completed"] < 3:
+            if info["subtask_index"] != k:
+                k = info["subtask_index"]
+                ctx = EpisodeContext(
+                    suite.name, task.name, info["instruction"], env.action_space, env.observation_space,
+                    360, 21, subtask_index=k,
+                )  # fmt: skip
+                expert.reset([ctx])
+            obs, _, terminated, _, info = env.step(expert.act([obs]).actions[0, 0])
+            if terminated:
+                break
+        assert info["subtasks_completed"] == completed
+    finally:
+        env.close()

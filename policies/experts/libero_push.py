@@ -18,6 +18,8 @@ import numpy as np
 from policies.experts.libero_scripted import (
     CLOSE,
     MAX_DELTA_RAD,
+    STOP_Z,
+    STOPPED_STEPS,
     LiberoScriptedParams,
     quat_to_mat,
     rotation_error,
@@ -67,6 +69,7 @@ class PushExpert:
         self.phase, self.count = "approach", 0
         self.home_rot: np.ndarray | None = None
         self.drag_rot: np.ndarray | None = None
+        self.last_z, self.stalled = np.inf, 0  # revision 5: steps the descending hand has not moved
 
     def _aim(self, obs: np.ndarray) -> np.ndarray:
         centre = obs[self.site][:2]
@@ -94,13 +97,18 @@ class PushExpert:
             self.drag_rot = self._along(d)
         low_z = pose[2] + DRAG_HEIGHT
         target = eef.copy()
+        new = self.params.revision >= 5
+        down = plate
         if self.phase == "approach":
-            target = np.array([plate[0], plate[1], low_z + 0.08])
+            target = np.array([down[0], down[1], low_z + 0.08])
             if np.linalg.norm(target - eef) < 0.015 or self.count > 80:
                 self._next("descend")
         elif self.phase == "descend":
-            target = np.array([plate[0], plate[1], low_z])
-            if abs(eef[2] - low_z) < 0.006 or self.count > 40:
+            target = np.array([down[0], down[1], low_z])
+            # revision 5 also once the fingers rest on the plate's floor (the set point
+            # is below it): revisions 1-4 waited there for the 40 steps to run out
+            self.stalled = self.stalled + 1 if new and abs(eef[2] - self.last_z) < STOP_Z else 0
+            if abs(eef[2] - low_z) < 0.006 or self.count > 40 or self.stalled >= STOPPED_STEPS:
                 self._next("drag")
         elif self.phase == "drag":
             lead = plate + d * (self.plan.radius + PRESS)  # past the rim: keeps pressing on it
@@ -111,9 +119,10 @@ class PushExpert:
                 self._next("approach")  # out of the plate: go in again
         elif self.phase == "retreat":
             target = eef + np.array([0.0, 0.0, 0.05])
+        self.last_z = float(eef[2])
         move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
         turn = np.clip(rotation_error(self.drag_rot, rot) / MAX_DELTA_RAD, -1.0, 1.0)
         return np.concatenate([move, turn, [CLOSE]]).astype(np.float32)
 
     def _next(self, phase: str) -> None:
-        self.phase, self.count = phase, 0
+        self.phase, self.count, self.stalled = phase, 0, 0

