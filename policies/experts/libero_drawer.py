@@ -58,6 +58,14 @@ AJAR = -0.095
 # Where something going into a drawer is put down: y in the cabinet's frame (m), a bowl's
 # radius and 9 mm in front of the edge of the cabinet's top (at -0.078).
 PLACE_Y = {"wooden_cabinet": -0.142}
+# Revision 5 puts it 7 mm deeper, its rim (5.4 cm from its centre) 3 mm in front of that
+# edge. Ajar, the drawer's opening is ~1 cm narrower than the bowl, so it cannot go in
+# flat: at PLACE_Y its bottom came down on the drawer's front wall and, let go there, it
+# fell in tilted and wedged under the cabinet's top, the drawer stuck ~5 cm out (10 of
+# the 13 chains revision 5 lost at first). Here its flank meets the wall's top edge and,
+# lowered on (Handover finishes the placement), pushes the drawer out to ~-0.12 m, where
+# it fits and rests on the floor (docs/chains.md, "The scripted expert").
+PLACE_Y_DEEPER = {"wooden_cabinet": -0.135}
 FRONT = 0.06  # line up this far in front of the handle before going in (m)
 BACK_OFF = 0.06  # after letting go, back off to this far in front of the handle (m)
 RISE = 0.10  # and rise this far before turning upright (m)
@@ -100,7 +108,38 @@ class Drawer:
     category: str  # of its cabinet
 
 
-class DrawerExpert:
+class _DrawerHand:
+    """What the drawer-handling experts share: a phase machine whose last phase is
+    `done`, the hand and cabinet read from the state, and the action that drives the hand
+    to a target position and orientation."""
+
+    phase: str
+    count: int
+    params: LiberoScriptedParams
+    plan: Drawer
+
+    @property
+    def done(self) -> bool:
+        return self.phase == "done"
+
+    def _next(self, phase: str) -> None:
+        self.phase, self.count = phase, 0
+
+    def _sense(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The hand's position and orientation, the cabinet's orientation and the pull
+        direction (out of the cabinet, its -y axis), from the state."""
+        cabinet = quat_to_mat(obs[self.plan.cabinet][3:7])
+        return obs[0:3], quat_to_mat(obs[3:7]), cabinet, -cabinet[:, 1]
+
+    def _action(
+        self, target: np.ndarray, want: np.ndarray, eef: np.ndarray, rot: np.ndarray, grip: float
+    ) -> np.ndarray:
+        move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
+        turn = np.clip(rotation_error(want, rot) / MAX_DELTA_RAD, -1.0, 1.0)
+        return np.concatenate([move, turn, [grip]]).astype(np.float32)
+
+
+class DrawerExpert(_DrawerHand):
     """Line up (turning), go in, close, pull, let go, back off, turn upright; then `done`."""
 
     def __init__(
@@ -120,14 +159,8 @@ class DrawerExpert:
         self.back: np.ndarray | None = None  # from the handle out along the hand
         self.shift = 0.0  # revision 5: where along the bar it is pinched (m, cabinet's x)
 
-    @property
-    def done(self) -> bool:
-        return self.phase == "done"
-
     def act(self, obs: np.ndarray) -> np.ndarray:
-        eef, rot = obs[0:3], quat_to_mat(obs[3:7])
-        cabinet = quat_to_mat(obs[self.plan.cabinet][3:7])
-        pull = -cabinet[:, 1]
+        eef, rot, cabinet, pull = self._sense(obs)
         if self.home_rot is None:
             self.home_rot = rot
         handle, q = drawer_state(self.plan, obs)
@@ -182,12 +215,7 @@ class DrawerExpert:
                 self._next("done")
         else:  # done: hold still, upright (a next expert takes over from here)
             want = self.home_rot
-        move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
-        turn = np.clip(rotation_error(want, rot) / MAX_DELTA_RAD, -1.0, 1.0)
-        return np.concatenate([move, turn, [grip]]).astype(np.float32)
-
-    def _next(self, phase: str) -> None:
-        self.phase, self.count = phase, 0
+        return self._action(target, want, eef, rot, grip)
 
     def _yaw(
         self, obs: np.ndarray, handle: np.ndarray, pull: np.ndarray, along: np.ndarray
@@ -239,11 +267,17 @@ class OpenThenExpert:
     AJAR leaves room for the hand. The region site sits at the drawer's middle, which at
     AJAR is under the cabinet's top, so the pick-and-place expert sees the region moved
     to PLACE_Y, just in front of the top's edge, where the bowl can be lowered from above
-    and still counts as in the drawer.
+    and still counts as in the drawer (revision 5: PLACE_Y_DEEPER, lowered to the floor).
     """
 
     def __init__(self, drawer: DrawerExpert, then):
         self.drawer, self.then = drawer, then
+
+    @property
+    def lowering(self) -> bool:
+        """Whether the object is on its way down into the drawer, not yet let go: LIBERO
+        counts it In well above the floor, where a chain's next subtask already begins."""
+        return self.drawer.done and self.then.phase == "lower"
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         if not self.drawer.done:
@@ -254,13 +288,13 @@ class OpenThenExpert:
         cabinet_pos, cabinet = obs[plan.cabinet][:3], quat_to_mat(obs[plan.cabinet][3:7])
         site = obs[plan.region][:3]
         local = cabinet.T @ (site - cabinet_pos)
-        local[1] = PLACE_Y[plan.category]
+        local[1] = (PLACE_Y_DEEPER if self.drawer.params.revision >= 5 else PLACE_Y)[plan.category]
         seen = obs.copy()
         seen[plan.region][:3] = cabinet_pos + cabinet @ local
         return self.then.act(seen)
 
 
-class ShutExpert:
+class ShutExpert(_DrawerHand):
     """Revision 5: push a drawer that is out (past OUT) back in by its handle, then `done`.
 
     In a chain a drawer opened earlier stays open: the middle drawer, fully out, covers
@@ -284,14 +318,8 @@ class ShutExpert:
         self.flat: np.ndarray | None = None
         self.trail: list[float] = []  # the joint position at each step of the push
 
-    @property
-    def done(self) -> bool:
-        return self.phase == "done"
-
     def act(self, obs: np.ndarray) -> np.ndarray:
-        eef, rot = obs[0:3], quat_to_mat(obs[3:7])
-        cabinet = quat_to_mat(obs[self.plan.cabinet][3:7])
-        pull = -cabinet[:, 1]
+        eef, rot, cabinet, pull = self._sense(obs)
         if self.home_rot is None:
             self.home_rot, self.start = rot, np.array(eef)
             self.flat = leaning_out(closing_along(rot, cabinet[:, 0]), pull)
@@ -328,12 +356,7 @@ class ShutExpert:
                 self._next("done")
         else:  # done: hold still, upright
             want = self.home_rot
-        move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
-        turn = np.clip(rotation_error(want, rot) / MAX_DELTA_RAD, -1.0, 1.0)
-        return np.concatenate([move, turn, [CLOSE]]).astype(np.float32)
-
-    def _next(self, phase: str) -> None:
-        self.phase, self.count = phase, 0
+        return self._action(target, want, eef, rot, CLOSE)
 
     def _in_the_way(self, obs: np.ndarray, q: float) -> bool:
         if q > OUT:

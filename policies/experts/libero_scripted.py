@@ -244,16 +244,26 @@ class PickPlaceExpert:
                 best, best_clearance = (turned, grip), clearance
         return best
 
+    def _grid(
+        self, obs: np.ndarray, pose: slice, half: tuple[float, float], margin: float, counts: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The target region's centre, the 2-D rotation of the body at `pose`, and a grid of
+        counts[0] x counts[1] points in that body's frame, `margin` in from the edges of a
+        rectangle of half-sizes `half` about the centre: where revisions 4 and 5 look for a
+        free spot (a container's floor, a top surface)."""
+        centre = obs[self.plan.target][:3]
+        rot = quat_to_mat(obs[pose][3:7])[:2, :2]
+        xs = np.linspace(-(half[0] - margin), half[0] - margin, counts[0])
+        ys = np.linspace(-(half[1] - margin), half[1] - margin, counts[1])
+        return centre, rot, np.array([(x, y) for x in xs for y in ys])
+
     def _free_spot(self, obs: np.ndarray) -> np.ndarray:
         """The point of the container's floor grid farthest from the objects already in
         it (the region's centre when it is empty), chosen once per subtask."""
-        plan, centre = self.plan, obs[self.plan.target][:3]
+        plan = self.plan
         assert plan.container is not None and plan.container_geom is not None
         hx, hy = plan.container_geom.inner  # type: ignore[misc]
-        rot = quat_to_mat(obs[plan.container][3:7])[:2, :2]
-        xs = np.linspace(-(hx - SPOT_MARGIN), hx - SPOT_MARGIN, 7)
-        ys = np.linspace(-(hy - SPOT_MARGIN), hy - SPOT_MARGIN, 3)
-        grid = np.array([(x, y) for x in xs for y in ys])
+        centre, rot, grid = self._grid(obs, plan.container, (hx, hy), SPOT_MARGIN, (7, 3))
         inside = [
             local
             for other in plan.others
@@ -275,13 +285,11 @@ class PickPlaceExpert:
         objects on a cabinet's top cannot both stand at its edge nearest the robot: the
         first takes a corner of it and leaves the second the top's middle, not its far
         side, where the arm straightened to its elbow's limit."""
-        plan, centre = self.plan, obs[self.plan.target][:3]
+        plan = self.plan
         assert plan.surface is not None and plan.surface_geom is not None
         hx, hy = plan.surface_geom.surface  # type: ignore[misc]
-        rot = quat_to_mat(obs[plan.surface][3:7])[:2, :2]
-        xs = np.linspace(-(hx - SURFACE_MARGIN), hx - SURFACE_MARGIN, 7)
-        ys = np.linspace(-(hy - SURFACE_MARGIN), hy - SURFACE_MARGIN, 5)
-        points = np.array([centre[:2] + rot @ (x, y) for x in xs for y in ys])
+        centre, rot, grid = self._grid(obs, plan.surface, (hx, hy), SURFACE_MARGIN, (7, 5))
+        points = np.array([centre[:2] + rot @ p for p in grid])
         reach = np.linalg.norm(points - ROBOT_XY, axis=1)
         apart = np.linalg.norm(points[:, None, :] - points[None], axis=2)
         on = [obs[o][:2] for o in plan.others if abs(obs[o][2] - centre[2]) < 0.05]
@@ -448,7 +456,7 @@ class LiberoScripted:
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         from adapters.base import derive_seed
-        from policies.experts.libero_select import Handover, expert_for, placed
+        from policies.experts.libero_select import expert_for, handover
 
         running = dict(zip(self._episodes, self._experts, strict=True))
         self._experts, self._episodes = [], []
@@ -462,9 +470,7 @@ class LiberoScripted:
             expert = expert_for(ep, self.params, rng)
             key = (ep.task, ep.episode_index)
             if ep.subtask_index > 0 and key in running:  # a chain's next instruction
-                open_first = self.params.revision >= 5 and placed(running[key])
-                unbend = self.params.revision >= 5
-                expert = Handover(expert, self._homes.get(key), self.params.gain, open_first, unbend)
+                expert = handover(expert, running[key], self._homes.get(key), self.params)
                 if key in self._homes:
                     homes[key] = self._homes[key]
             self._experts.append(expert)

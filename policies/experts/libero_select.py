@@ -11,6 +11,7 @@ and builds the one that fits.
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +26,9 @@ from policies.experts.libero_scripted import (
     quat_to_mat,
     rotation_error,
 )
+
+if TYPE_CHECKING:
+    from policies.experts.libero_drawer import OpenThenExpert
 
 
 def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
@@ -211,14 +215,46 @@ STRAIGHT = -0.3
 BEND_STEPS = 25
 
 
+def handover(
+    following: object, previous: object, home: np.ndarray | None, params: LiberoScriptedParams
+) -> Handover:
+    """The `Handover` to a chain's next subtask after `previous`, the last one's expert:
+    revision 5 finishes a placement into a drawer (`lowering`), opens in place after one
+    into a drawer or onto a top (`placed`), and bends a straightened elbow."""
+    late = params.revision >= 5
+    finish = lowering(previous) if late else None
+    return Handover(following, home, params.gain, late and placed(previous), late, finish)
+
+
+def _unwrapped(expert: object) -> object:
+    """The expert a chain's subtask runs, without its handover and drawer shutting."""
+    from policies.experts.libero_drawer import ShutFirst
+
+    while isinstance(expert, Handover | ShutFirst):
+        expert = expert.following if isinstance(expert, Handover) else expert.then
+    return expert
+
+
+def lowering(expert: object) -> OpenThenExpert | None:
+    """The drawer placement (OpenThenExpert) still lowering its object, if `expert` is
+    one: LIBERO counts a bowl In the top drawer ~5 cm above the drawer's floor, so a
+    chain's next subtask begins while it is still on its way down. Let go there (revision
+    5 at first), the bowl fell onto the drawer's front wall and wedged under the
+    cabinet's top; the handover lets the placement finish first (PLACE_Y_DEEPER in
+    policies/experts/libero_drawer.py says why it then fits)."""
+    from policies.experts.libero_drawer import OpenThenExpert
+
+    expert = _unwrapped(expert)
+    return expert if isinstance(expert, OpenThenExpert) and expert.lowering else None
+
+
 def placed(expert: object) -> bool:
     """Whether a chain's last subtask put something into a drawer or on a piece of
     furniture's top: revision 5 lets go of it in place and rises first. (Into a tray it
     moves at once, as revisions 1-4 did: opening in place there lost 1 of 20 tray chains.)"""
-    from policies.experts.libero_drawer import OpenThenExpert, ShutFirst
+    from policies.experts.libero_drawer import OpenThenExpert
 
-    while isinstance(expert, Handover | ShutFirst):
-        expert = expert.following if isinstance(expert, Handover) else expert.then
+    expert = _unwrapped(expert)
     return isinstance(expert, OpenThenExpert) or (
         isinstance(expert, PickPlaceExpert) and expert.plan.surface is not None
     )
@@ -245,6 +281,7 @@ class Handover:
         gain: float,
         open_first: bool = False,
         unbend: bool = False,
+        finish: OpenThenExpert | None = None,
     ):
         from policies.experts.libero_drawer import ShutFirst
 
@@ -258,8 +295,12 @@ class Handover:
         self.rising = RISE_STEPS if open_first else 0  # and then to rise
         self.anchor: np.ndarray | None = None  # where the hand was when the subtask began
         self.bending = BEND_STEPS if unbend else 0  # revision 5: steps left to bend the elbow
+        self.finish = finish  # revision 5: a drawer placement to finish first (`lowering`)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
+        if self.finish is not None and self.finish.lowering:
+            return self.finish.act(obs)
+        self.finish = None
         if self.home is not None and self.opening == 0 and self.bending > 0 and obs[ELBOW] > STRAIGHT:
             self.bending -= 1  # (after letting go) pitch the hand: that bends the elbow
             return np.array([0, 0, 0, 0, 1, 0, OPEN], dtype=np.float32)
