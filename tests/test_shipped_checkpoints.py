@@ -6,6 +6,7 @@ import hashlib
 
 import pytest
 
+from adapters import simpler
 from policies.dvla.checkpoint import load
 from policies.dvla.policy import SHIPPED
 from results.store import RunDir
@@ -21,7 +22,7 @@ EXPECTED = {
 def test_shipped_checkpoints_load_with_their_provenance():
     files = {name: SHIPPED / f"metaworld-mt10-{name}.safetensors" for name in EXPECTED}
     # Everything shipped, every suite's set together, stays small enough to commit.
-    assert sum(f.stat().st_size for f in SHIPPED.glob("*.safetensors")) < 40 * 2**20
+    assert sum(f.stat().st_size for f in SHIPPED.glob("*.safetensors")) < 72 * 2**20
     for name, path in files.items():
         ckpt = load(path)
         assert ckpt.model.cfg.pattern == EXPECTED[name]
@@ -71,3 +72,42 @@ def test_shipped_libero_sets_are_a_teacher_its_student_and_an_ar_baseline(name):
     assert teacher.vocab == ar.vocab and teacher.meta["state_dims"] == ar.meta["state_dims"]
     digest = hashlib.sha256((SHIPPED / f"{name}-bidirectional.safetensors").read_bytes()).hexdigest()
     assert student.meta["teacher_sha256"] == digest
+
+
+def test_shipped_simpler_sets_are_state_and_camera_policies_with_their_teachers():
+    state = {name: load(SHIPPED / f"simpler-state-{name}.safetensors") for name in EXPECTED}
+    for name, ckpt in state.items():
+        assert ckpt.model.cfg.pattern == EXPECTED[name] and ckpt.state_features == "relative"
+        assert not ckpt.model.cfg.cameras
+    camera = {
+        name: load(SHIPPED / f"simpler-img64-{name}.safetensors") for name in ("bidirectional", "fast_dvla")
+    }
+    for ckpt in camera.values():
+        # Only the robot's own state: where the cubes are must come from the pixels, so the
+        # visual variants reach this policy.
+        assert ckpt.state_features == "proprio" and ckpt.model.cfg.cameras
+        assert ckpt.model.cfg.image_size == 64 and ckpt.model.cfg.image_coords
+    for prefix, teacher in (
+        ("simpler-state", state["bidirectional"]),
+        ("simpler-img64", camera["bidirectional"]),
+    ):
+        digest = hashlib.sha256((SHIPPED / f"{prefix}-bidirectional.safetensors").read_bytes()).hexdigest()
+        student = state["fast_dvla"] if prefix == "simpler-state" else camera["fast_dvla"]
+        assert student.meta["teacher_sha256"] == digest and student.vocab == teacher.vocab
+    assert (
+        state["block_diffusion"].meta["init_sha256"]
+        == hashlib.sha256((SHIPPED / "simpler-state-bidirectional.safetensors").read_bytes()).hexdigest()
+    )
+
+
+@pytest.mark.skipif(not simpler._installed(), reason="needs the maniskill extra")
+def test_the_shipped_simpler_teacher_pulls_the_cube_by_set_name(cli, tmp_path):
+    # The set's name, not a path: it resolves to the teacher's file of the shipped set.
+    args = (
+        "run --suite simpler/pull_cube --episodes-per-task 3 --policy bidirectional:checkpoint=simpler-state"
+    )
+    code, _, err = cli(*args.split(), "--out", str(tmp_path / "r"), "--quiet")
+    assert code == 0, err
+    episodes = RunDir(tmp_path / "r").read_episodes()
+    assert episodes["checkpoint"].str.endswith("simpler-state-bidirectional.safetensors").all()
+    assert episodes["success"].sum() >= 2, episodes[["episode_index", "success"]].to_dict("records")
