@@ -98,13 +98,12 @@ class PushExpert:
         low_z = pose[2] + DRAG_HEIGHT
         target = eef.copy()
         new = self.params.revision >= 5
-        down = plate
         if self.phase == "approach":
-            target = np.array([down[0], down[1], low_z + 0.08])
+            target = np.array([plate[0], plate[1], low_z + 0.08])
             if np.linalg.norm(target - eef) < 0.015 or self.count > 80:
                 self._next("descend")
         elif self.phase == "descend":
-            target = np.array([down[0], down[1], low_z])
+            target = np.array([plate[0], plate[1], low_z])
             # revision 5 also once the fingers rest on the plate's floor (the set point
             # is below it): revisions 1-4 waited there for the 40 steps to run out
             self.stalled = self.stalled + 1 if new and abs(eef[2] - self.last_z) < STOP_Z else 0
