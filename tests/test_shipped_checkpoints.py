@@ -6,7 +6,7 @@ import hashlib
 
 import pytest
 
-from adapters import simpler
+from adapters import libero, simpler
 from policies.dvla.checkpoint import load
 from policies.dvla.policy import SHIPPED
 from results.store import RunDir
@@ -22,7 +22,7 @@ EXPECTED = {
 def test_shipped_checkpoints_load_with_their_provenance():
     files = {name: SHIPPED / f"metaworld-mt10-{name}.safetensors" for name in EXPECTED}
     # Everything shipped, every suite's set together, stays small enough to commit.
-    assert sum(f.stat().st_size for f in SHIPPED.glob("*.safetensors")) < 72 * 2**20
+    assert sum(f.stat().st_size for f in SHIPPED.glob("*.safetensors")) < 80 * 2**20
     for name, path in files.items():
         ckpt = load(path)
         assert ckpt.model.cfg.pattern == EXPECTED[name]
@@ -111,3 +111,27 @@ def test_the_shipped_simpler_teacher_pulls_the_cube_by_set_name(cli, tmp_path):
     episodes = RunDir(tmp_path / "r").read_episodes()
     assert episodes["checkpoint"].str.endswith("simpler-state-bidirectional.safetensors").all()
     assert episodes["success"].sum() >= 2, episodes[["episode_index", "success"]].to_dict("records")
+
+
+def test_the_shipped_chain_set_reads_the_goal_positions_state():
+    """The tray-scene set (issue 24) was trained with `goal_positions=on`: its state is
+    the scene's plus the goal's two positions, and every recipe says so in its sources."""
+    chain = {name: load(SHIPPED / f"chains-tray-{name}.safetensors") for name in EXPECTED}
+    for name, ckpt in chain.items():
+        assert ckpt.model.cfg.pattern == EXPECTED[name] and ckpt.state_features == "relative"
+        suites = {s["suite"] for s in ckpt.meta["data_sources"]}
+        assert suites and all(s.startswith("chains/living_room_scene3:") for s in suites)
+        assert all("goal_positions=on" in s for s in suites), suites
+        assert ckpt.state_positions[-2:] == (61, 64) and ckpt.raw_state_dim == 67
+    digest = hashlib.sha256((SHIPPED / "chains-tray-bidirectional.safetensors").read_bytes()).hexdigest()
+    assert chain["fast_dvla"].meta["teacher_sha256"] == digest
+    assert chain["block_diffusion"].meta["init_sha256"] == digest
+
+
+@pytest.mark.skipif(not libero._installed(), reason="needs the libero extra")
+def test_the_chain_set_on_the_language_only_suite_names_the_option(cli, tmp_path):
+    out = tmp_path / "r"
+    args = "run --suite chains/living_room_scene3 --episodes-per-task 1 --policy bidirectional:checkpoint=chains-tray"
+    code, _, err = cli(*args.split(), "--out", str(out), "--quiet")
+    assert code == 2 and "goal_positions=on" in err, err
+    assert not out.exists()

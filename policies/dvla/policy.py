@@ -298,9 +298,18 @@ class DVLAPolicy:
                 f"{self.params.checkpoint}: acts in {cfg.action_dim}-D, the suite's actions are "
                 f"{action_space.shape}"
             )
-        check_observation_space(
-            cfg, observation_space, self.ckpt.meta.get("state_dims") or (self.ckpt.raw_state_dim,)
-        )
+        try:
+            check_observation_space(
+                cfg, observation_space, self.ckpt.meta.get("state_dims") or (self.ckpt.raw_state_dim,)
+            )
+        except ValueError as exc:
+            trained_on = sorted(
+                {s["suite"] for s in self.ckpt.meta.get("data_sources") or [] if "suite" in s}
+            )
+            if not trained_on:
+                raise
+            # A suite option that changes the state (goal_positions=on) is in the suite's name.
+            raise ValueError(f"{exc} (it was trained on {'; '.join(trained_on)})") from None
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         for ep in episodes:
