@@ -85,7 +85,13 @@ def scene_title(scene: cs.Scene) -> str:
 def goal_arguments(subtask: cs.Subtask) -> tuple[str, str]:
     """The entities or regions a subtask's first goal predicate names, two of them
     (a one-argument predicate such as Open names its one twice): what `goal_positions=on`
-    puts in the state. Why the first: every subtask in the chain files has one goal."""
+    puts in the state. Every subtask in the chain files has one goal predicate; one with
+    more is refused rather than half-described."""
+    if len(subtask.goal) != 1:
+        raise cs.ChainDataError(
+            f"subtask {subtask.id!r} has {len(subtask.goal)} goal predicates; goal_positions=on "
+            "describes one (use the suite without the option)"
+        )
     args = list(subtask.goal[0][1:])
     return args[0], args[-1]
 
@@ -287,6 +293,10 @@ def load_suite(name: str, split: str = "eval") -> Suite:
     except SuiteOptionError as exc:
         raise SuiteOptionError(f"{exc}; chain suites also take {GOAL_POSITIONS}=on|off") from None
     scenes = [cs.load_scene(n) for n in names]
+    if with_goal:  # refused before any episode, not at the first reset
+        for scene in scenes:
+            for subtask in scene.subtasks:
+                goal_arguments(subtask)
     tasks = tuple(_task(scene, i, options) for i, scene in enumerate(scenes))
     by_name = {s.name: s for s in scenes}
 

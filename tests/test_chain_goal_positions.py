@@ -25,6 +25,19 @@ def test_the_option_is_taken_out_before_liberos_parse():
         split_chain_options("goal_positions=maybe")
 
 
+def test_a_subtask_with_two_goal_predicates_is_refused_not_half_described():
+    from adapters import chain_scenes as cs
+    from adapters.chains import goal_arguments
+
+    one = cs.Subtask("a", "open it", (("open", "drawer_1"),), (), (), (), "authored")
+    assert goal_arguments(one) == ("drawer_1", "drawer_1")
+    two = cs.Subtask(
+        "b", "do both", (("open", "drawer_1"), ("on", "bowl_1", "plate_1")), (), (), (), "authored"
+    )
+    with pytest.raises(cs.ChainDataError, match="2 goal predicates"):
+        goal_arguments(two)
+
+
 def test_an_unknown_option_names_the_chain_option_too():
     from adapters.chains import load_suite
 
