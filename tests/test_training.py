@@ -508,3 +508,26 @@ def test_action_range_full_keeps_a_rare_action_the_percentile_bins_clip(tmp_path
     )  # fmt: skip
     assert code == 2 and "comes from the --init or --teacher checkpoint" in err
     assert not (tmp_path / "c.safetensors").exists()
+
+
+def test_a_continued_model_that_clips_says_its_tokenizer_is_inherited(tmp_path, cli):
+    """--action-range cannot widen an --init model's bins, so the hint must not offer it."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    small = ["--steps", "2", "--batch-size", "8", "--width", "32", "--layers", "1", "--ffn", "64", "--quiet"]
+    calm = [("turn", rng.normal(size=(40, 3)), rng.uniform(-0.1, 0.1, (40, 4))) for _ in range(5)]
+    base = _synthetic_demos(tmp_path / "calm", calm)
+    code, _, err = cli("train", "--demos", str(base), "--recipe", "bidirectional", "--action-range", "full", "--out", str(tmp_path / "a.safetensors"), *small)  # fmt: skip
+    assert code == 0 and "clips" not in err, err
+    wide = []
+    for _ in range(5):
+        actions = rng.uniform(-0.1, 0.1, (40, 4))
+        actions[:3, 2] = 1.0  # wrist turns the first model's bins never saw
+        wide.append(("turn", rng.normal(size=(40, 3)), actions))
+    more = _synthetic_demos(tmp_path / "wide", wide)
+    code, _, err = cli("train", "--demos", str(more), "--recipe", "bidirectional", "--init", str(tmp_path / "a.safetensors"), "--out", str(tmp_path / "b.safetensors"), *small)  # fmt: skip
+    assert code == 0, err
+    assert "clips some training actions" in err and "dimension 2" in err
+    assert "The tokenizer is --init" in err and "from scratch" in err
+    assert "If they matter" not in err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rich.progress import (
     BarColumn,
@@ -17,6 +18,9 @@ from rich.progress import (
 
 from harness.console import console, err_console
 from harness.errors import UsageError
+
+if TYPE_CHECKING:
+    from policies.dvla.recipes import TrainConfig
 
 CLIPPED = 0.1  # warn above this tokenizer error on a training action (a tenth of a half-range)
 
@@ -253,9 +257,22 @@ def cmd_train(args: argparse.Namespace) -> int:
         err_console.print(
             "[yellow]warning:[/] the action tokenizer clips some training actions by more than "
             f"{CLIPPED} ({'; '.join(lost)}): rare large actions decode smaller than demonstrated. "
-            "If they matter, train with --action-range full."
+            + _widen_hint(cfg)
         )
     return 0
+
+
+def _widen_hint(cfg: TrainConfig) -> str:
+    """A continued or distilled model keeps the tokenizer it started from (its bins were
+    fit on that model's demonstrations), so --action-range cannot widen it here."""
+    source = cfg.teacher or cfg.init
+    if source:
+        flag = "--teacher" if cfg.teacher else "--init"
+        return (
+            f"The tokenizer is {flag} {source}'s, fit on its own demonstrations: to widen it, "
+            "train a model from scratch on these with --action-range full."
+        )
+    return "If they matter, train with --action-range full."
 
 
 def trained_on(meta: dict) -> str:
