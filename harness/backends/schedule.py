@@ -2,7 +2,8 @@
 
 Work goes out task by task: a worker takes a task's episodes (every policy, interleaved
 episode by episode as in one process, so the policies' timing ratios are taken under
-the same load) and keeps that task's env between them. Unbatched, a worker holds one
+the same load) and keeps that task's env between them. With fewer tasks than workers a
+task's episodes are split into contiguous ranges, one per idle worker (units_by_task). Unbatched, a worker holds one
 episode at a time; what it held when it was lost (killed by a signal, a simulator
 segfault, the kernel's out-of-memory killer, an exit) is run again on a fresh worker, up
 to `max_retries` times, then recorded as a failure row saying why. An episode past
@@ -104,8 +105,13 @@ class Slot:
         return bool(self.busy or self.unit or self.solo)
 
 
-def units_by_task(jobs: list[EpisodeJob]) -> deque[deque[JobId]]:
-    """Consecutive jobs of one task (plan order: episode -> policy) as one unit of work."""
+def units_by_task(jobs: list[EpisodeJob], workers: int = 1) -> deque[deque[JobId]]:
+    """Consecutive jobs of one task (plan order: episode -> policy) as one unit of work;
+    with fewer tasks than workers, the largest unit halved at an episode boundary until
+    every worker has one (or no unit holds two episodes). Without that a one-task suite
+    (a chain scene, one SimplerEnv task) ran on one worker whatever --workers said. Each
+    half keeps every policy's episode together, so the interleaving is unchanged, and
+    costs one more env build; episodes are seeded by index, so the rows are the same."""
     units: deque[deque[JobId]] = deque()
     last = None
     for job in jobs:
@@ -113,6 +119,15 @@ def units_by_task(jobs: list[EpisodeJob]) -> deque[deque[JobId]]:
             units.append(deque())
             last = job.task.name
         units[-1].append(job_id(job))
+    while units and len(units) < workers:
+        at = max(range(len(units)), key=lambda i: len(units[i]))
+        episodes = list(dict.fromkeys(jid[1] for jid in units[at]))
+        if len(episodes) < 2:
+            break
+        later = set(episodes[len(episodes) // 2 :])
+        largest = units[at]
+        units[at] = deque(jid for jid in largest if jid[1] not in later)
+        units.insert(at + 1, deque(jid for jid in largest if jid[1] in later))
     return units
 
 
@@ -147,7 +162,7 @@ def schedule(
     on_worker: Callable[[dict[str, Any]], None],
 ) -> None:
     by_id = {job_id(job): job for job in jobs}
-    units = units_by_task(jobs)
+    units = units_by_task(jobs, execution.workers)
     slots = [Slot() for _ in range(min(execution.workers, len(units)))]
     attempts: Counter[JobId] = Counter()
     handed_on: set[JobId] = set()
