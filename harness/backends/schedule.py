@@ -3,8 +3,8 @@
 Work goes out task by task: a worker takes a task's episodes (every policy, interleaved
 episode by episode as in one process, so the policies' timing ratios are taken under
 the same load) and keeps that task's env between them. With fewer tasks than workers a
-task's episodes are split into contiguous ranges, one per idle worker (units_by_task). Unbatched, a worker holds one
-episode at a time; what it held when it was lost (killed by a signal, a simulator
+task's episodes are split into contiguous ranges, one per idle worker (units_by_task).
+Unbatched, a worker holds one episode at a time; what it held when it was lost (killed by a signal, a simulator
 segfault, the kernel's out-of-memory killer, an exit) is run again on a fresh worker, up
 to `max_retries` times, then recorded as a failure row saying why. An episode past
 `episode_timeout` is a failure row with reason `timeout: ...` and its worker is replaced.
