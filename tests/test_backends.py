@@ -28,6 +28,7 @@ from tests.fakes import FakeBuild
 
 REPO = Path(__file__).resolve().parent.parent
 HAS_RAY = importlib.util.find_spec("ray") is not None
+NEEDS_RAY = pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
 
 
 def _rows(report):
@@ -95,10 +96,12 @@ def test_a_task_is_split_into_episode_ranges_only_when_workers_would_idle():
     assert not units_by_task([], workers=4)
 
 
-def test_a_one_task_suite_runs_on_every_worker_with_the_rows_of_one_process(tmp_path):
+@pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=NEEDS_RAY)])
+def test_a_one_task_suite_runs_on_every_worker_with_the_rows_of_one_process(tmp_path, backend):
     build = FakeBuild(episodes=4, delay=0.5)  # slow enough for both workers to start
     alone = run(build(), tmp_path / "one")
-    pooled = run(build(), tmp_path / "two", execution=Execution(workers=2, rebuild=build))
+    execution = Execution(backend=backend, workers=2, rebuild=build)
+    pooled = run(build(), tmp_path / "two", execution=execution)
     a, b = _rows(alone), _rows(pooled)
     assert len(b) == 4 and b["failure_reason"].isna().all()
     _same_results(a, b)
@@ -342,9 +345,6 @@ def _running(pid: int) -> bool:
     except FileNotFoundError:
         return False
     return "State:\tZ" not in status
-
-
-NEEDS_RAY = pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
 
 
 @pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=NEEDS_RAY)])

@@ -134,3 +134,43 @@ def test_each_recipe_records_the_noise_schedule_it_used(demos, tmp_path, cli):
     code, _, err = cli(*base, "--recipe", "bidirectional", "--noise-schedule", "frontier")
     assert code == 2 and "only block_diffusion and distill take a noise schedule" in err
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_distill_adds_the_demonstrations_cross_entropy_only_when_asked(demos, tmp_path, cli):
+    """--demo-ce W: KL to the teacher plus W x the cross-entropy against the demonstrated
+    tokens on the masked positions, a noisy row's first action only."""
+    student = tiny_model("block_causal")
+    teacher = tiny_model("bidirectional")
+    clean, _, words, state, positions = _inputs(student, batch=6)
+    first_only = torch.tensor([True, False, True, False, False, True])
+    seen = []
+    student.register_forward_hook(lambda _m, args, out: seen.append((args[0], out.logits)))
+
+    def loss(w: float) -> torch.Tensor:
+        g = torch.Generator().manual_seed(3)
+        args = (student, teacher, clean, words, state, positions, g)
+        return recipe_loss("distill", "frontier", *args, first_only=first_only, demo_ce=w)
+
+    kl = loss(0.0)
+    mixed = loss(0.5)
+    noisy, logits = seen[-1]
+    masked = noisy == student.cfg.mask_id
+    later = first_only[:, None] & (positions >= student.cfg.action_dim)[None, :]
+    assert (masked & later).any() and (masked & ~later).any()  # both kinds are in the batch
+    ce = torch.nn.functional.cross_entropy(logits[masked & ~later], clean[masked & ~later])
+    torch.testing.assert_close(mixed, kl + 0.5 * ce)
+    assert torch.equal(seen[0][0], noisy)  # the weight draws nothing: the same masks
+
+    base = ["train", "--demos", str(demos), "--steps", "1", "--out", str(tmp_path / "x.safetensors")]
+    code, _, err = cli(*base, "--recipe", "bidirectional", "--demo-ce", "0.5")
+    assert code == 2 and "only distill mixes a cross-entropy term" in err
+    code, _, err = cli(*base, "--recipe", "bidirectional", "--demo-ce", "-1")
+    assert code == 2 and "demo_ce must be >= 0" in err
+    assert not (tmp_path / "x.safetensors").exists()
+    one = {**TINY, "steps": 1}
+    t = tmp_path / "t.safetensors"
+    train(TrainConfig(recipe="bidirectional", **one), demos, t)
+    train(
+        TrainConfig(recipe="distill", teacher=str(t), demo_ce=0.5, **one), demos, tmp_path / "s.safetensors"
+    )
+    assert load(tmp_path / "s.safetensors").meta["train_config"]["demo_ce"] == 0.5

@@ -333,17 +333,19 @@ def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
         ("block_diffusion", "frontier"),
         ("block_diffusion", "clean_context"),
         ("autoregressive", ""),
+        ("distill", "frontier"),
     ],
 )
 def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(recipe, schedule):
     """What actions 2..H of a DART row say (they answer noise its state cannot predict)
     must change nothing: not the loss, and not what the model reads (with clean_context,
-    not in the clean copy either)."""
+    not in the clean copy either; with distill, not what the teacher reads)."""
     from policies.dvla.losses import recipe_loss
     from tests.fakes import tiny_model
 
     pattern = {"bidirectional": "bidirectional", "autoregressive": "causal"}.get(recipe, "block_causal")
     model = tiny_model(pattern)
+    teacher = tiny_model("bidirectional") if recipe == "distill" else None
     d, n = model.cfg.action_dim, model.cfg.action_tokens
     g = torch.Generator().manual_seed(0)
     clean = torch.randint(0, model.cfg.bins, (16, n), generator=g)
@@ -355,7 +357,7 @@ def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(reci
     def loss(tokens, first_only):
         seed = torch.Generator().manual_seed(1)
         return recipe_loss(
-            recipe, schedule, model, None, tokens, words, state, positions, seed, None, first_only
+            recipe, schedule, model, teacher, tokens, words, state, positions, seed, None, first_only
         )
 
     noisy = torch.ones(16, dtype=torch.bool)

@@ -101,7 +101,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=NOISY_TARGETS,
         default=d.noisy_targets,
         help="rows of `collect --action-noise` folders: first_action scores only the first "
-        "action of their chunk, since the later ones answer noise (default); chunk scores all",
+        "action of their chunk and hides the later ones, which answer noise (default; distill "
+        "hides them from the teacher too); chunk treats them as clean rows",
+    )
+    p.add_argument(
+        "--demo-ce",
+        type=float,
+        default=d.demo_ce,
+        metavar="W",
+        help="distill only: add W x the cross-entropy against the demonstrated tokens to the KL "
+        "to the teacher (default 0: Fast-dVLA's loss alone; not in the paper)",
+    )
+    p.add_argument(
+        "--ema",
+        type=float,
+        default=d.ema,
+        metavar="DECAY",
+        help="save an exponential moving average of the weights with this decay per step, e.g. "
+        "0.995 (default 0: the last step's weights)",
     )
     p.add_argument(
         "--state-features",
@@ -197,6 +214,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         warmup_steps=args.warmup_steps,
         sampling=args.sampling,
         noisy_targets=args.noisy_targets,
+        demo_ce=args.demo_ce,
+        ema=args.ema,
         state_features=args.state_features or "",
         action_range=args.action_range or "percentile",
         image_tokens=args.image_tokens,

@@ -86,10 +86,23 @@ def clean_context_logits(
 
 
 def recipe_loss(
-    recipe, schedule, model, teacher, clean, words, state, positions, g, images=None, first_only=None
+    recipe,
+    schedule,
+    model,
+    teacher,
+    clean,
+    words,
+    state,
+    positions,
+    g,
+    images=None,
+    first_only=None,
+    demo_ce: float = 0.0,
 ) -> torch.Tensor:
     """The recipe's loss on one batch. `first_only` (B,) marks rows whose chunk target is
-    only its first action (see `first_action_only`); None leaves every row whole."""
+    only its first action (see `first_action_only`); None leaves every row whole.
+    `demo_ce` (distill only) adds that weight times the cross-entropy against the
+    demonstrated tokens on the masked positions (a noisy row's first action only)."""
     cfg = model.cfg
     b, n = clean.shape
     later = None if first_only is None else first_only[:, None] & (positions >= cfg.action_dim)[None, :]
@@ -107,7 +120,13 @@ def recipe_loss(
     none = ~mask.any(dim=1)
     mask[none, torch.randint(0, n, (int(none.sum()),), generator=g)] = True  # at least one per sample
     scored = mask
-    if later is not None and recipe != "distill":
+    if later is not None and recipe == "distill":
+        # The teacher never read a noisy row's later actions (first_action_only hid them in
+        # its training): shown them, it predicts from the blur (first-action cross-entropy
+        # 7.2 instead of 3.2 on the tray teacher) and the student learns that. Hidden from
+        # both, the teacher's answer is a function of the state again.
+        mask = scored = mask | later
+    elif later is not None:
         mask, scored = first_action_only(mask, later, cfg.action_dim, g)
     noisy = torch.where(mask, torch.full_like(clean, cfg.mask_id), clean)
     if schedule == "clean_context" and recipe != "bidirectional":
@@ -122,7 +141,11 @@ def recipe_loss(
         with torch.no_grad():
             target = torch.log_softmax(teacher(noisy, positions, words, state, images=images).logits, dim=-1)
         kl = F.kl_div(torch.log_softmax(logits, dim=-1), target, log_target=True, reduction="none").sum(-1)
-        return kl[mask].mean()
+        loss = kl[mask].mean()
+        demo = mask if later is None else mask & ~later
+        if demo_ce and demo.any():
+            loss = loss + demo_ce * F.cross_entropy(logits[demo], clean[demo])
+        return loss
     return F.cross_entropy(logits[scored], clean[scored])
 
 
@@ -136,7 +159,8 @@ def first_action_only(
     model learns their blur (a spatial teacher fell from 64 to 22 of 100 that way). Only
     the first action is the demonstrator's answer to this state, so only it is scored, and
     the later positions are always [MASK] so the model never reads the blur either.
-    Distillation needs none of this: its target is the teacher, a function of the state.
+    Distillation hides them too (in `recipe_loss`), but scores every masked position: its
+    target is the teacher's answer, not the demonstration.
     """
     mask = mask | later
     scored = mask & ~later

@@ -66,6 +66,16 @@ class TrainConfig:
     # outliers clipped); "full": every training action (nothing clipped). A fresh model's
     # only: --init and --teacher bring their tokenizer.
     action_range: str = "percentile"
+    # distill only: weight of a cross-entropy term against the demonstrated tokens, added
+    # to the KL to the teacher (0 = Fast-dVLA's loss, the default). Not in the paper: a
+    # student that only matches the teacher inherits every blur of it; the demonstrations
+    # pull it back towards what the expert did (noisy rows: first action only).
+    demo_ce: float = 0.0
+    # Decay of an exponential moving average of the weights, saved in their place (0 = the
+    # last step's weights). Diffusion policies are usually evaluated on such an average:
+    # closed-loop success swings between checkpoints a few hundred steps apart while the
+    # loss barely moves, and the average smooths the last steps' noise out.
+    ema: float = 0.0
 
     @property
     def schedule(self) -> str:
@@ -101,6 +111,15 @@ class TrainConfig:
             )
         if self.action_range not in ACTION_RANGES:
             raise ValueError(f"action_range {self.action_range!r} is not one of {', '.join(ACTION_RANGES)}")
+        if not 0 <= self.ema < 1:
+            raise ValueError(f"ema must be in [0, 1) (a decay per step; 0 = off), got {self.ema}")
+        if not self.demo_ce >= 0:
+            raise ValueError(f"demo_ce must be >= 0, got {self.demo_ce}")
+        if self.demo_ce and self.recipe != "distill":
+            raise ValueError(
+                f"demo_ce {self.demo_ce}: only distill mixes a cross-entropy term into its loss "
+                f"(recipe {self.recipe!r} is cross-entropy already)"
+            )
         if self.recipe == "distill" and not self.teacher:
             raise ValueError("recipe 'distill' needs --teacher CHECKPOINT (a bidirectional model)")
         for name in ("steps", "batch_size", "chunk_len", "width", "layers", "heads", "ffn", "image_tokens"):

@@ -13,8 +13,11 @@
     distill          Fast-dVLA's asymmetric distillation: a block-causal student that
                      starts from the bidirectional teacher's weights matches the frozen
                      teacher's distribution (KL over masked positions); the teacher sees
-                     every noisy block, the student blocks 1..i. Full fine-tuning (the
-                     paper uses LoRA rank 32).
+                     every noisy block, the student blocks 1..i (a DART row's later
+                     actions stay masked for both, as in the teacher's own training).
+                     Full fine-tuning (the paper uses LoRA rank 32). Options not in the
+                     paper: --demo-ce adds the demonstrations' cross-entropy; --ema (any
+                     recipe) saves a moving average of the weights.
 
 Noise schedules (`--noise-schedule`, for block_diffusion and distill; the checkpoint
 records the one used). Under block-causal attention a block's loss depends only on the
@@ -452,6 +455,7 @@ def train(
     opt = torch.optim.AdamW(
         [p for p in model.parameters() if p.requires_grad], lr=cfg.lr, weight_decay=cfg.weight_decay
     )
+    average = [p.detach().clone() for p in model.parameters()] if cfg.ema else None
     task_weights = _task_weights(demos.instructions) if cfg.sampling == "task" else None
     first_only_all = None
     if cfg.noisy_targets == "first_action" and demos.noisy is not None and demos.noisy.any():
@@ -486,30 +490,26 @@ def train(
         state = states_all[batch] + cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
         images = demos.image_batch(batch)
         first_only = None if first_only_all is None else first_only_all[batch]
-        loss = recipe_loss(
-            cfg.recipe,
-            cfg.noise_schedule,
-            model,
-            teacher,
-            clean,
-            words,
-            state,
-            positions,
-            g,
-            images,
-            first_only,
-        )
+        batch_inputs = (clean, words, state, positions, g, images, first_only)
+        loss = recipe_loss(cfg.recipe, cfg.noise_schedule, model, teacher, *batch_inputs, demo_ce=cfg.demo_ce)
         for group in opt.param_groups:
             group["lr"] = _lr(step, cfg)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
+        if average is not None:
+            with torch.no_grad():
+                torch._foreach_lerp_(average, [p.detach() for p in model.parameters()], 1 - cfg.ema)
         value = loss.item()
         report.losses.append(value)
         if on_step:
             on_step(step, value)
     report.seconds = time.perf_counter() - start
+    if average is not None:
+        with torch.no_grad():
+            for p, a in zip(model.parameters(), average, strict=True):
+                p.copy_(a)
     if cfg.probe_every:
         probe(cfg.steps)
     ckpt.model = model.eval()
