@@ -500,7 +500,8 @@ def train(
         opt.step()
         if average is not None:
             with torch.no_grad():
-                torch._foreach_lerp_(average, [p.detach() for p in model.parameters()], 1 - cfg.ema)
+                for a, p in zip(average, model.parameters(), strict=True):
+                    a.lerp_(p, 1 - cfg.ema)
         value = loss.item()
         report.losses.append(value)
         if on_step:
