@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -28,6 +29,7 @@ def test_each_recipe_lowers_its_loss(demos, tmp_path, recipe):
     assert _mean(report.losses[-5:]) < 0.8 * _mean(report.losses[:5])
     ckpt = load(tmp_path / "m.safetensors")
     assert ckpt.meta["recipe"] == recipe and ckpt.meta["data_sha256"]
+    assert ckpt.meta["train_config"]["device"] == "cpu"  # the default, recorded
     # what it was trained on, per folder: a Meta-World train split, no fresh LIBERO states
     (source,) = ckpt.meta["data_sources"]
     assert source["suite"].startswith("metaworld/") and source["split"] == "train"
@@ -533,3 +535,47 @@ def test_a_continued_model_that_clips_says_its_tokenizer_is_inherited(tmp_path, 
     assert "clips some training actions" in err and "dimension 2" in err
     assert "The tokenizer is --init" in err and "from scratch" in err
     assert "If they matter" not in err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without a CUDA GPU")
+def test_train_on_cuda_without_a_gpu_exits_2_and_writes_nothing(cli, demos, tmp_path):
+    out = tmp_path / "g.safetensors"
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--device", "cuda", "--out", str(out)
+    )
+    assert code == 2 and "--device cuda:" in err and "--device cpu" in err
+    assert list(tmp_path.iterdir()) == []
+    code, _, err = cli(
+        "train", "--demos", str(demos), "--recipe", "bidirectional", "--device", "tpu", "--out", str(out)
+    )
+    assert code == 2 and "invalid choice: 'tpu'" in err and list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="device 'tpu' is not one of cpu, cuda"):
+        TrainConfig(recipe="bidirectional", device="tpu").validate()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("recipe", ["bidirectional", "autoregressive", "block_diffusion", "distill"])
+def test_a_gpu_run_writes_a_cpu_checkpoint_that_records_its_device(tmp_path, recipe):
+    """Every recipe's tensors (masks drawn on the CPU, batches, the teacher) meet the model
+    on the GPU, and the checkpoint comes back device-free, naming where it was trained.
+    Synthetic demonstrations: a GPU machine need not have a simulator."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    episodes = []
+    for e in range(6):
+        obs = rng.normal(size=(30, 9)).cumsum(0) / 5
+        episodes.append((f"task{e % 2}", obs, np.tanh(obs[:, :4])))
+    demos = _synthetic_demos(tmp_path / "demos", episodes)
+    teacher = tmp_path / "t.safetensors"
+    train(TrainConfig(recipe="bidirectional", **{**TINY, "steps": 4}), demos, teacher)
+    extra = {"teacher": str(teacher)} if recipe == "distill" else {}
+    cfg = TrainConfig(recipe=recipe, device="cuda", **extra, **TINY)
+    report = train(cfg, demos, tmp_path / "g.safetensors")
+    assert _mean(report.losses[-5:]) < _mean(report.losses[:5])
+    ckpt = load(tmp_path / "g.safetensors")
+    assert ckpt.meta["train_config"]["device"] == "cuda"
+    assert all(p.device.type == "cpu" for p in ckpt.model.parameters())
+    # the same seed draws the same batches and masks: losses track the CPU run's closely
+    cpu = train(replace(cfg, device="cpu"), demos, tmp_path / "c.safetensors")
+    assert abs(report.losses[0] - cpu.losses[0]) < 1e-3 * max(1.0, cpu.losses[0])

@@ -17,6 +17,7 @@ from rich.progress import (
 )
 
 from harness.console import console, err_console
+from harness.device import DEFAULT_DEVICE, DEVICES, resolve_device
 from harness.errors import UsageError
 
 if TYPE_CHECKING:
@@ -178,6 +179,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="camera demonstrations: the image encoder also reads each pixel's x and y (CoordConv), "
         "so a policy without object poses (--state-features proprio) can tell where things are",
     )
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default=DEFAULT_DEVICE,
+        help="where the model trains (default cpu): cuda needs a GPU torch sees (exit 2 without one), "
+        "auto takes one when there is one. Batches and masks are drawn on the CPU from --seed either "
+        "way, and the checkpoint records the device: a GPU run repeats on a GPU, not bit for bit on a CPU",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
@@ -220,6 +229,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         action_range=args.action_range or "percentile",
         image_tokens=args.image_tokens,
         image_coords=args.image_coords,
+        device=resolve_device(args.device),
     )
     if args.action_range and (cfg.init or cfg.recipe == "distill"):
         raise UsageError(

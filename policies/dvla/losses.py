@@ -107,7 +107,7 @@ def recipe_loss(
     b, n = clean.shape
     later = None if first_only is None else first_only[:, None] & (positions >= cfg.action_dim)[None, :]
     if recipe == "autoregressive":
-        inputs = torch.cat([torch.full((b, 1), cfg.mask_id), clean[:, :-1]], dim=1)
+        inputs = torch.cat([torch.full((b, 1), cfg.mask_id, device=clean.device), clean[:, :-1]], dim=1)
         logits = model(inputs, positions, words, state, images=images).logits
         if later is not None:
             return F.cross_entropy(logits[~later], clean[~later])
@@ -116,9 +116,11 @@ def recipe_loss(
         ratio = torch.rand(b, 1, generator=g).expand(b, n)
     else:
         ratio = block_ratios(schedule, b, n // cfg.block, g).repeat_interleave(cfg.block, dim=1)
+    # Drawn on the CPU from g whatever the model's device, so a seed means one set of masks.
     mask = torch.rand(b, n, generator=g) < ratio
     none = ~mask.any(dim=1)
     mask[none, torch.randint(0, n, (int(none.sum()),), generator=g)] = True  # at least one per sample
+    mask = mask.to(clean.device)
     scored = mask
     if later is not None and recipe == "distill":
         # The teacher never read a noisy row's later actions (first_action_only hid them in
@@ -166,7 +168,7 @@ def first_action_only(
     scored = mask & ~later
     rows = ~scored.any(dim=1)
     if rows.any():  # a row whose first action drew no mask: mask one of its tokens
-        pick = torch.randint(0, action_dim, (int(rows.sum()),), generator=g)
+        pick = torch.randint(0, action_dim, (int(rows.sum()),), generator=g).to(mask.device)
         mask[rows.nonzero().squeeze(1), pick] = True
         scored[rows.nonzero().squeeze(1), pick] = True
     return mask, scored

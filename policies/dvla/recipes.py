@@ -76,6 +76,11 @@ class TrainConfig:
     # closed-loop success swings between checkpoints a few hundred steps apart while the
     # loss barely moves, and the average smooths the last steps' noise out.
     ema: float = 0.0
+    # Where the model trains: "cpu" or "cuda" (harness/device.py resolves `--device auto`).
+    # Batches, masks and noise are drawn on the CPU from --seed whatever the device, so a
+    # run repeats on the same kind of device; a GPU's arithmetic differs from the CPU's in
+    # the last bits, so a cuda run does not repeat a cpu run bit for bit.
+    device: str = "cpu"
 
     @property
     def schedule(self) -> str:
@@ -127,5 +132,7 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.warmup_steps is not None and self.warmup_steps < 1:
             raise ValueError(f"warmup_steps must be >= 1, got {self.warmup_steps}")
+        if self.device not in ("cpu", "cuda"):
+            raise ValueError(f"device {self.device!r} is not one of cpu, cuda")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")

@@ -445,13 +445,16 @@ def train(
     g = torch.Generator().manual_seed(cfg.seed)
     demos = load_demos(demos_dir, cfg.chunk_len)
     ckpt, teacher = _prepare(cfg, demos)
-    model, mcfg = ckpt.model.train(), ckpt.model.cfg
+    dev = torch.device(cfg.device)
+    model, mcfg = ckpt.model.to(dev).train(), ckpt.model.cfg
+    if teacher is not None:
+        teacher = teacher.to(dev)
     tokens_all = torch.from_numpy(ckpt.tokenizer.encode(demos.actions[demos.chunk_index]))
     words_all = torch.tensor([ckpt.encode_instruction(t) for t in demos.instructions], dtype=torch.long)
     states_all = torch.from_numpy(
         (ckpt.features(demos.observations) - ckpt.state_mean) / ckpt.state_std
     ).float()
-    positions = torch.arange(mcfg.action_tokens)
+    positions = torch.arange(mcfg.action_tokens, device=dev)
     opt = torch.optim.AdamW(
         [p for p in model.parameters() if p.requires_grad], lr=cfg.lr, weight_decay=cfg.weight_decay
     )
@@ -465,11 +468,11 @@ def train(
         0, len(tokens_all), (PROBE_SAMPLES,), generator=torch.Generator().manual_seed(PROBE_SEED)
     )
     probe_inputs = (
-        tokens_all[probe_rows],
-        words_all[probe_rows],
-        states_all[probe_rows],
+        tokens_all[probe_rows].to(dev),
+        words_all[probe_rows].to(dev),
+        states_all[probe_rows].to(dev),
         positions,
-        demos.image_batch(probe_rows),
+        _to(demos.image_batch(probe_rows), dev),
     )
 
     def probe(step: int) -> None:
@@ -486,10 +489,12 @@ def train(
             batch = torch.randint(0, len(tokens_all), (size,), generator=g)
         else:
             batch = torch.multinomial(task_weights, size, replacement=True, generator=g)
-        clean, words = tokens_all[batch], words_all[batch]
-        state = states_all[batch] + cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
-        images = demos.image_batch(batch)
-        first_only = None if first_only_all is None else first_only_all[batch]
+        # Rows and state noise are drawn on the CPU (one seed, one run on any device), then moved.
+        clean, words = tokens_all[batch].to(dev), words_all[batch].to(dev)
+        noise = cfg.obs_noise * torch.randn(len(batch), mcfg.state_dim, generator=g)
+        state = (states_all[batch] + noise).to(dev)
+        images = _to(demos.image_batch(batch), dev)
+        first_only = None if first_only_all is None else first_only_all[batch].to(dev)
         batch_inputs = (clean, words, state, positions, g, images, first_only)
         loss = recipe_loss(cfg.recipe, cfg.noise_schedule, model, teacher, *batch_inputs, demo_ce=cfg.demo_ce)
         for group in opt.param_groups:
@@ -513,7 +518,7 @@ def train(
                 p.copy_(a)
     if cfg.probe_every:
         probe(cfg.steps)
-    ckpt.model = model.eval()
+    ckpt.model = model.cpu().eval()  # checkpoints are device-free; policies place them (run --device)
     ckpt.meta = {
         "recipe": cfg.recipe,
         "train_config": asdict(cfg),
@@ -537,6 +542,10 @@ def train(
     save(ckpt, out)
     _write_curve(report, Path(out))
     return report
+
+
+def _to(images: torch.Tensor | None, dev: torch.device) -> torch.Tensor | None:
+    return None if images is None else images.to(dev)
 
 
 def _task_weights(instructions: list[str]) -> torch.Tensor:
