@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="train an action-token model from demonstrations",
         description=(
             "Train the action-token transformer on a demonstrations folder (from `dvla-harness "
-            "collect`) with one recipe, deterministically for a given --seed. Writes OUT "
+            "collect`) with one recipe, deterministically for a given --seed (on a CPU; see --device). Writes OUT "
             "(safetensors; its header holds the model shape, attention pattern, tokenizer, "
             "instruction vocabulary, normalisation, recipe and data hash), OUT.json (the same "
             "header, readable) and the loss curve as OUT.loss.csv and OUT.loss.png."
@@ -185,7 +185,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=DEFAULT_DEVICE,
         help="where the model trains (default cpu): cuda needs a GPU torch sees (exit 2 without one), "
         "auto takes one when there is one. Batches and masks are drawn on the CPU from --seed either "
-        "way, and the checkpoint records the device: a GPU run repeats on a GPU, not bit for bit on a CPU",
+        "way, so every device sees the same data; CPU runs repeat bit for bit, GPU runs are not "
+        "promised to (PyTorch's CUDA kernels need not be deterministic). The checkpoint records the device",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -77,9 +77,10 @@ class TrainConfig:
     # loss barely moves, and the average smooths the last steps' noise out.
     ema: float = 0.0
     # Where the model trains: "cpu" or "cuda" (harness/device.py resolves `--device auto`).
-    # Batches, masks and noise are drawn on the CPU from --seed whatever the device, so a
-    # run repeats on the same kind of device; a GPU's arithmetic differs from the CPU's in
-    # the last bits, so a cuda run does not repeat a cpu run bit for bit.
+    # Batches, masks and noise are drawn on the CPU from --seed whatever the device, so every
+    # device sees the same data in the same order. Only CPU runs are known to repeat bit for
+    # bit: a GPU's arithmetic differs in the last bits, and PyTorch does not promise
+    # deterministic CUDA kernels (whether two GPU runs match was not measured).
     device: str = "cpu"
 
     @property
