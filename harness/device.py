@@ -2,10 +2,10 @@
 
 The default is the CPU: the shipped models are small (~0.9M parameters, the chain set
 2.9M; batch 1), every committed baseline and README figure was measured on one, and a
-speed figure from a GPU is not comparable with them. `auto` takes a CUDA GPU when torch sees one; `cuda` without
-one is refused before anything is loaded or written. Policies that hold a model say so
-by having `to_device(device)` (policies/dvla/policy.py); the others (scripted experts, random)
-have nothing to move and run as they are.
+speed figure from a GPU is not comparable with them. `auto` takes a CUDA GPU when torch
+sees one; `cuda` without one is refused before anything is loaded or written. Policies
+that hold a model say so by having `to_device(device)` (policies/dvla/policy.py); the
+others (scripted experts, random) have nothing to move and run as they are.
 
 With `--backend ray` the device is each worker's business, not this process's: the
 workers may run on other nodes (a CPU head node driving GPU nodes), so this process
