@@ -125,12 +125,12 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     if not np.array_equal(student.tokenizer.low, teacher.tokenizer.low) or not np.array_equal(
         student.tokenizer.high, teacher.tokenizer.high
     ):
-        raise SystemExit(
+        raise ValueError(
             f"{args.student} and {args.teacher} tokenize actions differently: not a student of that teacher"
         )
     demos = load_demos(args.demos, student.model.cfg.chunk_len)
     if args.samples > len(demos.actions):
-        raise SystemExit(f"--samples {args.samples}: the demonstrations hold {len(demos.actions)} steps")
+        raise ValueError(f"--samples {args.samples}: the demonstrations hold {len(demos.actions)} steps")
     rows = np.random.default_rng(args.seed).choice(len(demos.actions), args.samples, replace=False)
     instructions = [demos.instructions[r] for r in rows]
     target = demos.actions[demos.chunk_index[rows]]  # (S, H, D)
@@ -259,7 +259,11 @@ def main(argv: list[str] | None = None) -> int:
         "--json", default="benchmarks/results/commit-rule.json", help="where to write (default: %(default)s)"
     )
     args = parser.parse_args(argv)
-    result = measure(args)
+    try:
+        result = measure(args)
+    except (OSError, ValueError) as exc:  # a missing folder, a foreign checkpoint, a bad setting
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(render(result))
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")

@@ -79,3 +79,29 @@ def test_the_decoders_commit_rules_are_restored_afterwards(bench):
     with bench.recording_commits():
         assert fast_dvla.commit_full is not before
     assert fast_dvla.commit_full is before
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        (
+            {"--teacher": str(CKPT / "libero-spatial-bidirectional.safetensors")},
+            "tokenize actions differently",
+        ),
+        ({"--settings": "n=0"}, "n=0 is out of range"),
+        ({"--demos": "no-such-folder"}, "not a demonstrations folder"),
+    ],
+)
+def test_bad_input_exits_2_naming_it_and_writes_nothing(bench, demos, tmp_path, capsys, change, named):
+    out = tmp_path / "out.json"
+    args = {
+        "--demos": str(demos),
+        "--student": str(CKPT / "metaworld-mt10-fast_dvla.safetensors"),
+        "--teacher": str(CKPT / "metaworld-mt10-bidirectional.safetensors"),
+        "--settings": "",
+        "--samples": "8",
+        "--json": str(out),
+    } | change
+    assert bench.main([item for pair in args.items() for item in pair]) == 2
+    assert named in capsys.readouterr().err
+    assert not out.exists()
