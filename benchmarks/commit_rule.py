@@ -48,36 +48,34 @@ from policies.registry import get_policy, parse_params
 
 
 @contextmanager
-def recording_commits() -> Iterator[list[tuple[np.ndarray, bool]]]:
+def recording_commits() -> Iterator[list[np.ndarray]]:
     """Per call of a fast_dvla commit function, in call order: the confidences of the
-    tokens it committed (ascending position) and whether the block was fully activated."""
+    tokens it committed (ascending position)."""
     from policies.dvla import fast_dvla
 
-    calls: list[tuple[np.ndarray, bool]] = []
+    calls: list[np.ndarray] = []
     semi, full = fast_dvla.commit_semi, fast_dvla.commit_full
 
-    def wrap(rule: Callable[..., np.ndarray], is_full: bool) -> Callable[..., np.ndarray]:
+    def wrap(rule: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
         def recorded(masked: np.ndarray, conf: np.ndarray, *args: Any) -> np.ndarray:
             commit = rule(masked, conf, *args)
-            calls.append((np.asarray(conf)[commit].astype(float), is_full))
+            calls.append(np.asarray(conf)[commit].astype(float))
             return commit
 
         return recorded
 
-    fast_dvla.commit_semi, fast_dvla.commit_full = wrap(semi, False), wrap(full, True)
+    fast_dvla.commit_semi, fast_dvla.commit_full = wrap(semi), wrap(full)
     try:
         yield calls
     finally:
         fast_dvla.commit_semi, fast_dvla.commit_full = semi, full
 
 
-def commit_confidence(
-    passes: list[Any], calls: list[tuple[np.ndarray, bool]], rows: int, total: int
-) -> np.ndarray:
+def commit_confidence(passes: list[Any], calls: list[np.ndarray], rows: int, total: int) -> np.ndarray:
     """(rows, total) confidence each token had when committed. The decoder calls the
     commit functions pass by pass, row by row, block by block in position order, and
     each pass records a row's commits sorted, so both streams run in the same order."""
-    stream = np.concatenate([c for c, _ in calls]) if calls else np.zeros(0)
+    stream = np.concatenate(calls) if calls else np.zeros(0)
     out = np.full((rows, total), np.nan)
     at = 0
     for p in passes:
@@ -122,9 +120,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
 
     torch.set_num_threads(args.threads)
     student, teacher = load(args.student), load(args.teacher)
-    if not np.array_equal(student.tokenizer.low, teacher.tokenizer.low) or not np.array_equal(
-        student.tokenizer.high, teacher.tokenizer.high
-    ):
+    if student.tokenizer.to_dict() != teacher.tokenizer.to_dict():
         raise ValueError(
             f"{args.student} and {args.teacher} tokenize actions differently: not a student of that teacher"
         )
@@ -259,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
         "--json", default="benchmarks/results/commit-rule.json", help="where to write (default: %(default)s)"
     )
     args = parser.parse_args(argv)
+    for flag, value in (("--samples", args.samples), ("--batch", args.batch), ("--threads", args.threads)):
+        if value < 1:
+            parser.error(f"{flag} must be at least 1, got {value}")
     try:
         result = measure(args)
     except (OSError, ValueError) as exc:  # a missing folder, a foreign checkpoint, a bad setting

@@ -65,11 +65,22 @@ def test_a_commit_record_out_of_step_with_the_passes_is_an_error(bench):
     from policies.dvla.decoding import Pass
 
     passes = [Pass([0, 1], True, 0, [[0]]), Pass([1], False, 1, [[1]])]
-    calls = [(np.array([0.9]), True), (np.array([0.4]), True)]
+    calls = [np.array([0.9]), np.array([0.4])]
     conf = bench.commit_confidence(passes, calls, 1, 2)
     assert conf.tolist() == [[0.9, 0.4]]
     with pytest.raises(RuntimeError, match="out of step"):
-        bench.commit_confidence(passes, [*calls, (np.array([0.3]), False)], 1, 2)
+        bench.commit_confidence(passes, [*calls, np.array([0.3])], 1, 2)
+
+
+def test_confidences_land_on_their_rows_and_positions(bench):
+    from policies.dvla.decoding import Pass
+
+    # One pass over two rows: row 0 commits position 0 (block 0) and 2 (block 1), row 1
+    # position 1; the decoder calls the commit rules row by row, block by block.
+    passes = [Pass([0, 1, 2], True, 0, [[0, 2], [1]])]
+    calls = [np.array([0.9]), np.array([0.8]), np.array([0.7])]
+    conf = bench.commit_confidence(passes, calls, 2, 3)
+    assert np.array_equal(conf, [[0.9, np.nan, 0.8], [np.nan, 0.7, np.nan]], equal_nan=True)
 
 
 def test_the_decoders_commit_rules_are_restored_afterwards(bench):
@@ -105,3 +116,10 @@ def test_bad_input_exits_2_naming_it_and_writes_nothing(bench, demos, tmp_path, 
     assert bench.main([item for pair in args.items() for item in pair]) == 2
     assert named in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_sample_count_below_one_is_a_usage_error(bench, tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        bench.main(["--demos", "d", "--student", "s", "--teacher", "t", "--samples", "0"])
+    assert stop.value.code == 2
+    assert "--samples must be at least 1, got 0" in capsys.readouterr().err
