@@ -21,10 +21,10 @@ Confidence at commit is read by wrapping the decoder's two commit functions
 script: the decoder itself is unchanged, and its passes say which positions each call's
 commits were.
 
-    python benchmarks/commit_rule.py --demos demos/chains-tray-goal-s0 \\
+    python benchmarks/commit_rule.py --demos demos/chains-tray-goal-s0 [more folders] \\
         --student policies/checkpoints/chains-tray-fast_dvla.safetensors \\
         --teacher policies/checkpoints/chains-tray-bidirectional.safetensors \\
-        [--settings "n=2;n=3;n=4;tau_add=1,tau_act=1"] [--samples 512] \\
+        [--settings "n=2;n=3;n=4;tau_add=1,tau_act=1"] [--samples 512] [--batch 64] \\
         [--json benchmarks/results/commit-rule.json]
 """
 
