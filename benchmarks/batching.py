@@ -16,7 +16,7 @@ process at each batch size, one after the other, into its own run folder; then:
     python benchmarks/batching.py [--tasks reach-v3,push-v3] [--episodes-per-task 16]
                                   [--sizes 1,4,8] [--json benchmarks/results/batching.json]
 
-Target (issue 23): batch 8 >= 2x the episodes/s of batch 1. The machine's load (`uptime`)
+Target: batch 8 >= 2x the episodes/s of batch 1. The machine's load (`uptime`)
 is recorded beside each figure: on a shared machine the ratios are not the idle figures.
 """
 

@@ -35,8 +35,8 @@ from harness.runner import EpisodeJob, make_row
 from results.store import RunDir
 
 TARGET_PERCENT = 3.0  # Meta-World
-LIBERO_TARGET_PERCENT = 5.0  # issue 4: LIBERO with state observations
-SIMPLER_TARGET_PERCENT = 5.0  # issue 25: simpler/* with state observations
+LIBERO_TARGET_PERCENT = 5.0  # LIBERO with state observations
+SIMPLER_TARGET_PERCENT = 5.0  # simpler/* with state observations
 
 
 def metaworld_expert(suite_name: str, task):

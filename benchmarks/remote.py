@@ -12,7 +12,7 @@ With --batch-envs K both policies step K envs in lockstep (one `dvla/batch` mess
 call for the remote one); transport is then reported per observation served (a call
 serves up to K), the amortised figure.
 
-Targets (issue 26): transport <= 1 ms per call on loopback with state observations, and
+Targets: transport <= 1 ms per call on loopback with state observations, and
 the remote path's success and NFE identical to the local path's.
 """
 

@@ -16,7 +16,7 @@ printed beside.
 
 Figures: episodes/s over the whole run (worker start-up, Ray start-up and env builds
 included, as a user waits for them) and over the episodes alone (from the first
-episode's start to the run's end). Targets (issue 23): 2 workers >= 1.8x one worker on
+episode's start to the run's end). Targets: 2 workers >= 1.8x one worker on
 LIBERO; Ray >= 0.9x the local pool. The machine's load (`uptime`) is recorded beside
 them: on a shared machine the ratios are not the idle figures.
 """

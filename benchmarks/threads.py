@@ -1,7 +1,7 @@
 """The main job at --threads 1 and --threads 2, on an idle machine and under a CPU load.
 
 Why: torch's intra-op threads spin while they wait, so on a machine with other jobs a
-second thread can cost far more than it gains for the shipped models (issue 22: the
+second thread can cost far more than it gains for the shipped models (the
 main job took 56 minutes beside other jobs and 2 minutes idle). `run` therefore
 defaults to 1 thread per worker; this benchmark checks that choice, idle and beside N
 busy loops (`python -c 'while True: pass'`, started here and always killed here).

@@ -2,8 +2,8 @@
 
 A policy's first call pays one-off costs: torch's lazy initialisation, the first call of
 each kernel at each shape, memory the allocator has not handed out yet. On MT10 the
-first timed episode's policy time was 3.4-5.2 s against 0.15-0.35 s for the later ones
-(issue 22), so short runs measured start-up and per-run tokens/s swung by up to 10x.
+first timed episode's policy time was 3.4-5.2 s against 0.15-0.35 s for the later ones,
+so short runs measured start-up and per-run tokens/s swung by up to 10x.
 One reset and one act per policy, on an observation drawn from the task's observation
 space, runs every pass of a chunk's decode at the shapes the episodes use; its seconds
 go to the manifest (`warm_up`), and it is outside `NFECounter.counting()`, so none of

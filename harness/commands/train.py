@@ -308,7 +308,7 @@ def _widen_hint(cfg: TrainConfig) -> str:
 def trained_on(meta: dict) -> str:
     """One line naming the starts each demonstrations folder came from, printed where the
     checkpoint is written: a LIBERO model trained on the evaluation's own initial states
-    scores on its training starts, and the user should not find that out later (issue 20)."""
+    scores on its training starts, and the user should not find that out later."""
     parts = []
     for source in meta.get("data_sources") or []:
         held_out = source.get("fresh_initial_states") or (
