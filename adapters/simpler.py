@@ -1,7 +1,8 @@
 """SimplerEnv-like suites on ManiSkill3: `simpler/<task>` and `simpler/all`.
 
-SimplerEnv evaluates one policy under a canonical scene ("visual matching") and under
-perturbed variants of it ("variant aggregation"). SimplerEnv itself runs on ManiSkill2
+SimplerEnv evaluates one policy in "visual matching" (real images overlaid on the
+simulator) and under perturbed variants of its scenes ("variant aggregation"). Here the
+reference is ManiSkill3's canonical scene, which is not visual matching. SimplerEnv itself runs on ManiSkill2
 with real-to-sim assets fetched from a hub, neither of which is possible here; ManiSkill3
 (`mani-skill` on PyPI) runs here and ships its tabletop tasks' assets. These suites are
 therefore **SimplerEnv-like: its protocol and metrics on ManiSkill3 tasks, not

@@ -4,8 +4,8 @@ ones a suite runs, and their names in the episode table.
 No simulator import: a suite's variants are parsed, checked and listed without
 ManiSkill. Applying a level to a live scene is adapters/simpler.py's job.
 
-`variants=` (a suite option, or `run --variants`) takes `canonical` (visual matching:
-the default scene only), `all` (variant aggregation: every level of every axis), or
+`variants=` (a suite option, or `run --variants`) takes `canonical` (ManiSkill3's
+canonical scene only), `all` (every level of every axis), or
 tokens joined by `+`: an axis (`lighting`: all its levels) or one level
 (`lighting.dim`). The canonical scene is always run too: every variant is judged
 against it.
