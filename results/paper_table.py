@@ -182,7 +182,7 @@ def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
                     *(Cell(table.text(c, p.values.get(c)), p.values.get(c)) for c in cols),
                     Cell(table.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
                     Cell("-" if p.speedup is None else f"{p.speedup:.1f}x (paper)", p.speedup),
-                    Cell(label, label),
+                    Cell(f"published: {p.source}", p.source),
                 ]
             )
         note = f"{table.name}, {label}; {table.note}; not measured here"
@@ -236,8 +236,8 @@ def calvin_block(board: Leaderboard, baseline: str) -> Block:
             Cell(f"{p.method} (published, CALVIN: not comparable)", p.method),
             *(Cell(CALVIN.text(c, p.values.get(c)), p.values.get(c)) for c in CALVIN.columns),
             Cell(CALVIN.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
-            Cell("-", None),
-            Cell(label, label),
+            Cell("-" if p.speedup is None else f"{p.speedup:.1f}x (paper)", p.speedup),
+            Cell(f"published: {p.source}", p.source),
         ]
         for p in CALVIN.rows
     ]
@@ -295,8 +295,8 @@ def simpler_block(board: Leaderboard, baseline: str) -> Block:
             Cell("-", None),
             Cell(SIMPLERENV.text("Avg", p.values.get("Avg")), p.values.get("Avg")),
             Cell(SIMPLERENV.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
-            Cell("-", None),
-            Cell(label, label),
+            Cell("-" if p.speedup is None else f"{p.speedup:.1f}x (paper)", p.speedup),
+            Cell(f"published: {p.source}", p.source),
         ]
         for p in SIMPLERENV.rows
     ]
