@@ -160,3 +160,12 @@ def test_the_headline_ranking_numbers_leave_the_harness_axes_out():
     assert (r.mmrv, r.pearson, r.kendall_tau) == (0.0, 1.0, 1.0)  # lighting keeps the order
     assert r.per_axis["camera"] == (0.5, pytest.approx(-1.0), -1.0)  # camera reverses it
     assert "not in SimplerEnv's aggregate: camera 0.500" in r.text()
+
+
+def test_every_variant_axis_is_either_simplerenvs_or_the_harnesss_own():
+    """A new axis in the variants file must be classified: in the aggregate or apart."""
+    from adapters import simpler_variants as sv
+
+    axes = sv.axes()
+    assert set(axes) == set(SIMPLERENV_AXES) | set(HARNESS_AXES)
+    assert {a for a in axes if axes[a].kind == "physical"} <= set(HARNESS_AXES)
