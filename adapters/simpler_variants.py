@@ -81,7 +81,12 @@ def _check_level(axis: str, level: str, values: Any) -> dict[str, Any]:
         ):
             raise SuiteDataError(f"{where}: {key} must be {width} numbers, got {value!r}")
     if axis == "distractors" and (
-        not values["colors"] or not all(isinstance(c, list) and len(c) == 4 for c in values["colors"])
+        not isinstance(values["colors"], list)
+        or not values["colors"]
+        or not all(
+            isinstance(c, list) and len(c) == 4 and all(isinstance(v, int | float) for v in c)
+            for c in values["colors"]
+        )
     ):
         raise SuiteDataError(f"{where}: colors must be a list of [r, g, b, a], one per cube")
     return values

@@ -264,6 +264,17 @@ def test_a_variants_data_file_with_a_bad_level_is_refused(tmp_path):
     bad.write_text('[fog]\nkind = "visual"\nlevels.thick = { density = 1.0 }\n')
     with pytest.raises(SuiteDataError, match="unknown axis \\[fog\\]"):
         sv.axes(bad)
+    bad.write_text('[distractors]\nkind = "visual"\nlevels.one = { colors = [[0.9, 0.8]] }\n')
+    with pytest.raises(SuiteDataError, match="colors must be a list of \\[r, g, b, a\\]"):
+        sv.axes(bad)
+    bad.write_text(
+        '[distractors]\nkind = "visual"\nlevels.one = { positions = [[0.0, 0.19]], colors = [] }\n'
+    )
+    with pytest.raises(SuiteDataError, match="needs exactly colors"):  # placed per layout now
+        sv.axes(bad)
+    bad.write_text('[background]\nkind = "visual"\nlevels.dark = { rgba = [0.1, 0.1, 0.1] }\n')
+    with pytest.raises(SuiteDataError, match="rgba must be 4 numbers"):
+        sv.axes(bad)
 
 
 @needs_maniskill
