@@ -4,7 +4,8 @@ These are facts transcribed from Fast-dVLA (arXiv 2603.25661), never measurement
 ours: every row says `kind = "published"` and, in `source`, the paper, table and row its
 numbers come from, and outputs show them beneath measured rows, never mixed into them.
 Every value was checked against the paper's Tables 1, 2 and 4 as its authors publish
-them (the table images on the paper's project page). Success values are percentages;
+them (the arXiv PDF and the table images in the project page's repository; rows are
+named as printed, without citation marks). Success values are percentages;
 Tables 1 and 2 print them as fractions (0.902 is 90.2 here). Speedups are the paper's
 own, printed beside its tokens/s.
 """
@@ -56,7 +57,7 @@ def _rows(source: str, columns: tuple[str, ...], data: list[tuple]) -> tuple[Pub
 
 _LIBERO_SOURCE = f"{FAST_DVLA}, Table 1 (LIBERO)"
 LIBERO_COLUMNS = ("Spatial", "Goal", "Object", "Long", "Avg")
-_DREAM, _DD = "under 'Dream-VLA [43]'", "under 'Discrete Diffusion VLA [15]'"
+_DREAM, _DD = "under 'Dream-VLA'", "under 'Discrete Diffusion VLA'"
 LIBERO = PublishedTable(
     name="LIBERO",
     columns=LIBERO_COLUMNS,
@@ -69,7 +70,7 @@ LIBERO = PublishedTable(
         _LIBERO_SOURCE,
         LIBERO_COLUMNS,
         [
-            ("Dream-VLA", "'Dream-VLA [43]'", 90.2, 92.0, 88.0, 72.0, 85.6, 98.8, 1.0),
+            ("Dream-VLA", "'Dream-VLA'", 90.2, 92.0, 88.0, 72.0, 85.6, 98.8, 1.0),
             ("Dream-VLA + Fast-dLLM", f"'+ Fast-dLLM' {_DREAM}", 88.4, 89.4, 83.4, 70.2, 82.8, 183.2, 1.9),
             (
                 "Dream-VLA + Block Diffusion",
@@ -93,7 +94,7 @@ LIBERO = PublishedTable(
                 313.1,
                 3.2,
             ),
-            ("DD-VLA", "'Discrete Diffusion VLA [15]'", 97.2, 98.6, 97.4, 92.0, 96.3, 152.1, 1.5),
+            ("DD-VLA", "'Discrete Diffusion VLA'", 97.2, 98.6, 97.4, 92.0, 96.3, 152.1, 1.5),
             ("DD-VLA + Fast-dLLM", f"'+ Fast-dLLM' {_DD}", 94.0, 95.2, 94.8, 89.8, 93.5, 312.5, 3.2),
             (
                 "DD-VLA + Block Diffusion",
@@ -158,9 +159,9 @@ SIMPLERENV = PublishedTable(
         _SIMPLER_SOURCE,
         ("Avg",),
         [
-            ("Dream-VLA", "'Dream-VLA [43]'", 51.0, 100.1, None),
-            ("Dream-VLA + Fast-dLLM", "'+ Fast-dLLM [38]'", 41.7, 214.2, None),
-            ("Dream-VLA + Block Diffusion", "'+ Block Diffusion [1]'", 55.2, 226.4, None),
+            ("Dream-VLA", "'Dream-VLA'", 51.0, 100.1, None),
+            ("Dream-VLA + Fast-dLLM", "'+ Fast-dLLM'", 41.7, 214.2, None),
+            ("Dream-VLA + Block Diffusion", "'+ Block Diffusion'", 55.2, 226.4, None),
             ("Dream-VLA + Fast-dVLA", "'+ Fast-dVLA (ours)'", 59.3, 366.4, None),
         ],
     ),
