@@ -1,7 +1,8 @@
 """SimplerEnv-like suites on ManiSkill3: `simpler/<task>` and `simpler/all`.
 
-SimplerEnv evaluates one policy under a canonical scene ("visual matching") and under
-perturbed variants of it ("variant aggregation"). SimplerEnv itself runs on ManiSkill2
+SimplerEnv evaluates one policy in "visual matching" (real images overlaid on the
+simulator) and under perturbed variants of its scenes ("variant aggregation"). Here the
+reference is ManiSkill3's canonical scene, which is not visual matching. SimplerEnv itself runs on ManiSkill2
 with real-to-sim assets fetched from a hub, neither of which is possible here; ManiSkill3
 (`mani-skill` on PyPI) runs here and ships its tabletop tasks' assets. These suites are
 therefore **SimplerEnv-like: its protocol and metrics on ManiSkill3 tasks, not
@@ -38,6 +39,15 @@ EPISODES_PER_TASK = 24
 TRAIN_EPISODES = 1000  # the train split's fixed seeds per task (demonstrations), disjoint
 CONTROL_MODE = "pd_ee_delta_pose"
 DISTRACTOR_HALF = 0.02  # m; the size of ManiSkill's task cubes
+# Distractors stand in the workspace, beside the task's objects (as SimplerEnv's stand
+# among its objects), on a 2.5 cm grid over the table's reachable area, each at the free
+# point nearest the first task object: at least DISTRACTOR_CLEARANCE from every object,
+# goal and the straight paths between them (so no push is blocked outright, nothing
+# overlaps at reset), and 2 * DISTRACTOR_HALF + 2 cm from one another.
+DISTRACTOR_GRID = np.stack(
+    np.meshgrid(np.arange(-0.2, 0.2001, 0.025), np.arange(-0.2, 0.2001, 0.025), indexing="ij"), axis=-1
+).reshape(-1, 2)
+DISTRACTOR_CLEARANCE = 0.09  # m, centre to the nearest object, goal or path
 CAMERA = "base_camera"  # ManiSkill's camera for these tasks
 DEFAULT_IMAGE_SIZE = 128  # ManiSkill3's own base_camera size for these tasks
 ACTION_DIM = 7
@@ -207,7 +217,7 @@ class ManiSkillEpisodeEnv(gym.Env):
         # It also means nothing a variant level changed can leak into the next episode.
         obs, _ = self.env.reset(seed=spec.seed, options={"reconfigure": True})
         if variant != sv.CANONICAL_VARIANT:
-            self._apply(variant)  # a level scales what it finds: once, on the fresh scene
+            self._apply(variant, obs)  # a level scales what it finds: once, on the fresh scene
             obs = self.env.unwrapped.get_obs()  # cameras see the level from the first step
         return self._observation(obs), {"success": False, "variant": variant.label}
 
@@ -225,14 +235,45 @@ class ManiSkillEpisodeEnv(gym.Env):
         if level is None:
             return
         scene = self.env.unwrapped.scene
-        for i, ((x, y), rgba) in enumerate(zip(level["positions"], level["colors"], strict=True)):
+        for i, rgba in enumerate(level["colors"]):
             builder = scene.create_actor_builder()
             builder.add_box_collision(half_size=[DISTRACTOR_HALF] * 3)
             builder.add_box_visual(
                 half_size=[DISTRACTOR_HALF] * 3, material=sapien.render.RenderMaterial(base_color=rgba)
             )
-            builder.initial_pose = sapien.Pose(p=[x, y, DISTRACTOR_HALF])
+            # parked off the table until the layout is known (_place_distractors)
+            builder.initial_pose = sapien.Pose(p=[0.0, 2.0 + 0.1 * i, DISTRACTOR_HALF])
             builder.build(name=f"distractor_{i}")
+
+    def _place_distractors(self, obs: dict[str, Any]) -> None:
+        """Move the level's distractors beside this layout's objects (DISTRACTOR_GRID)."""
+        import sapien
+
+        extra = obs["extra"]
+        points = [_numpy(extra[key])[:2] for key in (*self.task.objects, *self.task.goals)]
+        spots = [
+            a + (b - a) * t
+            for i, a in enumerate(points)
+            for b in points[i + 1 :]
+            for t in np.linspace(0, 1, 9)
+        ]
+        keep_off = np.array([*points, *spots])
+        placed: list[np.ndarray] = []
+        actors = self.env.unwrapped.scene.actors
+        for name in sorted(n for n in actors if n.startswith("distractor_")):
+            free = np.min(np.linalg.norm(DISTRACTOR_GRID[:, None] - keep_off[None], axis=2), axis=1)
+            ok = free >= DISTRACTOR_CLEARANCE
+            if placed:
+                apart = np.min(
+                    np.linalg.norm(DISTRACTOR_GRID[:, None] - np.array(placed)[None], axis=2), axis=1
+                )
+                ok &= apart >= 2 * DISTRACTOR_HALF + 0.02
+            if not ok.any():
+                raise RuntimeError(f"{self.task.name}: no free spot on the table for {name}")
+            near = np.linalg.norm(DISTRACTOR_GRID - points[0], axis=1)
+            spot = DISTRACTOR_GRID[np.flatnonzero(ok)[np.argmin(near[ok])]]
+            actors[name].set_pose(sapien.Pose(p=[float(spot[0]), float(spot[1]), DISTRACTOR_HALF]))
+            placed.append(spot)
 
     def _task_bodies(self) -> list[Any]:
         """The physx bodies of the task's objects (not the table, ground, goal markers or distractors)."""
@@ -248,8 +289,20 @@ class ManiSkillEpisodeEnv(gym.Env):
                     out.append(body)
         return out
 
-    def _apply(self, variant: sv.Variant) -> None:
-        """Set one axis to its level on a freshly built canonical scene."""
+    def _recolour(self, actor: str, rgba: list[float]) -> None:
+        """One flat colour on an actor's every render part, its texture removed."""
+        import sapien
+
+        for obj in self.env.unwrapped.scene.actors[actor]._objs:
+            body = obj.find_component_by_type(sapien.render.RenderBodyComponent)
+            for shape in body.render_shapes:
+                for part in shape.parts:
+                    part.material.base_color_texture = None
+                    part.material.base_color = rgba
+
+    def _apply(self, variant: sv.Variant, obs: dict[str, Any]) -> None:
+        """Set one axis to its level on a freshly built canonical scene (obs: its first
+        observation, where the layout's objects are)."""
         import sapien
 
         level = sv.axes()[variant.axis].levels[variant.level]
@@ -263,13 +316,11 @@ class ManiSkillEpisodeEnv(gym.Env):
                         if isinstance(c, sapien.render.RenderDirectionalLightComponent):
                             c.color = level["directional"]
         elif variant.axis == "table":
-            table = scene.actors["table-workspace"]
-            for obj in table._objs:
-                body = obj.find_component_by_type(sapien.render.RenderBodyComponent)
-                for shape in body.render_shapes:
-                    for part in shape.parts:
-                        part.material.base_color_texture = None
-                        part.material.base_color = level["rgba"]
+            self._recolour("table-workspace", level["rgba"])
+        elif variant.axis == "background":
+            self._recolour("ground", level["rgba"])  # the floor around the table, the frame's top
+        elif variant.axis == "distractors":
+            self._place_distractors(obs)  # built with the scene (_build_distractors)
         elif variant.axis == "camera":
             for sensor in unwrapped._sensors.values():
                 pose = sensor.camera.get_local_pose()
@@ -288,7 +339,6 @@ class ManiSkillEpisodeEnv(gym.Env):
         elif variant.axis == "mass":
             for body in self._task_bodies():
                 body.mass = body.mass * level["scale"]
-        # distractors: built with the scene (_build_distractors)
 
     def step(self, action):
         action = np.asarray(action, dtype=np.float32).reshape(1, ACTION_DIM)

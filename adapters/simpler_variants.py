@@ -4,8 +4,8 @@ ones a suite runs, and their names in the episode table.
 No simulator import: a suite's variants are parsed, checked and listed without
 ManiSkill. Applying a level to a live scene is adapters/simpler.py's job.
 
-`variants=` (a suite option, or `run --variants`) takes `canonical` (visual matching:
-the default scene only), `all` (variant aggregation: every level of every axis), or
+`variants=` (a suite option, or `run --variants`) takes `canonical` (ManiSkill3's
+canonical scene only), `all` (every level of every axis), or
 tokens joined by `+`: an axis (`lighting`: all its levels) or one level
 (`lighting.dim`). The canonical scene is always run too: every variant is judged
 against it.
@@ -29,9 +29,10 @@ PARAMS: dict[str, dict[str, int | None]] = {
     "lighting": {"ambient": 3, "directional": 3},
     "table": {"rgba": 4},
     "camera": {"offset": 3},
-    "distractors": {"positions": None, "colors": None},  # lists of [x, y] / [r, g, b, a]
+    "distractors": {"colors": None},  # one [r, g, b, a] per cube; placed per layout
     "friction": {"scale": 1},
     "mass": {"scale": 1},
+    "background": {"rgba": 4},
 }
 
 
@@ -79,8 +80,15 @@ def _check_level(axis: str, level: str, values: Any) -> dict[str, Any]:
             len(value) != width or not all(isinstance(v, int | float) for v in value)
         ):
             raise SuiteDataError(f"{where}: {key} must be {width} numbers, got {value!r}")
-    if axis == "distractors" and len(values["positions"]) != len(values["colors"]):
-        raise SuiteDataError(f"{where}: one colour per position")
+    if axis == "distractors" and (
+        not isinstance(values["colors"], list)
+        or not values["colors"]
+        or not all(
+            isinstance(c, list) and len(c) == 4 and all(isinstance(v, int | float) for v in c)
+            for c in values["colors"]
+        )
+    ):
+        raise SuiteDataError(f"{where}: colors must be a list of [r, g, b, a], one per cube")
     return values
 
 

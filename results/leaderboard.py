@@ -31,6 +31,7 @@ from results.render import Cell, finite_or_none, number_cell
 from results.runs import Run, combined_episodes, dedupe_episodes
 from results.summary import Success
 from results.variant_table import (
+    SIMPLERENV_AXES,
     RankingStability,
     VariantStats,
     is_variant_run,
@@ -150,8 +151,11 @@ class Leaderboard:
             groups = [f"{g} avg len" for g in self.groups] if len(self.groups) > 1 else []
             headers += [*groups, *(f"{k}/{k_max}" for k in range(1, k_max + 1)), "avg len (95%)"]
         elif self.axes:
-            headers += ["canonical (Wilson 95%)", "variant-aggregated (95%)"]
-            headers += [f"{a} (vs canonical)" for a in self.axes]
+            headers += ["canonical scene (Wilson 95%)", "variant-aggregated, SimplerEnv's axes (95%)"]
+            headers += [
+                f"{a} (vs canonical)" if a in SIMPLERENV_AXES else f"{a} (harness axis, vs canonical)"
+                for a in self.axes
+            ]
         else:
             headers += [*self.groups, "success (Wilson 95%)"]
         headers += ["NFE/chunk", "tokens/s", "control Hz", "wall s/episode"]

@@ -188,8 +188,8 @@ COLUMNS: tuple[Column, ...] = (
         "variant",
         pa.string(),
         "",
-        "SimplerEnv-like suites: the scene setting the episode ran under, `canonical` (visual "
-        "matching) or `<axis>=<level>` (one level of one variant axis, e.g. `lighting=dim`; "
+        "SimplerEnv-like suites: the scene setting the episode ran under, `canonical` (ManiSkill3's "
+        "canonical scene) or `<axis>=<level>` (one level of one variant axis, e.g. `lighting=dim`; "
         "docs/simpler.md). Part of the episode key. Null for suites without variants.",
         nullable=True,
     ),

@@ -1,24 +1,34 @@
-"""SimplerEnv-like variant runs in SimplerEnv's terms: canonical ("visual matching")
-success, variant-aggregated success, the drop per axis, and whether the variants rank
-policies as the canonical scene does (MMRV, Kendall tau).
+"""SimplerEnv-like variant runs in SimplerEnv's terms: success in the canonical scene,
+variant-aggregated success, the drop per axis, and whether the variants rank policies as
+the canonical scene does (MMRV, Pearson r, Kendall tau).
 
-Aggregated success is the mean over the selected variants of each variant's success
-rate (each variant counts once, as SimplerEnv averages its variants). Its interval is a
-percentile bootstrap over layouts (a task's seed): every variant replays the same
-layouts, so outcomes under different variants of one layout are not independent, and
-resampling layouts, not episodes, keeps that. The seed is fixed, so the same rows
-always print the same interval.
+The canonical scene is ManiSkill3's own default scene. It is not SimplerEnv's "visual
+matching" (real images overlaid on the simulator, robot colourings averaged), which needs
+real-world footage this harness does not have; it only plays that role as the reference.
 
-Ranking stability compares, for each variant, the policies' success under it with
-their canonical success (the reference ranking, as SimplerEnv compares simulation with
-real-world success):
+Aggregated success is SimplerEnv's variant aggregation: the mean, each setting counted
+once, over the canonical (base) scene and the variants of SimplerEnv's axes
+(SIMPLERENV_AXES: backgrounds, lighting, distractors, table textures). Camera poses and
+the physical axes (friction, mass) are the harness's own robustness axes: SimplerEnv
+leaves camera out of its aggregate and has no physical variants, so they are reported per
+axis only, never averaged in. The interval is a percentile bootstrap over layouts (a
+task's seed): every variant replays the same layouts, so outcomes under different
+variants of one layout are not independent, and resampling layouts, not episodes, keeps
+that. The seed is fixed, so the same rows always print the same interval.
 
-    MMRV = 1/N sum_i max_j |R_i - R_j| * 1[(R_i < R_j) != (S_i < S_j)]
+Ranking stability compares, for each variant, the policies' success under it (S) with
+their canonical success (R, the reference, in the role SimplerEnv gives real-world
+success), with SimplerEnv's own definitions (simpler_env/utils/metrics.py):
 
-with R the canonical and S the variant success of N policies: the largest canonical gap
-a variant inverts, averaged over policies (0 = same order; in success units). Kendall's
-tau-b between R and S is given beside it (1 = same order). Both are averaged over the
-variants, and per axis.
+    MMRV = 1/N sum_i max_j |R_i - R_j| * 1[(S_i > S_j) != (R_i > R_j)]
+
+the largest canonical gap a variant inverts, averaged over policies (0 = same order; in
+success units). Strict `>` on both sides: a pair tied under one and ordered under the
+other counts as a violation. Pearson's r is computed on the centred vectors, as
+SimplerEnv does: 1 when they are equal after centring (so two constant vectors give 1),
+else sum(r s) / (sqrt(sum r^2 sum s^2) + 1e-8), so a constant vector against a varying
+one gives 0. Kendall's tau-b is given beside them (1 = same order). All three are averaged
+over the variants, and per axis.
 """
 
 from __future__ import annotations
@@ -34,12 +44,22 @@ from results.render import Cell, finite_or_none
 from results.summary import Success
 
 CANONICAL = "canonical"
+# SimplerEnv's variant aggregation (tools/calc_metrics_evaluation_videos.py): base scene,
+# backgrounds, lighting, distractors, table textures; camera is left out ("only when
+# investigating the effect of different robustness factors"), and it has no physical axes.
+SIMPLERENV_AXES = ("background", "lighting", "distractors", "table")
+HARNESS_AXES = ("camera", "friction", "mass")  # the harness's own robustness axes
 BOOTSTRAP_RESAMPLES = 10_000
 BOOTSTRAP_SEED = 0
 
 
 def axis_of(variant: str) -> str:
     return variant.split("=", 1)[0]
+
+
+def in_aggregate(variant: str) -> bool:
+    """Whether a setting counts in SimplerEnv's variant aggregation (the canonical scene does)."""
+    return variant == CANONICAL or axis_of(variant) in SIMPLERENV_AXES
 
 
 def is_variant_run(episodes: pd.DataFrame) -> bool:
@@ -54,7 +74,7 @@ def is_variant_run(episodes: pd.DataFrame) -> bool:
 class VariantStats:
     canonical: Success  # the canonical scene's episodes
     per_variant: dict[str, float]  # variant label -> success rate (canonical included)
-    aggregated: float  # mean over the non-canonical variants
+    aggregated: float  # mean over the canonical scene and SimplerEnv's axes' variants
     aggregated_interval: tuple[float, float]
 
     def per_axis(self) -> dict[str, float]:
@@ -79,18 +99,21 @@ class VariantStats:
 
 
 def variant_stats(rows: pd.DataFrame) -> VariantStats:
-    """One policy configuration's rows (any tasks): success per variant, and the
-    aggregated mean with a bootstrap over (task, seed) layouts."""
+    """One policy configuration's rows (any tasks): success per variant, and SimplerEnv's
+    aggregated mean with a bootstrap over (task, seed) layouts. NaN when the run selected
+    no variant of SimplerEnv's axes: the canonical scene alone is not an aggregate."""
     rows = rows[rows["variant"].notna()]
     success = rows["success"].astype(float)
     per_variant = {str(v): float(g.mean()) for v, g in success.groupby(rows["variant"], sort=False)}
     canonical = rows[rows["variant"] == CANONICAL]
-    others = [v for v in per_variant if v != CANONICAL]
-    aggregated = float(np.mean([per_variant[v] for v in others])) if others else math.nan
+    counted = [v for v in per_variant if in_aggregate(v)]
+    if not any(v != CANONICAL for v in counted):
+        counted = []
+    aggregated = float(np.mean([per_variant[v] for v in counted])) if counted else math.nan
     interval = (math.nan, math.nan)
-    if others:
+    if counted:
         table = (
-            rows[rows["variant"] != CANONICAL]
+            rows[rows["variant"].isin(counted)]
             .assign(layout=rows["task"].astype(str) + "#" + rows["seed"].astype(str), ok=success)
             .pivot_table(index="variant", columns="layout", values="ok", aggfunc="mean")
         )
@@ -110,12 +133,31 @@ def variant_stats(rows: pd.DataFrame) -> VariantStats:
 
 
 def mmrv(reference: np.ndarray, other: np.ndarray) -> float:
-    """Mean maximum rank violation of `other` against `reference` (module docstring)."""
+    """Mean maximum rank violation of `other` (a variant) against `reference` (the
+    canonical scene, SimplerEnv's real-world side): the gap is the reference's, and a
+    pair is violated when strict `>` disagrees, ties included (module docstring)."""
     r, s = np.asarray(reference, float), np.asarray(other, float)
+    if r.shape != s.shape:
+        raise ValueError(f"mmrv: {len(r)} reference rates against {len(s)} others")
     if len(r) < 2:
         return math.nan
-    violated = (r[:, None] < r[None, :]) != (s[:, None] < s[None, :])
+    violated = (s[:, None] > s[None, :]) != (r[:, None] > r[None, :])
     return float(np.mean(np.max(np.abs(r[:, None] - r[None, :]) * violated, axis=1)))
+
+
+def pearson_r(reference: np.ndarray, other: np.ndarray) -> float:
+    """Pearson's r with SimplerEnv's conventions, so that tied policies (state policies
+    score alike under every visual axis) print what SimplerEnv would: 1 when the centred
+    vectors are equal (two constant ones too), 0 for a constant against a varying one."""
+    r, s = np.asarray(reference, float), np.asarray(other, float)
+    if r.shape != s.shape:
+        raise ValueError(f"pearson_r: {len(r)} reference rates against {len(s)} others")
+    if len(r) < 2:
+        return math.nan
+    r, s = r - r.mean(), s - s.mean()
+    if np.all(r == s):
+        return 1.0
+    return float(np.sum(r * s) / (math.sqrt(float(np.sum(r**2) * np.sum(s**2))) + 1e-8))
 
 
 def kendall_tau(a: np.ndarray, b: np.ndarray) -> float:
@@ -132,24 +174,40 @@ def kendall_tau(a: np.ndarray, b: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class RankingStability:
+    """The headline numbers are means over the variants of SimplerEnv's axes only;
+    the harness's own axes (camera, physical) appear per axis, labelled apart."""
+
     policies: int
-    mmrv: float  # mean over the variants
-    kendall_tau: float  # mean over the variants where it is defined
-    per_axis: dict[str, tuple[float, float]]  # axis -> (mean MMRV, mean tau) over its levels
+    mmrv: float  # mean over the variants of SimplerEnv's axes
+    pearson: float  # likewise
+    kendall_tau: float  # likewise, where it is defined
+    per_axis: dict[str, tuple[float, float, float]]  # axis -> mean (MMRV, Pearson r, tau) over its levels
 
     def text(self) -> str:
         if self.policies < 2:
             return "ranking stability: n/a (one policy configuration; it needs two or more)"
-        axes = "; ".join(f"{a} {m:.3f} / {_num(t)}" for a, (m, t) in self.per_axis.items())
-        return (
-            f"ranking stability vs canonical over {self.policies} policy configurations: MMRV "
-            f"{self.mmrv:.3f} (0 = same order), Kendall tau {_num(self.kendall_tau)} (1 = same order); "
-            f"per axis MMRV / tau: {axes}"
+
+        def axes(names: list[str]) -> str:
+            return "; ".join(
+                f"{a} {_num(m, 3)} / {_num(p)} / {_num(t)}"
+                for a, (m, p, t) in self.per_axis.items()
+                if a in names
+            )
+
+        ours = [a for a in self.per_axis if a not in SIMPLERENV_AXES]
+        text = (
+            f"ranking stability vs the canonical scene over {self.policies} policy configurations, "
+            f"SimplerEnv's axes: MMRV {_num(self.mmrv, 3)} (0 = same order), Pearson r "
+            f"{_num(self.pearson)}, Kendall tau {_num(self.kendall_tau)} (1 = same order); "
+            f"per axis MMRV / Pearson r / tau: {axes(list(SIMPLERENV_AXES)) or 'none run'}"
         )
+        if ours:
+            text += f"; the harness's own axes, not in SimplerEnv's aggregate: {axes(ours)}"
+        return text
 
 
-def _num(value: float) -> str:
-    return "-" if math.isnan(value) else f"{value:.2f}"
+def _num(value: float, decimals: int = 2) -> str:
+    return "-" if math.isnan(value) else f"{value:.{decimals}f}"
 
 
 def ranking_stability(stats: Mapping[str, VariantStats]) -> RankingStability:
@@ -161,8 +219,8 @@ def ranking_stability(stats: Mapping[str, VariantStats]) -> RankingStability:
     per_variant = {}
     for v in variants:
         other = np.array([stats[n].per_variant[v] for n in names])
-        per_variant[v] = (mmrv(reference, other), kendall_tau(reference, other))
-    per_axis: dict[str, list[tuple[float, float]]] = {}
+        per_variant[v] = (mmrv(reference, other), pearson_r(reference, other), kendall_tau(reference, other))
+    per_axis: dict[str, list[tuple[float, float, float]]] = {}
     for v, pair in per_variant.items():
         per_axis.setdefault(axis_of(v), []).append(pair)
 
@@ -170,12 +228,11 @@ def ranking_stability(stats: Mapping[str, VariantStats]) -> RankingStability:
         finite = [x for x in values if not math.isnan(x)]
         return float(np.mean(finite)) if finite else math.nan
 
-    return RankingStability(
-        len(names),
-        mean([m for m, _ in per_variant.values()]),
-        mean([t for _, t in per_variant.values()]),
-        {a: (mean([m for m, _ in p]), mean([t for _, t in p])) for a, p in per_axis.items()},
-    )
+    def means(triples: list[tuple[float, float, float]]) -> tuple[float, float, float]:
+        return (mean([x[0] for x in triples]), mean([x[1] for x in triples]), mean([x[2] for x in triples]))
+
+    headline = [t for v, t in per_variant.items() if in_aggregate(v)]
+    return RankingStability(len(names), *means(headline), {a: means(p) for a, p in per_axis.items()})
 
 
 # --- cells for leaderboards (results/leaderboard.py) -------------------------------------

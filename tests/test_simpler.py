@@ -185,7 +185,18 @@ def test_variant_selection_names_and_episode_indices():
     from adapters import simpler_variants as sv
 
     every = sv.all_variants()
-    assert {v.axis for v in every} >= {"lighting", "table", "camera", "distractors", "friction", "mass"}
+    assert {v.axis for v in every} >= {
+        "lighting",
+        "table",
+        "camera",
+        "distractors",
+        "friction",
+        "mass",
+        "background",
+    }
+    # an axis added later goes at the end, so every earlier episode index stays as it was
+    assert simpler.variant_number(sv.Variant("mass", "heavy")) == 15
+    assert simpler.variant_number(sv.Variant("background", "dark")) == 16
     assert sv.parse("canonical") == (sv.CANONICAL_VARIANT,)
     assert sv.parse("all") == (sv.CANONICAL_VARIANT, *every)
     some = sv.parse("camera.left+lighting")  # file order, the canonical first, each once
@@ -253,6 +264,17 @@ def test_a_variants_data_file_with_a_bad_level_is_refused(tmp_path):
     bad.write_text('[fog]\nkind = "visual"\nlevels.thick = { density = 1.0 }\n')
     with pytest.raises(SuiteDataError, match="unknown axis \\[fog\\]"):
         sv.axes(bad)
+    bad.write_text('[distractors]\nkind = "visual"\nlevels.one = { colors = [[0.9, 0.8]] }\n')
+    with pytest.raises(SuiteDataError, match="colors must be a list of \\[r, g, b, a\\]"):
+        sv.axes(bad)
+    bad.write_text(
+        '[distractors]\nkind = "visual"\nlevels.one = { positions = [[0.0, 0.19]], colors = [] }\n'
+    )
+    with pytest.raises(SuiteDataError, match="needs exactly colors"):  # placed per layout now
+        sv.axes(bad)
+    bad.write_text('[background]\nkind = "visual"\nlevels.dark = { rgba = [0.1, 0.1, 0.1] }\n')
+    with pytest.raises(SuiteDataError, match="rgba must be 4 numbers"):
+        sv.axes(bad)
 
 
 @needs_maniskill
@@ -279,10 +301,28 @@ def test_each_axis_changes_what_it_claims_and_nothing_else():
             frame = np.abs(obs["base_camera"].astype(int) - canonical["base_camera"]).max()
             np.testing.assert_array_equal(obs["state"], canonical["state"])  # the same layout
             axis = spec.variant["axis"]
-            if axis in ("lighting", "table", "camera", "distractors"):
+            if axis in ("lighting", "table", "camera", "distractors", "background"):
                 assert frame > 30, key
             else:
                 assert frame == 0, key
+            if axis == "distractors":  # in the workspace, beside the object, clear of it and the goal
+                scene = env.env.unwrapped.scene
+                cubes = [
+                    a.pose.p[0].numpy()[:2] for n, a in scene.actors.items() if n.startswith("distractor_")
+                ]
+                level = simpler.sv.axes()["distractors"].levels[spec.variant["level"]]
+                assert len(cubes) == len(level["colors"]), key
+                at = {name: start for name, start, _ in simpler.state_layout(simpler.TASKS["pick_cube"])}
+                cube_xy = obs["state"][at["obj_pose"] : at["obj_pose"] + 2]
+                goal_xy = obs["state"][at["goal_pos"] : at["goal_pos"] + 2]
+                near = [float(np.linalg.norm(c - cube_xy)) for c in cubes]
+                assert min(near) < simpler.DISTRACTOR_CLEARANCE + 0.02 and all(
+                    np.abs(c).max() <= 0.2 for c in cubes
+                ), key
+                assert all(n >= simpler.DISTRACTOR_CLEARANCE - 1e-6 for n in near), key
+                assert all(
+                    np.linalg.norm(c - goal_xy) >= simpler.DISTRACTOR_CLEARANCE - 1e-6 for c in cubes
+                ), key
             masses = [b.mass for b in env._task_bodies()]
             frictions = [
                 s.physical_material.static_friction for b in env._task_bodies() for s in b.collision_shapes

@@ -1,5 +1,5 @@
 """SimplerEnv-like variant runs in every report: canonical, variant-aggregated and
-per-axis success, and ranking stability (MMRV, Kendall tau), from hand-made rows whose
+per-axis success, and ranking stability (MMRV, Pearson r, Kendall tau), from hand-made rows whose
 numbers can be checked by hand."""
 
 from __future__ import annotations
@@ -55,7 +55,9 @@ def test_canonical_aggregated_and_per_axis_success_by_hand():
         "lighting=bright": 0.75,
         "mass=heavy": 0.0,
     }
-    assert stats.aggregated == pytest.approx((0.5 + 0.75 + 0.0) / 3)  # each variant counts once
+    # SimplerEnv's aggregate: the canonical scene and lighting's levels, each once; mass is the
+    # harness's own axis and stays out
+    assert stats.aggregated == pytest.approx((1.0 + 0.5 + 0.75) / 3)
     assert stats.per_axis() == {"lighting": pytest.approx(0.625), "mass": 0.0}
     low, high = stats.aggregated_interval
     assert 0 <= low < stats.aggregated < high <= 1
@@ -79,12 +81,16 @@ def test_ranking_stability_over_variants_and_axes():
     s = variant_stats(pd.DataFrame(rows("fast_dvla", FAST, "f", STUDENT)))
     r = ranking_stability({"teacher": t, "student": s})
     # canonical 1.0 vs 0.5; dim 0.5 vs 1.0 (inverted: both lose 0.5), bright 0.75 vs 0.25 (kept),
-    # heavy 0.0 vs 0.25 (inverted)
-    assert r.mmrv == pytest.approx((0.5 + 0.0 + 0.5) / 3)
-    assert r.kendall_tau == pytest.approx((-1 + 1 - 1) / 3)
-    assert r.per_axis["lighting"] == (pytest.approx(0.25), pytest.approx(0.0))
-    assert r.per_axis["mass"] == (pytest.approx(0.5), pytest.approx(-1.0))
-    assert "MMRV 0.333" in r.text() and "n/a" in ranking_stability({"teacher": t}).text()
+    # heavy 0.0 vs 0.25 (inverted); the headline averages SimplerEnv's axes (lighting) only
+    assert r.mmrv == pytest.approx((0.5 + 0.0) / 2)
+    assert r.pearson == pytest.approx((-1 + 1) / 2, abs=1e-6)
+    assert r.kendall_tau == pytest.approx((-1 + 1) / 2)
+    assert r.per_axis["lighting"] == (pytest.approx(0.25), pytest.approx(0.0, abs=1e-6), pytest.approx(0.0))
+    assert r.per_axis["mass"] == (pytest.approx(0.5), pytest.approx(-1.0), pytest.approx(-1.0))
+    text = r.text()
+    assert "MMRV 0.250" in text and "Pearson r 0.00" in text and "Kendall tau 0.00" in text
+    assert "the harness's own axes, not in SimplerEnv's aggregate: mass 0.500 / -1.00 / -1.00" in text
+    assert "n/a" in ranking_stability({"teacher": t}).text()
 
 
 def _two_policy_run(tmp_path):
@@ -101,32 +107,40 @@ def test_the_leaderboard_of_a_variant_run_is_simplerenvs_table(tmp_path, cli):
     (board,) = leaderboards([load_run(run)])
     headers, cells = board.cells()
     assert headers[1:5] == [
-        "canonical (Wilson 95%)",
-        "variant-aggregated (95%)",
+        "canonical scene (Wilson 95%)",
+        "variant-aggregated, SimplerEnv's axes (95%)",
         "lighting (vs canonical)",
-        "mass (vs canonical)",
+        "mass (harness axis, vs canonical)",
     ]
     teacher = [c.text for c in cells[0]]
-    assert teacher[1] == "100.0% [51, 100] (4/4)" and teacher[2].startswith("41.7% [")
-    assert board.ranking is not None and board.ranking.mmrv == pytest.approx(1 / 3)
+    assert teacher[1] == "100.0% [51, 100] (4/4)" and teacher[2].startswith("75.0% [")
+    assert board.ranking is not None and board.ranking.mmrv == pytest.approx(0.25)
     frame = board.frame().set_index("policy")
     assert frame.loc["fast_dvla", "canonical_success"] == 0.5
     assert frame.loc["fast_dvla", "success[lighting=dim]"] == 1.0
     code, out, _ = cli("leaderboard", str(run), "--format", "md")
-    assert code == 0 and "| canonical (Wilson 95%) |" in out and "ranking stability vs canonical" in out
+    assert (
+        code == 0
+        and "| canonical scene (Wilson 95%) |" in out
+        and "ranking stability vs the canonical scene" in out
+    )
     code, _, _ = cli("report", "html", str(run), "--out", str(tmp_path / "report"))
     page = (tmp_path / "report" / "index.html").read_text()
-    assert code == 0 and "variant-aggregated" in page and "ranking stability vs canonical" in page
+    assert code == 0 and "variant-aggregated" in page and "ranking stability vs the canonical scene" in page
+    # the canonical scene is never called visual matching; only the note saying it is not
+    assert page.count("visual matching") == page.count("visual matching (docs/simpler.md)")
+    assert "Pearson r" in page
 
 
 def test_paper_table_gives_a_variant_run_simplerenvs_layout_never_a_pooled_rate(tmp_path, cli):
     run = _two_policy_run(tmp_path)
     code, out, err = cli("report", "paper-table", str(run))
     assert code == 0, err
-    assert "(SimplerEnv layout)" in out and "| visual matching (canonical, Wilson 95%) |" in out
+    assert "(SimplerEnv layout)" in out and "| canonical scene (Wilson 95%) |" in out
     teacher = next(line for line in out.splitlines() if line.startswith("| bidirectional"))
-    assert "100.0% [51, 100] (4/4)" in teacher and "41.7% [" in teacher  # canonical; aggregated
+    assert "100.0% [51, 100] (4/4)" in teacher and "75.0% [" in teacher  # canonical; aggregated
     assert "(published, SimplerEnv: not comparable)" in out and "59.3" in out
-    assert "ranking stability vs canonical" in out and "not SimplerEnv's scenes" in out
+    assert "ranking stability vs the canonical scene" in out and "not SimplerEnv's scenes" in out
+    assert "MMRV" in out and "Pearson r" in out and "Kendall tau" in out
     pooled = f"{100 * 9 / 16:.1f}%"  # the teacher's 9 of 16 episodes over all variants
     assert pooled not in teacher and "### measured" not in out  # no LIBERO-layout row pooling them

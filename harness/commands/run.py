@@ -68,8 +68,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--variants",
         metavar="SPEC",
-        help="simpler/ suites: canonical (visual matching, the default), all (variant aggregation: "
-        "every level of every axis), or axes/levels joined by + (lighting+camera.left); the same "
+        help="simpler/ suites: canonical (ManiSkill3's canonical scene alone, the default), all "
+        "(every level of every axis), or axes/levels joined by + (lighting+camera.left); the same "
         "as the suite option :variants=SPEC (docs/simpler.md)",
     )
     p.add_argument(
