@@ -102,6 +102,26 @@ def episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Mapp
     return warnings + out_of_space_warnings(df, labels)
 
 
+def out_of_space_rules(df: pd.DataFrame) -> list[str]:
+    """The --out-of-space rules a table's rows ran under (none for rows before it was recorded)."""
+    return sorted(set(df["out_of_space_rule"].dropna())) if "out_of_space_rule" in df else []
+
+
+def out_of_space_gate_warnings(baseline: pd.DataFrame, candidate: pd.DataFrame) -> tuple[str, ...]:
+    """`gate`'s lines: the two sides ran under different rules (a clipped candidate's success
+    is not a failing baseline's), or a side's actions left the action space."""
+    rules = {"baseline": out_of_space_rules(baseline), "candidate": out_of_space_rules(candidate)}
+    warnings = []
+    if rules["baseline"] and rules["candidate"] and rules["baseline"] != rules["candidate"]:
+        warnings.append(
+            f"--out-of-space rules differ (baseline {', '.join(rules['baseline'])}, candidate "
+            f"{', '.join(rules['candidate'])}): success is compared across rules; run both under one"
+        )
+    for side, df in (("baseline", baseline), ("candidate", candidate)):
+        warnings += [f"{side} {line}" for line in out_of_space_warnings(df)]
+    return tuple(warnings)
+
+
 def out_of_space_warnings(df: pd.DataFrame, labels: Mapping[str, str] | None = None) -> list[str]:
     """One line per configuration whose rows counted actions outside the action space:
     its episodes either failed for it or ran under a rule that let them through (clip,
@@ -113,7 +133,7 @@ def out_of_space_warnings(df: pd.DataFrame, labels: Mapping[str, str] | None = N
         hit = rows[rows["actions_out_of_space"].fillna(0) > 0]
         if not len(hit):
             continue
-        rules = sorted(set(hit["out_of_space_rule"].dropna())) if "out_of_space_rule" in hit else []
+        rules = out_of_space_rules(hit)
         failed = int(hit["failure_reason"].fillna("").str.startswith("ActionOutOfSpace").sum())
         name = (labels or {}).get(cid, str(rows["policy"].iloc[0]))
         warnings.append(

@@ -264,3 +264,20 @@ def test_check_policy_names_the_call_of_a_bad_shape():
 
     ok, detail = _check(Shrinking(0.5, chunk=2))
     assert not ok and detail.startswith("episode 0 (spec 0 of count), chunk 1 (env step 2): actions of shape")
+
+
+def test_leaderboard_and_gate_warn_about_rules_and_out_of_space_actions(cli, tmp_path):
+    from results.board_warnings import out_of_space_gate_warnings
+
+    run(unit_resolved(ValuePolicy(1.0)), tmp_path / "a")
+    clipped = unit_resolved(ValuePolicy(5.0), "clip")
+    clipped.policies[0].params_json, clipped.policies[0].config_id = '{"value":5}', "fakeconfig05"
+    run(clipped, tmp_path / "b")
+    code, _, err = cli("leaderboard", str(tmp_path / "a"), str(tmp_path / "b"))
+    assert code == 0 and "rows differ in --out-of-space rule: ['clip', 'fail']" in err
+    assert "12 action(s) outside the action space in 2 of 2 episode(s)" in err
+    a, b = (RunDir(tmp_path / name).read_episodes() for name in "ab")
+    baseline_rule, candidate_counts = out_of_space_gate_warnings(a, b)
+    assert baseline_rule.startswith("--out-of-space rules differ (baseline fail, candidate clip)")
+    assert candidate_counts.startswith("candidate fake: 12 action(s) outside the action space")
+    assert out_of_space_gate_warnings(a, a) == ()
