@@ -8,8 +8,7 @@ A Python exception from the env or the policy ends the episode with a failure re
 it never ends the run: a policy's SystemExit or other BaseException is that episode's
 failure row too, and so is a non-finite or absurd action, and (under the default
 `--out-of-space fail`) an action outside the action space (harness/action_space.py says
-what the other rules do). Only KeyboardInterrupt (Ctrl-C,
-SIGTERM) stops the run. With `record_traces`, each chunk's decode trace (what the policy
+what the other rules do). Only KeyboardInterrupt (Ctrl-C, SIGTERM) stops the run. With `record_traces`, each chunk's decode trace (what the policy
 returned in ChunkBatch.trace) is kept in memory and written by the runner after the
 episode, so recording costs the loop one list append per chunk.
 Instruction chains: when the env reports a new instruction in force, the rest of the

@@ -25,6 +25,7 @@ from results import schema
 from results.board_warnings import out_of_space_warnings
 from results.store import RunDir, read_table, rows_to_table
 from tests.fakes import CountdownEnv, fake_resolved
+from tests.test_plugins import installed_plugin  # noqa: F401  (the fixture)
 
 UNIT = gym.spaces.Box(-1.0, 1.0, (2,))  # the [-1, 1] space of most robot suites
 
@@ -281,3 +282,18 @@ def test_leaderboard_and_gate_warn_about_rules_and_out_of_space_actions(cli, tmp
     assert baseline_rule.startswith("--out-of-space rules differ (baseline fail, candidate clip)")
     assert candidate_counts.startswith("candidate fake: 12 action(s) outside the action space")
     assert out_of_space_gate_warnings(a, a) == ()
+
+
+def test_a_plain_resume_keeps_the_recorded_rule_and_a_flag_for_another_is_refused(
+    installed_plugin,  # noqa: F811
+    cli,
+    tmp_path,
+):
+    out = str(tmp_path / "r")
+    base = ("run", "--suite", "line/walk", "--policy", "constant:value=1.0", "--out", out, "--quiet")
+    assert cli(*base, "--episodes-per-task", "1", "--out-of-space", "record")[0] == 0
+    code, _, err = cli("run", "--out", out, "--resume", "--episodes-per-task", "2", "--quiet")
+    assert code == 0, err
+    assert set(RunDir(out).read_episodes()["out_of_space_rule"]) == {"record"}
+    code, _, err = cli("run", "--out", out, "--resume", "--out-of-space", "fail", "--quiet")
+    assert code == 2 and 'out_of_space: "record" -> "fail"' in err
