@@ -20,7 +20,7 @@ What each episode is charged, so that its row means what an unbatched row means:
   decode the same number of tokens per row).
 
 Failures stay with their episode: an env that raises, or an action of one slot that is
-non-finite or absurd, fails that slot's episode (its env is rebuilt for the next one).
+non-finite, absurd or (under `--out-of-space fail`) outside the action space, fails that slot's episode (its env is rebuilt for the next one).
 When the policy call itself raises, each episode it served is asked for again alone, so
 only the one whose observation makes the policy raise fails; the failed call's time and
 passes stay charged to all of them (they waited for it). Only KeyboardInterrupt stops
@@ -45,6 +45,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import EpisodeSpec
+from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
 from harness.episode import EpisodeOutcome, chain_fields, check_chunk, in_force, remote_policy
 from harness.errors import UsageError
 from harness.nfe import NFECounter
@@ -105,6 +106,7 @@ class _Slot:
     trace: str | None = None
     traces: list[dict[str, Any]] | None = None
     info: dict[str, Any] = field(default_factory=dict)  # the env's last info (chains read it)
+    space: ActionCheck | None = None  # the action space's bounds and the --out-of-space rule
 
     def fail(self, exc: BaseException) -> None:
         self.failure, self.trace = f"{type(exc).__name__}: {exc}", traceback.format_exc()
@@ -126,6 +128,7 @@ class _Slot:
             traces=self.traces,
             batch_envs=batch_envs,
             transport_time_s=max(0.0, self.policy_time - self.server_time) if remote else None,
+            **(self.space.columns() if self.space is not None else {}),
             **chain_fields(self.info),
         )
 
@@ -143,9 +146,10 @@ def _shares(total: int, parts: int) -> list[int]:
 class _Loop:
     """The state of one batched queue: slots, envs, the policy and its NFE counter."""
 
-    def __init__(self, envs: list[gym.Env | None], make_env, policy, nfe, context_for, replan_every, traces):
+    def __init__(self, envs, make_env, policy, nfe, context_for, replan_every, traces, out_of_space):
         self.envs, self.make_env, self.policy, self.nfe = envs, make_env, policy, nfe
         self.context_for, self.replan_every, self.record_traces = context_for, replan_every, traces
+        self.out_of_space = out_of_space
         self.finished: list[tuple[int, _Slot | EpisodeOutcome]] = []
         self.remote = remote_policy(policy)
 
@@ -179,6 +183,7 @@ class _Loop:
         env = self.envs[i]
         slot = _Slot(index, spec, self.context_for(spec, env), started_at)
         slot.traces = [] if self.record_traces else None
+        slot.space = ActionCheck.for_space(slot.context.action_space, self.out_of_space)
         try:
             slot.obs, slot.info = env.reset(seed=spec.seed, options={"episode": spec})
             t = clock()
@@ -238,10 +243,11 @@ class _Loop:
                 slot.traces.append({**batch.trace[row], "chunk": slot.chunks - 1, "step": slot.steps})
             try:
                 check_chunk(actions[row : row + 1], int(np.prod(slot.context.action_space.shape)))
+                returned = slot.space.apply(actions[row], slot.steps)  # type: ignore[union-attr]
             except ValueError as exc:
                 slot.fail(exc)
                 continue
-            chunk = actions[row] if self.replan_every == 0 else actions[row, : self.replan_every]
+            chunk = returned if self.replan_every == 0 else returned[: self.replan_every]
             slot.actions.extend(chunk)
         return elapsed
 
@@ -303,6 +309,7 @@ def run_batched(
     replan_every: int = 0,
     record_traces: bool = False,
     envs: list[gym.Env | None] | None = None,
+    out_of_space: str = DEFAULT_OUT_OF_SPACE,
 ) -> Iterator[tuple[int, EpisodeOutcome]]:
     """Run every episode of `specs` (one task) with `batch_envs` slots; yields (position in
     `specs`, outcome) as each episode ends, each exactly once.
@@ -312,7 +319,7 @@ def run_batched(
     make_env). Its length becomes `batch_envs`.
     """
     events = batch_events(
-        specs, make_env, policy, nfe, context_for, batch_envs, replan_every, record_traces, envs
+        specs, make_env, policy, nfe, context_for, batch_envs, replan_every, record_traces, envs, out_of_space
     )
     for kind, payload in events:
         if kind == DONE:
@@ -329,6 +336,7 @@ def batch_events(
     replan_every: int = 0,
     record_traces: bool = False,
     envs: list[gym.Env | None] | None = None,
+    out_of_space: str = DEFAULT_OUT_OF_SPACE,
 ) -> Iterator[tuple[str, Any]]:
     """`run_batched` that also says when each episode starts and when each lockstep step
     ends: (STARTED, position) before an episode's env is built or reset, (STEPPED, None)
@@ -341,7 +349,7 @@ def batch_events(
     """
     envs = [] if envs is None else envs
     envs.extend([None] * (batch_envs - len(envs)))
-    loop = _Loop(envs, make_env, policy, nfe, context_for, replan_every, record_traces)
+    loop = _Loop(envs, make_env, policy, nfe, context_for, replan_every, record_traces, out_of_space)
     queue = deque(enumerate(specs))
     slots: dict[int, _Slot] = {}
 
@@ -455,6 +463,7 @@ class BatchedRunner:
             self.resolved.config.replan_every,
             self.traces,
             self.slot_envs,
+            self.resolved.config.out_of_space,
         )
 
     def close(self) -> None:

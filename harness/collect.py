@@ -216,7 +216,13 @@ def collect(
             for spec in resolved.episodes(task):
                 context = episode_context(resolved.suite.name, task, spec, env)
                 outcome = run_episode(
-                    env, policy_run.policy, counter, context, spec, resolved.config.replan_every
+                    env,
+                    policy_run.policy,
+                    counter,
+                    context,
+                    spec,
+                    resolved.config.replan_every,
+                    out_of_space=resolved.config.out_of_space,
                 )
                 if env.refused is not None:
                     raise UsageError(f"{task.name}: {env.refused}; nothing was written")

@@ -18,6 +18,7 @@ from typing import Any
 
 from adapters.base import EpisodeSpec, Suite, TaskSpec
 from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
+from harness.action_space import DEFAULT_OUT_OF_SPACE, check_rule
 from harness.errors import UsageError
 from harness.plugins import HARNESS
 from policies.base import Policy
@@ -32,7 +33,9 @@ from policies.registry import (
 
 # batch_envs is how to execute (like --workers), read by `run` into its Execution: it is
 # not in RunConfig, so not in the fingerprint, and a resume may use another batch size.
-CONFIG_KEYS = ("suite", "tasks", "episodes_per_task", "replan_every", "policy", "split", "batch_envs")
+CONFIG_KEYS = (
+    "suite", "tasks", "episodes_per_task", "replan_every", "policy", "split", "batch_envs", "out_of_space",
+)  # fmt: skip
 SPLITS = ("eval", "train")
 
 
@@ -50,6 +53,8 @@ class RunConfig:
     episodes_per_task: int | None = None  # None = every episode spec of the protocol
     replan_every: int = 0  # 0 = execute the whole chunk before asking again
     split: str = "eval"  # "train": episodes disjoint from evaluation, for demonstrations
+    # What an action outside the action space does: fail, clip or record (harness/action_space.py).
+    out_of_space: str = DEFAULT_OUT_OF_SPACE
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -154,6 +159,7 @@ def build_config(data: dict[str, Any]) -> RunConfig:
     split = data.get("split", "eval")
     if split not in SPLITS:
         raise UsageError(f"split {split!r} is not valid; choose one of {', '.join(SPLITS)}")
+    out_of_space = check_rule(data.get("out_of_space", DEFAULT_OUT_OF_SPACE), "out_of_space")
     return RunConfig(
         suite=suite,
         policies=tuple(policies),
@@ -161,6 +167,7 @@ def build_config(data: dict[str, Any]) -> RunConfig:
         episodes_per_task=episodes,
         replan_every=replan,
         split=split,
+        out_of_space=out_of_space,
     )
 
 

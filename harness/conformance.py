@@ -18,7 +18,11 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import Suite, TaskSpec
+from harness.action_space import box_bounds, describe
 from harness.backends.local import episode_context
+
+# `check policy` asks for this many chunks in each of this many episodes.
+EPISODES, CHUNKS = 2, 4
 
 
 @dataclass(frozen=True)
@@ -151,9 +155,33 @@ def _check_task(suite: Suite, task: TaskSpec, steps: int) -> Iterator[Finding]:
         env.close()
 
 
-def check_policy(spec: Any, raw_params: dict[str, Any], suite: Suite) -> Iterator[Finding]:
+def _checked_chunk(batch: Any, space: gym.Space, first_step: int, where: str) -> np.ndarray:
+    """The chunk of one `act` result (chunk x dim) after the contract's checks, each
+    failure naming `where` (episode, chunk, env step) and the first offending action."""
+    actions = np.asarray(batch.actions)
+    dim = int(np.prod(space.shape))
+    assert actions.ndim == 3 and actions.shape[0] == 1 and actions.shape[2] == dim, (
+        f"{where}: actions of shape {actions.shape}; the contract is (batch 1, chunk, {dim})"
+    )
+    assert actions.shape[1] >= 1, f"{where}: an empty chunk"
+    assert np.issubdtype(actions.dtype, np.floating) and np.isfinite(actions).all(), (
+        f"{where}: actions must be finite floats"
+    )
+    bounds = box_bounds(space)
+    outside = describe(actions[0], *bounds, first_step) if bounds is not None else None
+    assert outside is None, f"{where}: {outside}"
+    assert isinstance(batch.action_tokens, int | np.integer) and batch.action_tokens >= 0, (
+        f"{where}: action_tokens must be an int >= 0, got {batch.action_tokens!r}"
+    )
+    return actions[0]
+
+
+def check_policy(
+    spec: Any, raw_params: dict[str, Any], suite: Suite, chunks: int = CHUNKS
+) -> Iterator[Finding]:
     """Parameters round-trip through their JSON form; the built policy accepts the suite
-    (check_spaces), and reset/act return chunks of the right shape inside the action space."""
+    (check_spaces), and reset/act return chunks of the right shape inside the action space
+    over `chunks` calls of each of two episodes, the env stepped through every chunk."""
     from policies.registry import params_json, parse_params
 
     state: dict[str, Any] = {}
@@ -186,28 +214,35 @@ def check_policy(spec: Any, raw_params: dict[str, Any], suite: Suite) -> Iterato
             yield _rule(
                 "check_spaces accepts the suite", lambda: check(env.observation_space, env.action_space)
             )
-        episode = task.episodes[0]
+        # Two episodes (the first task's first two specs; its only spec twice), several
+        # chunks each, the env stepped through each chunk: a policy that keeps state between
+        # calls or episodes breaks the contract on a later call as easily as on the first.
+        specs = (list(task.episodes) * EPISODES)[:EPISODES]
 
         def act() -> str:
-            obs, _ = env.reset(seed=episode.seed, options={"episode": episode})
-            policy.reset([episode_context(suite.name, task, episode, env)])
-            batch = policy.act([obs])
-            actions = np.asarray(batch.actions)
-            dim = int(np.prod(env.action_space.shape))
-            assert actions.ndim == 3 and actions.shape[0] == 1 and actions.shape[2] == dim, (
-                f"actions of shape {actions.shape}; the contract is (batch 1, chunk, {dim})"
-            )
-            assert np.issubdtype(actions.dtype, np.floating) and np.isfinite(actions).all(), (
-                "actions must be finite floats"
-            )
-            low, high = env.action_space.low, env.action_space.high
-            outside = int(((actions[0] < low - 1e-6) | (actions[0] > high + 1e-6)).any(axis=1).sum())
-            assert not outside, f"{outside} of {actions.shape[1]} actions outside the action space"
-            assert isinstance(batch.action_tokens, int | np.integer) and batch.action_tokens >= 0, (
-                "action_tokens"
-            )
-            return f"a chunk of {actions.shape[1]}"
+            calls = steps_total = 0
+            for e, episode in enumerate(specs):
+                obs, _ = env.reset(seed=episode.seed, options={"episode": episode})
+                policy.reset([episode_context(suite.name, task, episode, env)])
+                steps = 0
+                for c in range(chunks):
+                    where = f"episode {e} (spec {episode.index} of {task.name}), chunk {c} (env step {steps})"
+                    actions = _checked_chunk(policy.act([obs]), env.action_space, steps, where)
+                    calls += 1
+                    done = False
+                    for action in actions:
+                        obs, _, terminated, truncated, info = env.step(action)
+                        steps += 1
+                        done = bool(terminated or truncated or info.get("success")) or steps >= task.max_steps
+                        if done:
+                            break
+                    if done:
+                        break
+                steps_total += steps
+            return f"{calls} chunk(s) over {len(specs)} episodes, {steps_total} env step(s)"
 
-        yield _rule("reset + act return a chunk inside the action space", act)
+        yield _rule(
+            f"reset + act return chunks inside the action space ({EPISODES} episodes x {chunks} chunks)", act
+        )
     finally:
         env.close()

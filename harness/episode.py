@@ -6,8 +6,9 @@ overhead is exactly the loop's own bookkeeping. NFE is counted by the harness's 
 which are on only inside `policy.reset` and `policy.act` (`nfe.counting()`).
 A Python exception from the env or the policy ends the episode with a failure reason;
 it never ends the run: a policy's SystemExit or other BaseException is that episode's
-failure row too, and so is a non-finite or absurd action. Only KeyboardInterrupt (Ctrl-C,
-SIGTERM) stops the run. With `record_traces`, each chunk's decode trace (what the policy
+failure row too, and so is a non-finite or absurd action, and (under the default
+`--out-of-space fail`) an action outside the action space (harness/action_space.py says
+what the other rules do). Only KeyboardInterrupt (Ctrl-C, SIGTERM) stops the run. With `record_traces`, each chunk's decode trace (what the policy
 returned in ChunkBatch.trace) is kept in memory and written by the runner after the
 episode, so recording costs the loop one list append per chunk.
 Instruction chains: when the env reports a new instruction in force, the rest of the
@@ -27,6 +28,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import EpisodeSpec
+from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext, Policy
 
@@ -57,6 +59,10 @@ class EpisodeOutcome:
     subtasks_completed: int | None = None
     # Remote policies: the part of policy_time_s that was not the server's own policy time.
     transport_time_s: float | None = None
+    # Action vectors outside the action space and the largest excess (harness/action_space.py);
+    # None: not checked (not a Box, or the episode never reached its env).
+    actions_out_of_space: int | None = None
+    max_action_excess: float | None = None
 
 
 def remote_policy(policy: Any) -> Any:
@@ -113,6 +119,7 @@ def run_episode(
     spec: EpisodeSpec,
     replan_every: int = 0,
     record_traces: bool = False,
+    out_of_space: str = DEFAULT_OUT_OF_SPACE,
 ) -> EpisodeOutcome:
     clock = time.perf_counter
     started_at = datetime.now(UTC)
@@ -123,6 +130,7 @@ def run_episode(
     failure = trace = None
     traces: list[dict[str, Any]] | None = [] if record_traces else None
     info: dict[str, Any] = {}
+    space = ActionCheck.for_space(context.action_space, out_of_space)
     nfe.take()
     remote = remote_policy(policy)
     if remote is not None:
@@ -150,7 +158,8 @@ def run_episode(
                 traces.append({**batch.trace[0], "chunk": chunks - 1, "step": steps})
             actions = np.asarray(batch.actions)
             check_chunk(actions, action_dim)
-            chunk = actions[0] if replan_every == 0 else actions[0, :replan_every]
+            returned = space.apply(actions[0], steps)
+            chunk = returned if replan_every == 0 else returned[:replan_every]
             for action in chunk:
                 t = clock()
                 obs, _, terminated, truncated, info = env.step(action)
@@ -197,5 +206,6 @@ def run_episode(
         failure_reason=failure,
         traceback=trace,
         traces=traces,
+        **space.columns(),
         **chain_fields(info),
     )

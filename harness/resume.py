@@ -29,6 +29,7 @@ from typing import Any
 
 import pandas as pd
 
+from harness.action_space import DEFAULT_OUT_OF_SPACE
 from harness.config import ResolvedRun, build_config
 from harness.errors import UsageError
 from policies.registry import PolicyParamError, UnknownPolicyError, get_policy, params_json, parse_params
@@ -57,7 +58,7 @@ def recorded_config_data(out: Path) -> dict[str, Any] | None:
 
 def config_data(config: Mapping[str, Any]) -> dict[str, Any]:
     """A manifest's recorded config (RunConfig.to_dict) as config data (TOML keys)."""
-    keys = ("suite", "tasks", "episodes_per_task", "replan_every", "split")
+    keys = ("suite", "tasks", "episodes_per_task", "replan_every", "split", "out_of_space")
     data = {key: config[key] for key in keys if key in config}
     if "policies" in config:
         data["policy"] = config["policies"]
@@ -108,7 +109,8 @@ def config_changes(
     if recorded_policies != sorted(_policy_identity(p) for p in new.policies):
         shown = [dataclasses.asdict(p) for p in new.policies]
         changes.append(f"policies: {_shown(old.get('policies'))} -> {_shown(shown)}")
-    for key, default in (("replan_every", 0), ("split", "eval")):  # absent from older manifests
+    # absent from older manifests: their defaults (rows before the action check ran unchecked)
+    for key, default in (("replan_every", 0), ("split", "eval"), ("out_of_space", DEFAULT_OUT_OF_SPACE)):
         if old.get(key, default) != getattr(new, key):
             changes.append(f"{key}: {_shown(old.get(key, default))} -> {_shown(getattr(new, key))}")
     extended = None

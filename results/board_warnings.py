@@ -76,8 +76,12 @@ def episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Mapp
             f"seeds or initial states differ between rows for {len(differing)} episode(s) "
             f"(e.g. {task} #{index}); rows did not start from the same states"
         )
-    for column, what in (("suite_version", "suite version"), ("replan_every", "replan_every")):
-        if df[column].nunique() > 1:
+    for column, what in (
+        ("suite_version", "suite version"),
+        ("replan_every", "replan_every"),
+        ("out_of_space_rule", "--out-of-space rule"),
+    ):
+        if column in df and df[column].nunique() > 1:
             warnings.append(f"rows differ in {what}: {sorted(map(str, df[column].unique()))}")
     # Budgets differ between tasks by the suite's own definition (LIBERO-90, chains); only
     # one task run under two budgets is a difference between rows.
@@ -95,4 +99,46 @@ def episode_warnings(df: pd.DataFrame, keys: list[tuple[str, str]], labels: Mapp
     machines = df.groupby("policy_config_id")["machine"].nunique()
     for cid in machines[machines > 1].index:
         warnings.append(f"{labels[cid]} was measured on {machines[cid]} machines: one row per machine")
+    return warnings + out_of_space_warnings(df, labels)
+
+
+def out_of_space_rules(df: pd.DataFrame) -> list[str]:
+    """The --out-of-space rules a table's rows ran under (none for rows before it was recorded)."""
+    return sorted(set(df["out_of_space_rule"].dropna())) if "out_of_space_rule" in df else []
+
+
+def out_of_space_gate_warnings(baseline: pd.DataFrame, candidate: pd.DataFrame) -> tuple[str, ...]:
+    """`gate`'s lines: the two sides ran under different rules (a clipped candidate's success
+    is not a failing baseline's), or a side's actions left the action space."""
+    rules = {"baseline": out_of_space_rules(baseline), "candidate": out_of_space_rules(candidate)}
+    warnings = []
+    if rules["baseline"] and rules["candidate"] and rules["baseline"] != rules["candidate"]:
+        warnings.append(
+            f"--out-of-space rules differ (baseline {', '.join(rules['baseline'])}, candidate "
+            f"{', '.join(rules['candidate'])}): success is compared across rules; run both under one"
+        )
+    for side, df in (("baseline", baseline), ("candidate", candidate)):
+        warnings += [f"{side} {line}" for line in out_of_space_warnings(df)]
+    return tuple(warnings)
+
+
+def out_of_space_warnings(df: pd.DataFrame, labels: Mapping[str, str] | None = None) -> list[str]:
+    """One line per configuration whose rows counted actions outside the action space:
+    its episodes either failed for it or ran under a rule that let them through (clip,
+    record), and either way its success rate says so only here."""
+    if "actions_out_of_space" not in df or not (df["actions_out_of_space"].fillna(0) > 0).any():
+        return []
+    warnings = []
+    for cid, rows in df.groupby("policy_config_id", sort=False):
+        hit = rows[rows["actions_out_of_space"].fillna(0) > 0]
+        if not len(hit):
+            continue
+        rules = out_of_space_rules(hit)
+        failed = int(hit["failure_reason"].fillna("").str.startswith("ActionOutOfSpace").sum())
+        name = (labels or {}).get(cid, str(rows["policy"].iloc[0]))
+        warnings.append(
+            f"{name}: {int(hit['actions_out_of_space'].sum())} action(s) outside the action space in "
+            f"{len(hit)} of {len(rows)} episode(s), largest excess {hit['max_action_excess'].max():.3g} "
+            f"(--out-of-space {', '.join(rules) or 'unknown'}; {failed} episode(s) failed for it)"
+        )
     return warnings

@@ -40,6 +40,7 @@ from typing import Any
 
 import pandas as pd
 
+from results.board_warnings import out_of_space_gate_warnings
 from results.pairing import PAIR_KEY, ConfigPair, check_episodes_match, episode_keys, pair_configs
 from results.pairing import (
     GateInputError as GateInputError,  # raised from here; callers catch it by this name
@@ -473,6 +474,7 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
             f"{sizes['candidate']}): speed, and an adaptive decoder's NFE (a batched row is charged "
             "the passes its batch ran), are compared across batch sizes; run both at one batch size",
         )
+    warnings += out_of_space_gate_warnings(baseline.episodes, candidate.episodes)
     notes = result.notes + tuple(_machine_notes(manifests))
     suspect = simulator_suspect(manifests)
     moved = [t for t in result.tasks if t.task == "ALL" and (t.drops or t.gains)]

@@ -11,11 +11,12 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "3"
+SCHEMA_VERSION = "4"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
 # columns as nulls, a version-2 table (before variants) a null `variant`, which is what
-# they mean for its suites.
-READABLE_VERSIONS = ("1", "2", "3")
+# they mean for its suites; a version-3 table (before the action-space check) null
+# out-of-space columns: its actions were not checked.
+READABLE_VERSIONS = ("1", "2", "3", "4")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
 
@@ -142,6 +143,35 @@ COLUMNS: tuple[Column, ...] = (
         pa.string(),
         "",
         "Null for a clean episode; otherwise the exception (type: message) that ended it.",
+        nullable=True,
+    ),
+    Column(
+        "out_of_space_rule",
+        pa.string(),
+        "",
+        "What the run did with actions outside the env's action space (--out-of-space): `fail` "
+        "(the episode ends, failure_reason `ActionOutOfSpace: ...`), `clip` (clipped to the bounds "
+        "before the env saw them) or `record` (passed to the env unclipped). Null in rows written "
+        "before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "actions_out_of_space",
+        pa.int64(),
+        "actions",
+        "Action vectors the policy returned outside the action space (one per env step, however "
+        "many of its elements are outside), counted over every returned chunk, including actions "
+        "past --replan-every that were never executed. 0: all inside. Null when not checked (an "
+        "action space that is not a Box; an episode whose env could not be built or whose worker "
+        "was lost) and in rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "max_action_excess",
+        pa.float64(),
+        "action units",
+        "The largest distance of any returned action element beyond its bound (0.0 when all were "
+        "inside); null when actions_out_of_space is.",
         nullable=True,
     ),
     Column("started_at", _TS, "UTC", "Wall-clock time the episode started."),

@@ -16,10 +16,13 @@ from policies.registry import NoParams, PolicySpec
 
 
 class CountdownEnv(gym.Env):
-    """Succeeds on step `succeed_at` (never if None); each step sleeps `step_delay` s."""
+    """Succeeds on step `succeed_at` (never if None); each step sleeps `step_delay` s.
+
+    Its action space is wide, so that ChunkPolicy's numbered actions (0, 1, 2 ...) lie
+    inside it; tests of the out-of-space rule narrow it (tests/test_action_space.py)."""
 
     observation_space = gym.spaces.Box(-np.inf, np.inf, (1,))
-    action_space = gym.spaces.Box(-1.0, 1.0, (2,))
+    action_space = gym.spaces.Box(-1000.0, 1000.0, (2,))
 
     def __init__(self, succeed_at: int | None, step_delay: float = 0.0, fail_at: int | None = None):
         self.succeed_at, self.step_delay, self.fail_at = succeed_at, step_delay, fail_at

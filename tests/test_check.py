@@ -73,7 +73,7 @@ def test_a_suite_breaking_one_rule_fails_that_rule(installed_plugin, cli, old, n
         (
             "np.full((1, 1, 2), self.params.value)",
             "np.full((1, 1, 2), 5.0)",
-            "1 of 1 actions outside the action space",
+            "element 0 is 5, bounds [-1, 1]",
         ),
         (
             "np.full((1, 1, 2), self.params.value)",

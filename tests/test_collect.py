@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import gymnasium as gym
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -88,6 +89,14 @@ class SlowPolicy(ChunkPolicy):
 
 def _noisy_collection(tmp_path, name, sigma):
     resolved = fake_resolved(SlowPolicy(chunk=4), episodes=2, succeed_at=6)
+    make = resolved.suite.make_env
+
+    def unit_env(task):  # a [-1, 1] space: the noise's scale is half its width
+        env = make(task)
+        env.action_space = gym.spaces.Box(-1.0, 1.0, (2,))
+        return env
+
+    resolved.suite = dataclasses.replace(resolved.suite, make_env=unit_env)
     collect(resolved, tmp_path / name, action_noise=sigma)
     executed = [np.stack(env.actions) for env in resolved.made_envs]  # type: ignore[attr-defined]
     df = pq.read_table(tmp_path / name / "steps.parquet").to_pandas()

@@ -104,6 +104,7 @@ class EpisodeRunner:
             job.spec,
             resolved.config.replan_every,
             record_traces=self.traces,
+            out_of_space=resolved.config.out_of_space,
         )
         if outcome.failure_reason is not None:
             envs.pop(job.task.name).close()  # its state is suspect: rebuild next time

@@ -62,7 +62,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "--config",
         metavar="FILE",
         help="TOML file with keys: suite, tasks, episodes_per_task, replan_every, batch_envs, "
-        "[[policy]] name/params",
+        "out_of_space, [[policy]] name/params",
     )
     p.add_argument("--suite", help="suite name (see `dvla-harness list suites`)")
     p.add_argument(
@@ -95,6 +95,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="execute K actions of each chunk before asking again; 0 = the whole chunk (default 0)",
     )
+    from harness.action_space import OUT_OF_SPACE_RULES, RULES_HELP
+
+    p.add_argument("--out-of-space", choices=OUT_OF_SPACE_RULES, metavar="RULE", help=RULES_HELP)
     p.add_argument("--out", metavar="DIR", help="run folder (default: runs/<run id>)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument(
@@ -181,6 +184,8 @@ def config_from_args(args: argparse.Namespace):
         data["episodes_per_task"] = args.episodes_per_task
     if args.replan_every is not None:
         data["replan_every"] = args.replan_every
+    if getattr(args, "out_of_space", None) is not None:
+        data["out_of_space"] = args.out_of_space
     return build_config(data)
 
 
@@ -209,6 +214,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     prepare_compute(args)
     resolved = resolve(config_from_args(args))
     return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
+
+
+def print_out_of_space(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
+    """A warning line per configuration whose actions left the action space (harness/action_space.py)."""
+    from results.board_warnings import out_of_space_warnings
+
+    for line in out_of_space_warnings(episodes, labels):
+        err_console.print(f"[yellow]warning:[/yellow] {line}", markup=True, highlight=False, soft_wrap=True)
 
 
 def print_chain_table(episodes: pd.DataFrame) -> None:
@@ -274,6 +287,7 @@ def execute_run(
             )
         )
         print_chain_table(episodes)
+        print_out_of_space(episodes, config_labels(episodes))
     console.print(
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
     )

@@ -28,15 +28,20 @@ class MetaWorldExpert:
         self.params = params
         self._experts: list = []
         self._rngs: list[np.random.Generator] = []
-        # The experts warn on most steps that their gains exceed [-1, 1]; the env clips,
-        # as intended. One filter for that message only, added once: a per-call
-        # `catch_warnings` would cost more than the expert itself.
+        self._bounds: tuple[np.ndarray, np.ndarray] = (np.array(-1.0), np.array(1.0))
+        # The experts warn on most steps that their gains exceed [-1, 1]; their actions are
+        # clipped to the action space here, which is what Meta-World's env does with them
+        # anyway, so that the expert keeps the policy contract (the harness fails an episode
+        # on an action outside the space). One filter for that message only, added once: a
+        # per-call `catch_warnings` would cost more than the expert itself.
         warnings.filterwarnings("ignore", message=r"Constant\(s\) may be too high", category=UserWarning)
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         from metaworld.policies import ENV_POLICY_MAP
 
         self._experts, self._rngs = [], []
+        space = episodes[0].action_space
+        self._bounds = (np.asarray(space.low), np.asarray(space.high))
         for ep in episodes:
             if ep.task not in ENV_POLICY_MAP:
                 raise ValueError(f"no Meta-World expert for task {ep.task!r}")
@@ -58,6 +63,7 @@ class MetaWorldExpert:
                 ]
             )
             actions = actions + noise
+        actions = np.clip(actions, *self._bounds)
         return ChunkBatch(actions=actions[:, None, :])
 
 
