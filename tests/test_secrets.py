@@ -202,3 +202,19 @@ def test_serve_reads_its_key_from_a_file_and_refuses_an_unreadable_one(cli, tmp_
         "serve", "--policy", "random", "--suite", SUITE, "--token-file", str(tmp_path / "none")
     )
     assert code == 2 and "--token-file" in err and "cannot be read" in err
+
+
+def test_a_folder_recorded_with_an_inline_key_does_not_repeat_it_in_errors(cli, tmp_path):
+    """Folders written before inline keys were refused hold one in their config; a refused
+    resume names the difference without it."""
+    import json
+
+    key, out = _key(), tmp_path / "run"
+    base = ["run", "--suite", SUITE, "--episodes-per-task", "1", "--out", str(out), "--quiet"]
+    assert cli(*base, "--policy", "random")[0] == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["config"]["policies"] = [{"name": "remote", "params": {"url": "ws://127.0.0.1:9", "token": key}}]
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    code, text, err = cli(*base, "--policy", "random", "--resume")
+    assert code == 2 and "belongs to a different config" in err and '"token": "<set>"' in err
+    assert key not in text + err
