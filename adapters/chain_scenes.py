@@ -28,6 +28,7 @@ import tomllib
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 from adapters.registry import SuiteDataError
 
@@ -206,6 +207,23 @@ def check_chain(scene: Scene, chain: tuple[str, ...], start: frozenset[Predicate
         state = apply(subtask, state)
 
 
+def check_distinct(chains: tuple[tuple[str, ...], ...], starts: int, where: str) -> None:
+    """Refuse two chains that would be one episode: the same subtasks from the same initial
+    state (chain j starts from state j % `starts`), which would count one measurement
+    twice. The same subtasks from another initial state are another episode: the sampler
+    draws every chain independently, and the shipped files repeat a few that way."""
+    seen: dict[tuple[tuple[str, ...], int], int] = {}
+    for j, chain in enumerate(chains):
+        key = (chain, j % starts)
+        if key in seen:
+            raise ChainDataError(
+                f"{where}: chain {j} repeats chain {seen[key]} from the same initial state "
+                f"({j % starts}), so one episode would count twice; remove it, or regenerate the "
+                "chains (python -m adapters.chain_scenes generate SCENE)"
+            )
+        seen[key] = j
+
+
 def _completable(scene: Scene, state: frozenset[Predicate], remaining: int, memo: dict) -> bool:
     """Whether some chain of `remaining` more subtasks can follow `state`."""
     if remaining == 0:
@@ -246,6 +264,16 @@ def chains_path(name: str) -> Path:
     return DATA / f"{name}.chains.json"
 
 
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object whose keys are distinct (json keeps the last of a repeated key, so a
+    second "chains" would silently replace the first)."""
+    keys = [k for k, _ in pairs]
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:
+        raise ValueError(f"key {repeated[0]!r} appears twice")
+    return dict(pairs)
+
+
 @cache
 def load_chains(name: str) -> ChainSet:
     path = chains_path(name)
@@ -255,7 +283,7 @@ def load_chains(name: str) -> ChainSet:
             f"python -m adapters.chain_scenes generate {name}"
         )
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(), object_pairs_hook=_unique_keys)
         chains = tuple(tuple(c) for c in data["chains"])
         return ChainSet(scene=data["scene"], seed=int(data["seed"]), command=data["command"], chains=chains)
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:

@@ -243,6 +243,7 @@ def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
     start = cs.initial_state(problem)
     for j, chain in enumerate(chains.chains):
         cs.check_chain(scene, chain, start, f"{cs.chains_path(scene.name).name} chain {j}")
+    cs.check_distinct(chains.chains, libero.EPISODES_PER_TASK, cs.chains_path(scene.name).name)
     if options.initial_states == "fresh":  # demonstrations: fresh starts, chains of their own
         sampled = cs.sample_chains(
             scene, start, FRESH_EPISODES_PER_TASK, TRAIN_CHAINS_SEED + options.states_seed

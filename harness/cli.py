@@ -77,9 +77,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict[str, str]:
+    """The chosen command's arguments, dest -> how the user names them (`--suite`,
+    `RUN_DIR`), through its subcommand's parser (`report html`'s)."""
+    names: dict[str, str] = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = action.choices.get(getattr(args, action.dest, None) or "")
+            if chosen is not None:
+                names |= _arguments(chosen, args)
+        elif action.option_strings:
+            names.setdefault(action.dest, max(action.option_strings, key=len))
+        else:
+            names.setdefault(action.dest, str(action.metavar or action.dest).upper())
+    return names
+
+
+def empty_argument(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:
+    """The first argument given as an empty (or blank) string, by name; ''. Every value
+    is a name, path or list: empty, it would silently stand for the default (`--suite ""`
+    ran the default suite)."""
+    names = _arguments(parser, args)
+    for dest, value in vars(args).items():
+        values = value if isinstance(value, list) else [value]
+        if any(isinstance(v, str) and not v.strip() for v in values):
+            return names.get(dest, dest)
+    return ""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    empty = empty_argument(parser, args)
+    if empty:
+        print(f"dvla-harness {args.command}: error: {empty} is empty; give it a value", file=sys.stderr)
+        return EXIT_USAGE
     default_show = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]

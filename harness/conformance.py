@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import gymnasium as gym
@@ -182,14 +182,15 @@ def check_policy(
     """Parameters round-trip through their JSON form; the built policy accepts the suite
     (check_spaces), and reset/act return chunks of the right shape inside the action space
     over `chunks` calls of each of two episodes, the env stepped through every chunk."""
-    from policies.registry import params_json, parse_params
+    from policies.registry import access_params, params_json, parse_params
 
     state: dict[str, Any] = {}
 
     def round_trip() -> str:
         params = parse_params(spec, raw_params)
         text = params_json(params)
-        again = parse_params(spec, json.loads(text))
+        # what the JSON leaves out (where a key is read from) comes from the config, not it
+        again = replace(parse_params(spec, json.loads(text)), **access_params(params))
         assert again == params, f"{text} parses back as {again!r}, not {params!r}"
         state["params"] = params
         return text

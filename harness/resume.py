@@ -75,6 +75,19 @@ def _policy_identity(entry: Any) -> str:
         return f"{name}:{json.dumps(raw, sort_keys=True, default=str)}"
 
 
+def _without_keys(policies: Any) -> Any:
+    """Recorded policy entries with an inline `token` masked: a folder written before keys
+    were refused inline holds one, and an error message must not repeat it."""
+    if not isinstance(policies, list):
+        return policies
+    return [
+        p | {"params": p["params"] | {"token": "<set>"}}
+        if isinstance(p, dict) and isinstance(p.get("params"), dict) and p["params"].get("token")
+        else p
+        for p in policies
+    ]
+
+
 def _shown(value: Any) -> str:
     return json.dumps(value, default=str)
 
@@ -108,7 +121,7 @@ def config_changes(
     recorded_policies = sorted(_policy_identity(p) for p in old.get("policies") or [])
     if recorded_policies != sorted(_policy_identity(p) for p in new.policies):
         shown = [dataclasses.asdict(p) for p in new.policies]
-        changes.append(f"policies: {_shown(old.get('policies'))} -> {_shown(shown)}")
+        changes.append(f"policies: {_shown(_without_keys(old.get('policies')))} -> {_shown(shown)}")
     # absent from older manifests: their defaults (rows before the action check ran unchecked)
     for key, default in (("replan_every", 0), ("split", "eval"), ("out_of_space", DEFAULT_OUT_OF_SPACE)):
         if old.get(key, default) != getattr(new, key):

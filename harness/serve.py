@@ -79,7 +79,7 @@ class Served:
     observation_space: gym.spaces.Space
     action_space: gym.spaces.Box
     state_key: str = "state"
-    token: str | None = None
+    token: str | None = field(default=None, repr=False)  # never printed
     max_batch: int = 1  # > 1: coalesce concurrent clients' calls (harness/coalesce.py)
     batch_wait_s: float = 0.005
     counter: NFECounter = field(init=False)

@@ -38,9 +38,15 @@ def param(
     low: float | None = None,
     high: float | None = None,
     choices: tuple[Any, ...] | None = None,
+    identity: bool = True,
 ) -> Any:
-    """A policy parameter: a dataclass field with its help text and valid range."""
-    return field(default=default, metadata={"help": help, "low": low, "high": high, "choices": choices})
+    """A policy parameter: a dataclass field with its help text and valid range.
+
+    `identity=False` marks a parameter that says how to reach a policy, not what it is
+    (where a secret is read from): it is left out of the recorded parameters, so it never
+    changes a configuration's id, and a run resumes across a rotated or moved key."""
+    metadata = {"help": help, "low": low, "high": high, "choices": choices, "identity": identity}
+    return field(default=default, metadata=metadata)
 
 
 @dataclass(frozen=True)
@@ -197,6 +203,18 @@ def parse_params(spec: PolicySpec, raw: Mapping[str, Any]) -> Any:
     return params
 
 
+def access_params(params: Any) -> dict[str, Any]:
+    """The parameters declared `identity=False` (how to reach the policy), by name."""
+    return {
+        f.name: getattr(params, f.name)
+        for f in dataclasses.fields(params)
+        if not f.metadata.get("identity", True)
+    }
+
+
 def params_json(params: Any) -> str:
-    """Canonical JSON of the full parameter set (defaults included), for rows and keys."""
-    return json.dumps(dataclasses.asdict(params), sort_keys=True, separators=(",", ":"), allow_nan=False)
+    """Canonical JSON of the full parameter set (defaults included), for rows and keys;
+    without the `identity=False` ones (access_params), which no results file records."""
+    access = access_params(params)
+    values = {k: v for k, v in dataclasses.asdict(params).items() if k not in access}
+    return json.dumps(values, sort_keys=True, separators=(",", ":"), allow_nan=False)

@@ -20,6 +20,13 @@ doubling back-off). Before anything runs, `check_spaces` compares the server's m
 (when it describes its observation and action) with the suite's, so a mismatch is a
 usage error (exit 2) with nothing written.
 
+Keys: a server that wants one (`serve --token-env`, openpi's `api_key`) gets it in
+openpi's header, read from an environment variable (`token_env=NAME`) or a file
+(`token_file=PATH`) at every connection. Where the key comes from is no part of the
+configuration (`identity=False`: not in the rows, the config id or resume's match), so a
+rotated key resumes the same run; an inline `token=` or a password in the url is
+refused, since the manifest records the config and the command line.
+
 Batches: with `--batch-envs K`, a server whose metadata says `"act_batch": true` (a
 dvla-harness server serving a decoder) gets the K observations, each with its episode's
 context, in one `dvla/batch` message and decodes them in one call; its NFE is charged to
@@ -30,10 +37,13 @@ does. Against any other server `--batch-envs K > 1` is refused before anything r
 from __future__ import annotations
 
 import importlib.util
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import gymnasium as gym
 import numpy as np
@@ -48,13 +58,59 @@ BATCH = "dvla/batch"
 @dataclass(frozen=True)
 class RemoteParams:
     url: str = param("ws://127.0.0.1:8000", "the server's address (ws:// or wss://)")
-    token: str = param("", "API key, sent as 'Authorization: Api-Key TOKEN' (openpi's header)")
+    token: str = param("", "refused: a key typed here would be recorded; use token_env or token_file")
+    token_env: str = param(
+        "", "environment variable holding the API key (never recorded; openpi's header)", identity=False
+    )
+    token_file: str = param("", "file holding the API key (never recorded)", identity=False)
     timeout_s: float = param(30.0, "seconds to wait for the server's reply before the episode fails", low=0.1)
     connect_timeout_s: float = param(10.0, "seconds to wait for a connection", low=0.1)
     retries: int = param(3, "connection attempts per episode, with doubling back-off", low=1, high=20)
     state_key: str = param("state", "observation key of the state vector on the wire")
     prompt_key: str = param("prompt", "observation key of the instruction on the wire")
     actions_key: str = param("actions", "reply key of the action (or action chunk)")
+
+    def validate(self) -> None:
+        """A key, or a password in the address, given inline would be written into the
+        manifest (its config and command line) and, for the address, every row."""
+        if self.token:
+            raise ValueError(
+                "an inline token= would be recorded in the run's manifest; put the key in an "
+                "environment variable (token_env=NAME) or a file (token_file=PATH)"
+            )
+        if self.token_env and self.token_file:
+            raise ValueError("token_env and token_file are both given; pick one")
+        if urlsplit(self.url).password is not None:
+            raise ValueError(
+                "the url carries a password (user:password@), which every row would record; "
+                "pass the key with token_env or token_file"
+            )
+
+
+def read_api_key(env: str, path: str, *, env_flag: str = "token_env", file_flag: str = "token_file") -> str:
+    """The API key from an environment variable or a file ('' when neither is named).
+
+    Read where it is used, never stored in the parameters: so it is in no results file,
+    and a rotated key is picked up at the next connection. Messages name the variable
+    or file, never the key."""
+    if env:
+        if env not in os.environ:
+            raise ValueError(f"{env_flag}: the environment variable {env} is not set")
+        key, source = os.environ[env].strip(), f"{env_flag}: the environment variable {env}"
+    elif path:
+        try:
+            key, source = Path(path).read_text().strip(), f"{file_flag} {path!r}"
+        except OSError as exc:
+            raise ValueError(f"{file_flag} {path!r} cannot be read: {exc.strerror or exc}") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"{file_flag} {path!r} is not text") from None
+    else:
+        return ""
+    if not key:
+        raise ValueError(f"{source} is empty")
+    if any(ord(c) < 0x20 or ord(c) == 0x7F for c in key):
+        raise ValueError(f"{source} holds more than one line or control characters; a key is one line")
+    return key
 
 
 @dataclass
@@ -73,6 +129,7 @@ class RemotePolicy:
         if importlib.util.find_spec("msgpack") is None:
             raise ValueError("it needs msgpack: pip install 'dvla-harness[remote]'")
         self.params = params
+        self._headers()  # a missing or empty key is refused before anything runs
         self._ws: Any = None
         self.metadata: dict[str, Any] = {}
         self._contexts: Sequence[EpisodeContext] = ()
@@ -84,7 +141,7 @@ class RemotePolicy:
         from policies.wire import MAX_MESSAGE_BYTES, WireError
         from policies.wsclient import HandshakeRefused, WebSocket
 
-        headers = {"Authorization": f"Api-Key {self.params.token}"} if self.params.token else None
+        headers = self._headers()
         delay, last = 0.25, None
         for attempt in range(self.params.retries):
             try:
@@ -110,6 +167,11 @@ class RemotePolicy:
         raise ConnectionError(
             f"{self.params.url}: no connection after {self.params.retries} attempts ({last})"
         )
+
+    def _headers(self) -> dict[str, str] | None:
+        """openpi's header (`Authorization: Api-Key KEY`), the key read now."""
+        key = read_api_key(self.params.token_env, self.params.token_file)
+        return {"Authorization": f"Api-Key {key}"} if key else None
 
     def _receive(self) -> Any:
         from policies.wire import unpack

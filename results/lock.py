@@ -9,6 +9,7 @@ import fcntl
 import json
 import os
 import socket
+import stat
 import sys
 from collections.abc import Mapping
 from datetime import datetime
@@ -85,6 +86,9 @@ class RunLock:
             return
         while True:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            if not stat.S_ISREG(os.fstat(fd).st_mode):  # a FIFO put there by hand: no lock
+                os.close(fd)
+                raise OSError(errno.EINVAL, f"{self.path} is not a regular file")
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:

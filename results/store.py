@@ -28,6 +28,7 @@ import contextlib
 import json
 import os
 import re
+import stat
 import sys
 import time
 from collections.abc import Iterable, Mapping
@@ -189,6 +190,30 @@ def read_table(path: Path) -> pa.Table:
     return table.select([n for n in COLUMN_NAMES if n in table.column_names])
 
 
+_KINDS = (
+    (stat.S_ISDIR, "a folder"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+)
+
+
+def not_regular(path: Path) -> str:
+    """What `path` is when it exists and is not a regular file ('a FIFO (named pipe)',
+    'a folder', ...); '' for a regular file (a link to one included) or nothing at all.
+
+    Opening a FIFO blocks until another process opens its other end, and a folder reads
+    as no file at all: either would hang a run or make a reader count 0 episodes."""
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return ""
+    if stat.S_ISREG(mode):
+        return ""
+    return next((kind for test, kind in _KINDS if test(mode)), "not a regular file")
+
+
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
     """The records of an append-only JSON-lines file; a last line cut short by a kill
     (that episode was in flight) is dropped, any other bad line is an error."""
@@ -219,6 +244,17 @@ class RunDir:
 
     def is_run(self) -> bool:
         return self.manifest_path.is_file()
+
+    def check_files(self) -> None:
+        """Refuse a folder where a file the harness writes is something else (a FIFO, a
+        folder, a device), before anything opens it; ResultsFileError names it."""
+        for name in HARNESS_FILES:
+            kind = not_regular(self.path / name)
+            if kind:
+                raise ResultsFileError(
+                    f"{self.path / name}: is {kind}, not a regular file; dvla-harness writes only "
+                    "regular files there, so this folder was changed by hand: move it away"
+                )
 
     def is_empty(self) -> bool:
         """Nothing recorded: no entries but a leftover lock or temporary file."""
@@ -317,6 +353,7 @@ class RunDir:
 
     def read_manifest(self, required: tuple[str, ...] = ()) -> dict[str, Any]:
         """The manifest, checked (results.manifest_check); `required`: fields it must have."""
+        self.check_files()
         if not self.is_run():
             raise ResultsFileError(f"{self.path}: not a run folder (no {MANIFEST})")
         try:
@@ -378,6 +415,7 @@ class RunDir:
 
     def read_episodes(self) -> pd.DataFrame:
         """Every recorded episode, one row each (the latest write of a repeated episode)."""
+        self.check_files()
         tables = [read_table(self.path / EPISODES)] if (self.path / EPISODES).is_file() else []
         pending = self.pending_rows()
         if pending:

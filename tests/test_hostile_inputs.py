@@ -229,3 +229,147 @@ def test_the_cli_states_a_dtype_conversion_in_one_line(cli, tmp_path):
         f"dvla-harness run: warning: {path}: weights stored as torch.float16, converted to float32 on load\n"
     )
     assert err == line
+
+
+# --- things in a run folder that are not the files the harness writes -----------------
+
+
+@pytest.fixture
+def no_hang():
+    """Fail a call that blocks (opening a FIFO waits for a writer forever) instead of
+    hanging the test session: SIGALRM interrupts the blocked open."""
+    import signal
+
+    def alarm(signum, frame):
+        raise TimeoutError("blocked for 30 s")
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(30)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, previous)
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() if p.is_file() else p.stat().st_mode for p in folder.iterdir()}
+
+
+@pytest.mark.parametrize(
+    ("name", "kind", "said"),
+    [
+        ("events.jsonl", "fifo", "is a FIFO (named pipe), not a regular file"),
+        ("pending.jsonl", "fifo", "is a FIFO (named pipe), not a regular file"),
+        ("traces.jsonl", "fifo", "is a FIFO (named pipe), not a regular file"),
+        ("writer.lock", "fifo", "not a regular file"),
+        ("episodes.parquet", "dir", "is a folder, not a regular file"),
+        ("pending.jsonl", "dir", "is a folder, not a regular file"),
+    ],
+)
+def test_a_fifo_or_folder_in_place_of_a_run_file_is_refused_not_waited_on(
+    cli, tmp_path, no_hang, name, kind, said
+):
+    import os
+
+    out = tmp_path / "run"
+    assert cli(*MT1, "--out", str(out))[0] == 0
+    target = out / name
+    target.unlink(missing_ok=True)
+    os.mkfifo(target) if kind == "fifo" else target.mkdir()
+    before = _snapshot(out)
+    for argv in (
+        [*MT1, "--episodes-per-task", "2", "--out", str(out), "--resume"],  # appends a row
+        ["show", str(out)],
+        ["leaderboard", str(out)],
+    ):
+        code, text, err = cli(*argv)
+        assert code == 2 and said in err and err.count("\n") == 1, (argv, code, text, err)
+        assert "Traceback" not in err
+    assert _snapshot(out) == before
+
+
+def test_an_empty_flag_value_is_refused_not_read_as_the_default(cli, tmp_path):
+    out = tmp_path / "run"
+    for argv, name in (
+        (["run", "--suite", "", "--policy", "random", "--out", str(out)], "--suite"),
+        (["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--config", " "], "--config"),
+        (["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--out", ""], "--out"),
+        (["show", ""], "RUN_DIR"),
+        (["report", "html", str(out), "--out", ""], "--out"),
+    ):
+        code, _, err = cli(*argv)
+        assert code == 2 and f"{name} is empty" in err and err.count("\n") == 1, (argv, err)
+    assert not out.exists() and not (tmp_path / "runs").exists()
+
+
+# --- chain files -------------------------------------------------------------------------
+
+
+@pytest.fixture
+def chain_data(tmp_path, monkeypatch):
+    """A copy of the shipped chain data, its chain file replaced by `write(text)`."""
+    from adapters import chain_scenes as cs
+
+    folder = tmp_path / "chain_data"
+    folder.mkdir()
+    for path in cs.DATA.iterdir():
+        (folder / path.name).write_bytes(path.read_bytes())
+    monkeypatch.setattr(cs, "DATA", folder)
+    cs.load_scene.cache_clear()
+    cs.load_chains.cache_clear()
+    yield folder
+    cs.load_scene.cache_clear()
+    cs.load_chains.cache_clear()
+
+
+CHAIN_SCENE = "living_room_scene3"
+
+
+def _chain_file(folder, edit):
+    path = folder / f"{CHAIN_SCENE}.chains.json"
+    path.write_text(edit(json.loads(path.read_text()), path.read_text()))
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [
+        # chain 50 starts from initial state 0, as chain 0 does: the same episode twice
+        (lambda d, t: json.dumps(d | {"chains": [*d["chains"], d["chains"][0]]}), "chain 50 repeats chain 0"),
+        # json keeps the last of two "chains": the first list would be dropped unseen
+        (lambda d, t: t.replace('"chains":', '"chains": [], "chains":', 1), "key 'chains' appears twice"),
+    ],
+)
+def test_a_chain_file_that_repeats_an_episode_is_refused_when_the_suite_loads(
+    cli, tmp_path, chain_data, edit, needle
+):
+    from adapters import libero
+
+    if not libero._installed():
+        pytest.skip("needs the libero extra")
+    _chain_file(chain_data, edit)
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", f"chains/{CHAIN_SCENE}", "--policy", "libero_scripted", "--episodes-per-task", "1",
+        "--out", str(out),
+    )  # fmt: skip
+    assert code == 2 and needle in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_the_shipped_chains_repeat_only_from_other_initial_states():
+    """The sampler draws each chain independently: a few repeat, each from another start,
+    so each is its own episode and the shipped suites load."""
+    from adapters import chain_scenes as cs
+    from adapters import libero
+
+    for scene in cs.scene_names():
+        chains = cs.load_chains(scene).chains
+        assert len(set(chains)) < len(chains) <= libero.EPISODES_PER_TASK, scene
+        cs.check_distinct(chains, libero.EPISODES_PER_TASK, scene)
+
+
+def test_the_docs_say_openpi_client_needs_typing_extensions():
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "remote-policies.md").read_text()
+    install = next(line for line in text.splitlines() if "pip install" in line and "openpi-client" in line)
+    assert "typing_extensions" in install and "does not" in text.split(install)[1][:400]

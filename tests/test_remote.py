@@ -102,11 +102,14 @@ def serve_process():
         proc.wait(timeout=30)
 
 
-def test_remote_equals_local_through_dvla_harness_serve(cli, tmp_path, serve_process):
+def test_remote_equals_local_through_dvla_harness_serve(cli, tmp_path, serve_process, monkeypatch):
+    monkeypatch.setenv("DVLA_TEST_KEY", "k")
     url = serve_process(
-        "--policy", "fast_dvla", "--suite", "metaworld/mt10", "--task", "reach-v3", "--token", "k"
+        "--policy", "fast_dvla", "--suite", "metaworld/mt10", "--task", "reach-v3", "--token-env", "DVLA_TEST_KEY"
+    )  # fmt: skip
+    code, err, out = run(
+        cli, tmp_path, url, "--policy", "fast_dvla", policy_params=",token_env=DVLA_TEST_KEY"
     )
-    code, err, out = run(cli, tmp_path, url, "--policy", "fast_dvla", policy_params=",token=k")
     assert code == 0, err
     rows = pd.read_parquet(out / "episodes.parquet").set_index(["policy", "episode_index"])
     remote, local = rows.loc["remote"], rows.loc["fast_dvla"]

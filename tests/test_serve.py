@@ -22,8 +22,8 @@ SUITE, TASK = "metaworld/mt10", "reach-v3"
 
 def _served(policy: str = "fast_dvla", token: str | None = None):
     pytest.importorskip("metaworld")
-    args = argparse.Namespace(policy=policy, suite=SUITE, task=TASK, state_key="state", token=token)
-    return build_served(args)
+    args = argparse.Namespace(policy=policy, suite=SUITE, task=TASK, state_key="state")
+    return build_served(args, token)
 
 
 @pytest.fixture

@@ -11,19 +11,21 @@ from harness.errors import UsageError
 EPILOG = """\
 examples:
   dvla-harness serve --policy fast_dvla --suite metaworld/mt10 --port 8000
-  dvla-harness serve --policy scripted --suite metaworld/mt1/reach-v3 --token SECRET
+  DVLA_KEY=... dvla-harness serve --policy scripted --suite metaworld/mt1/reach-v3 --token-env DVLA_KEY
   dvla-harness serve --policy bidirectional:checkpoint=my.safetensors --suite metaworld/mt10 --host 0.0.0.0
   # one policy process for many env workers: their calls share one batched decode
   dvla-harness serve --policy fast_dvla --suite metaworld/mt10 --max-batch 8 --device cuda &
   dvla-harness run --suite metaworld/mt10 --policy remote:url=ws://127.0.0.1:8000 --workers 8
 
 Any openpi client can then connect (openpi-client's WebsocketClientPolicy, with
-api_key=SECRET when --token is set), read the server's metadata (the observation it
+api_key=KEY when a key is set), read the server's metadata (the observation it
 takes, the action it returns) and call infer({"state": ..., "prompt": ...}); each reply
 holds "actions" (chunk x action dim) and the forward passes the call made ("dvla/nfe",
 counted by the harness's own hooks) with the policy's time. The suite (and --task) fix
 the observation and action spaces and the default episode; the simulator is built once
-to read them. Binds 127.0.0.1 unless --host says otherwise.
+to read them. Binds 127.0.0.1 unless --host says otherwise. The key is read from an
+environment variable (--token-env) or a file (--token-file), never from the command line
+(other users of the machine see it there) and never printed.
 
 --max-batch B (policies with act_batch: the five decoders) makes the server a shared
 policy process: calls from different clients that arrive together are decoded in one
@@ -49,7 +51,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
     )
     p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 picks a free one)")
-    p.add_argument("--token", help="require clients to send 'Authorization: Api-Key TOKEN'")
+    p.add_argument(
+        "--token-env",
+        metavar="NAME",
+        help="require clients to send 'Authorization: Api-Key KEY', KEY read from this environment variable",
+    )
+    p.add_argument("--token-file", metavar="PATH", help="as --token-env, the key read from this file")
+    p.add_argument("--token", help=argparse.SUPPRESS)  # refused with the reason (server_key)
     p.add_argument("--state-key", default="state", help="the observation key of the state vector")
     p.add_argument(
         "--max-batch",
@@ -74,9 +82,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_serve)
 
 
-def build_served(args: argparse.Namespace):
+def server_key(args: argparse.Namespace) -> str | None:
+    """The key clients must send, from --token-env or --token-file (None: no key)."""
+    from policies.remote import read_api_key
+
+    if getattr(args, "token", None) is not None:
+        raise UsageError(
+            "--token puts the key on the command line, where other users of the machine see it "
+            "(ps) and shell history keeps it; pass --token-env NAME or --token-file PATH"
+        )
+    env, path = getattr(args, "token_env", None) or "", getattr(args, "token_file", None) or ""
+    if env and path:
+        raise UsageError("--token-env and --token-file are both given; pick one")
+    try:
+        return read_api_key(env, path, env_flag="--token-env", file_flag="--token-file") or None
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def build_served(args: argparse.Namespace, token: str | None = None):
     """The policy resolved as `run` resolves it (same registry, params, checkpoints), and
-    the served task's spaces read from one env of the suite."""
+    the served task's spaces read from one env of the suite; `token`: the key clients
+    must send (server_key)."""
     from harness.config import build_config, parse_policy_arg, resolve
     from harness.serve import Served
 
@@ -105,7 +132,7 @@ def build_served(args: argparse.Namespace):
         observation_space=observation_space,
         action_space=action_space,
         state_key=args.state_key,
-        token=args.token,
+        token=token,
         max_batch=getattr(args, "max_batch", 1),
         batch_wait_s=getattr(args, "batch_wait_ms", 5.0) / 1000,
     )
@@ -124,8 +151,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise UsageError(f"--max-batch must be at least 1, got {args.max_batch}; 1 serves one call at a time")
     if not 0 <= args.batch_wait_ms <= 10_000:
         raise UsageError(f"--batch-wait-ms must be 0..10000, got {args.batch_wait_ms}")
+    token = server_key(args)
     try:
-        served = build_served(args)
+        served = build_served(args, token)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     from harness.serve import make_server, stop_server

@@ -66,7 +66,7 @@ def _writer_alive(folder: Path) -> bool:
     from results.lock import RunLock
 
     try:
-        fd = os.open(RunLock(folder).path, os.O_RDONLY | os.O_CLOEXEC)
+        fd = os.open(RunLock(folder).path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)  # a FIFO: no wait
     except FileNotFoundError:
         return False
     try:
