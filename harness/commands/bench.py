@@ -178,6 +178,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from harness.threads import apply_threads
 
     apply_threads(args.threads)  # before torch does any work
+    from harness.bench import load_observations
     from harness.run_folder import acquire
     from results.lock import RunLock
     from results.store import REPLAY_OBSERVATIONS, RunDir
@@ -188,15 +189,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
             f"{args.run_dir!r} is not a run folder (no manifest.json; make one with `dvla-harness run`)"
         )
     source = _source_file(args.observations) if args.observations else None
+    given = load_observations(source) if source else None  # a foreign file refused before any work
     lock = RunLock(run_dir.path)
     acquire(lock)  # a run still writing the folder is refused, naming it
     try:
-        return _bench(args, run_dir, source, run_dir.path / REPLAY_OBSERVATIONS)
+        return _bench(args, run_dir, source, given, run_dir.path / REPLAY_OBSERVATIONS)
     finally:
         lock.release()
 
 
-def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, own: Path) -> int:
+def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: Any, own: Path) -> int:
     from harness import bench
     from harness.console import console, err_console
     from harness.threads import apply_threads, threads_record
@@ -204,8 +206,8 @@ def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, own: Pat
     resolved, manifest = _resolved(run_dir)
     apply_threads(args.threads)  # again, now that torch is loaded
     started = time.perf_counter()
-    if source is not None:
-        recorded, how = bench.load_observations(source), f"from {source}"
+    if given is not None:
+        recorded, how = given, f"from {source}"
     elif own.is_file():
         recorded, how = bench.load_observations(own), f"from {own}"
     else:
