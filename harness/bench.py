@@ -83,10 +83,17 @@ class _Recorder:
         self.policy.reset(episodes)
 
     def act(self, observations: Sequence[Any]) -> Any:
-        obs = observations[0]
-        kept = {k: np.array(v, copy=True) for k, v in obs.items()} if isinstance(obs, dict) else np.array(obs)
-        self.seen.append((self.context, kept))
+        self.seen.append((self.context, fresh(observations[0])))
         return self.policy.act(observations)
+
+
+def fresh(obs: Any) -> Any:
+    """A copy of an observation. Every decode gets its own: a policy may write into the
+    arrays it is handed (the Meta-World scripted expert does), and the next configuration
+    must decode what was recorded."""
+    if isinstance(obs, dict):
+        return {k: np.array(v, copy=True) for k, v in obs.items()}
+    return np.array(obs, copy=True)
 
 
 def _context_fields(context: EpisodeContext) -> dict[str, Any]:
@@ -226,8 +233,9 @@ def warm_up_pass(policy: Any, contexts: Sequence[EpisodeContext], observations: 
     try:
         for context, obs in zip(contexts, observations, strict=True):
             policy.reset([context])
+            mine = fresh(obs)
             with counter.counting():
-                tokens += int(policy.act([obs]).action_tokens)
+                tokens += int(policy.act([mine]).action_tokens)
     except Exception as exc:  # this configuration is left out of the timing, with the reason
         return Decodes(0, None, f"{type(exc).__name__}: {exc}")
     finally:
@@ -257,8 +265,9 @@ def time_rounds(
                 shift = (r + j) % n
                 for p in [*policies[shift:], *policies[:shift]]:
                     p.policy.reset([context])
+                    mine = fresh(obs)
                     start = clock()
-                    p.policy.act([obs])
+                    p.policy.act([mine])
                     spent[p.config_id] += clock() - start
         finally:
             gc.enable()

@@ -191,6 +191,10 @@ def _rounds_by_config(replay: Mapping[str, Any]) -> dict[str, list[float]]:
     return {str(c["policy_config_id"]): list(c["round_chunk_s"]) for c in replay["configurations"]}
 
 
+def _not_timed(replay: Mapping[str, Any]) -> set[str]:
+    return {str(e.get("policy_config_id")) for e in replay.get("not_timed") or [] if isinstance(e, dict)}
+
+
 def replay_comparable(baseline: Mapping[str, Any], candidate: Mapping[str, Any]) -> str:
     """'' or why the two benches' ratios cannot be compared."""
     threads = (baseline.get("torch_threads"), candidate.get("torch_threads"))
@@ -231,8 +235,20 @@ def replay_verdicts(
     for pair in pairs:
         if pair == reference:
             continue
+        missing = [
+            side
+            for side, rounds, skipped, config_id in (
+                ("baseline", b_rounds, _not_timed(baseline), pair.baseline_id),
+                ("candidate", c_rounds, _not_timed(candidate), pair.candidate_id),
+            )
+            if config_id not in rounds and config_id not in skipped
+        ]
+        if missing:
+            notes.append(
+                f"replay: {pair.label} is not in the {' and '.join(missing)} bench; closed-loop speed used"
+            )
         if pair.baseline_id not in b_rounds or pair.candidate_id not in c_rounds:
-            continue  # not decoding tokens (scripted), or benched on one side only: closed loop
+            continue  # decodes no tokens (scripted), or benched on one side only: closed loop
         try:
             base = paired_ratios(b_rounds[pair.baseline_id], b_rounds[reference.baseline_id])
             cand = paired_ratios(c_rounds[pair.candidate_id], c_rounds[reference.candidate_id])

@@ -259,3 +259,26 @@ def test_bench_on_a_tiny_run_writes_figures_the_gate_uses(cli, tmp_path, one_tor
     code, out, err = cli("gate", "--baseline", str(run), "--candidate", str(other), "--max-slowdown", "0.5")
     assert code == 0, out + err
     assert "judged on the replay benchmark" in out and "decoded different" not in out
+
+
+def test_a_policy_that_writes_into_its_observation_leaves_the_recorded_set_alone():
+    from types import SimpleNamespace
+
+    from harness.bench import Recorded, time_rounds, warm_up_pass
+    from policies.base import ChunkBatch
+
+    class Scribbler:  # as the Meta-World scripted expert does to the array it is handed
+        def reset(self, episodes):
+            pass
+
+        def act(self, observations):
+            observations[0] += 1.0
+            return ChunkBatch(np.zeros((1, 1, 1)), action_tokens=1)
+
+    recorded = Recorded("s", [{"task": "t"}] * 2, [np.zeros(3), np.ones(3)])
+    digest = recorded.digest()
+    run = SimpleNamespace(config_id="c", policy=Scribbler())
+    assert warm_up_pass(run.policy, [None, None], recorded.observations).action_tokens == 2
+    rounds = time_rounds([run], [None, None], recorded.observations, 3)
+    assert len(rounds["c"]) == 3 and recorded.digest() == digest
+    assert recorded.observations[1].tolist() == [1.0, 1.0, 1.0]

@@ -140,6 +140,14 @@ def _source_file(text: str) -> Path:
     return path
 
 
+def _identity(policy: str, params_json: str, sha256: str | None) -> str:
+    """A configuration as the gate pairs it: name, params and checkpoint hash, not its path."""
+    params = json.loads(params_json or "{}")
+    if sha256:
+        params.pop("checkpoint", None)
+    return json.dumps([policy, params, sha256 or ""], sort_keys=True)
+
+
 def _resolved(run_dir: Any) -> Any:
     """The run's config resolved again, refusing one whose policies are no longer the run's."""
     from harness.config import build_config, resolve
@@ -155,12 +163,19 @@ def _resolved(run_dir: Any) -> Any:
         resolved = resolve(build_config(config_data(manifest["config"])))
     except UsageError as exc:
         raise UsageError(f"{run_dir.path}: its recorded config does not resolve: {exc}") from None
-    recorded = set(episodes["policy_config_id"]) if len(episodes) else set()
-    changed = [p.spec.name for p in resolved.policies if recorded and p.config_id not in recorded]
+    recorded = {_identity(r.policy, r.policy_params, r.checkpoint_sha256): r.policy_config_id
+                for r in episodes.drop_duplicates("policy_config_id").itertuples()}  # fmt: skip
+    changed = []
+    for p in resolved.policies:
+        found = recorded.get(_identity(p.spec.name, p.params_json, p.checkpoint_sha256))
+        if found is None:
+            changed.append(p.spec.name)
+        else:
+            p.config_id = found  # the run's id: its checkpoint path may be another clone's
     if changed:
         raise UsageError(
-            f"{run_dir.path}: {', '.join(changed)} no longer resolve(s) to the configuration the run "
-            "recorded (a checkpoint changed since); bench a fresh run instead"
+            f"{run_dir.path}: {', '.join(changed)} no longer resolve(s) to a configuration the run "
+            "recorded (a checkpoint or the policy's parameters changed since); bench a fresh run instead"
         )
     return resolved, manifest
 
@@ -220,6 +235,7 @@ def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: A
         raise UsageError(
             f"{run_dir.path}: no observations to decode (the run has no episodes to record from)"
         )
+    digest = recorded.digest()
     contexts = bench.episode_contexts(resolved, recorded)
     timed, not_timed, decodes = [], [], {}
     for p in resolved.policies:
@@ -236,6 +252,7 @@ def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: A
         )
     rounds = _timed_rounds(args, timed, contexts, recorded.observations)
     payload = _payload(args, manifest, recorded, how, source, timed, decodes, rounds, not_timed)
+    payload["observations"]["sha256"] = digest
     payload["elapsed_s"] = time.perf_counter() - started
     payload["torch_threads"] = threads_record().get("torch_intra_op")
     _write(run_dir, own, recorded, payload)
@@ -312,7 +329,7 @@ def _payload(
             "file": "replay_observations.npz",
             "count": n,
             "tasks": sorted({c["task"] for c in recorded.contexts}),
-            "sha256": recorded.digest(),
+            "sha256": None,  # set by the caller from the observations as loaded, before any decode
             "how": how,
             "source": str(source) if source else None,
         },
