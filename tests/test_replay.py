@@ -282,3 +282,28 @@ def test_a_policy_that_writes_into_its_observation_leaves_the_recorded_set_alone
     rounds = time_rounds([run], [None, None], recorded.observations, 3)
     assert len(rounds["c"]) == 3 and recorded.digest() == digest
     assert recorded.observations[1].tolist() == [1.0, 1.0, 1.0]
+
+
+def test_the_committed_baseline_is_benched_on_observations_that_load():
+    from harness.bench import load_observations
+    from tests.test_gate import BASELINE
+
+    data = load_replay(BASELINE)
+    recorded = load_observations(BASELINE / "replay_observations.npz")
+    assert data["observations"]["sha256"] == recorded.digest()  # the set the rounds decoded
+    assert data["observations"]["count"] == len(recorded.observations) >= 3
+    assert {c["policy"] for c in data["configurations"]} == {"fast_dvla", "bidirectional"}
+    assert data["torch_threads"] == 1 and data["rounds"] >= 20
+    size = sum(p.stat().st_size for p in BASELINE.iterdir())
+    assert size < 200_000, f"the baseline folder grew to {size} bytes"
+
+
+def test_replay_files_are_the_harness_own_so_overwrite_may_replace_them(tmp_path):
+    from results.store import RunDir
+
+    run = write_run(tmp_path / "run", with_reference(2000.0, 1000.0))
+    (run / REPLAY).write_text("{}")
+    (run / "replay_observations.npz").write_bytes(b"")
+    assert RunDir(run).foreign_files() == []
+    RunDir(run).remove_recorded()
+    assert not (run / REPLAY).exists() and not (run / "replay_observations.npz").exists()
