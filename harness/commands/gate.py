@@ -239,7 +239,9 @@ def cmd_gate(args: argparse.Namespace) -> int:
     for warning in result.warnings:
         console.print(f"[yellow]warning[/yellow]: {warning}")
     if result.passed:
-        console.print("[green]gate passed[/green]: no significant success drop, no NFE increase, no slowdown")
+        unsure = [r.pair for r in result.replay if r.verdict == "inconclusive"]
+        speed = f"speed inconclusive for {', '.join(unsure)} (warning above)" if unsure else "no slowdown"
+        console.print(f"[green]gate passed[/green]: no significant success drop, no NFE increase, {speed}")
         return 0
     err_console.print("[red]gate failed[/red]:\n  " + "\n  ".join(result.failures))
     return 1
