@@ -29,6 +29,10 @@ docs/ci-gate.md explains the rules; in short:
   episode, in the same run, against the same ratio in the other run. A machine that is
   faster, slower or busier scales both alike, whatever its CPU model; where no such
   reference exists on both sides the check says "not comparable: <reason>" and passes.
+* When both runs were benched (`dvla-harness bench`, replay.json), the replay benchmark
+  decides speed instead (results/replay.py): the same ratio round by round, failing only
+  when its whole bootstrap interval lies beyond the allowed slowdown, "inconclusive"
+  (a warning, no failure) when it straddles it; the closed-loop ratio is then reported.
 """
 
 from __future__ import annotations
