@@ -52,6 +52,7 @@ examples:
   dvla-harness collect --suite metaworld/mt10 --policy scripted --episodes-per-task 50 --out demos/mt10
   dvla-harness train --demos demos/mt10 --recipe bidirectional --out ckpt/teacher.safetensors
   dvla-harness leaderboard runs/a runs/b             # also: report paper-table | html
+  dvla-harness bench runs/ci --observations results/baselines/metaworld-mt10-smoke   # replay timing
   dvla-harness gate --baseline results/baselines/metaworld-mt10-smoke --candidate runs/ci
   dvla-harness sweep --suite metaworld/mt10 --policy fast_dvla --grid block_size=4,8,16 --out runs/sweep
   dvla-harness plot ablation runs/sweep --x block_size --y success,tokens_per_s --out fig.png

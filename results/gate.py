@@ -29,6 +29,10 @@ docs/ci-gate.md explains the rules; in short:
   episode, in the same run, against the same ratio in the other run. A machine that is
   faster, slower or busier scales both alike, whatever its CPU model; where no such
   reference exists on both sides the check says "not comparable: <reason>" and passes.
+* When both runs were benched (`dvla-harness bench`, replay.json), the replay benchmark
+  decides speed instead (results/replay.py): the same ratio round by round, failing only
+  when its whole bootstrap interval lies beyond the allowed slowdown, "inconclusive"
+  (a warning, no failure) when it straddles it; the closed-loop ratio is then reported.
 """
 
 from __future__ import annotations
@@ -138,6 +142,9 @@ class GateResult:
     # The runs' simulator versions differ (results/simulator_versions.py): '' or the sentence
     # naming them, put first among the failures when success drops.
     simulator_suspect: str = ""
+    # Replay benchmark verdicts (results/replay.py ReplaySpeed), for pairs both runs benched:
+    # these, not the closed-loop ratio in `speed`, decide those pairs' speed.
+    replay: tuple[Any, ...] = field(default=())
 
     @property
     def failures(self) -> list[str]:
@@ -158,8 +165,12 @@ class GateResult:
                 )
             if t.nfe_increased and t.nfe_gated:
                 out.append(f"{t.pair} / {t.task}: NFE/chunk {t.baseline_nfe:.3f} -> {t.candidate_nfe:.3f}")
+        by_replay = {r.pair for r in self.replay}
+        for r in self.replay:
+            if r.verdict == "fail":
+                out.append(f"{r.pair}: replay speed relative to the reference {r.describe()}")
         for s in self.speed:
-            if s.regressed:
+            if s.regressed and s.pair not in by_replay:
                 out.append(
                     f"{s.pair}: tokens/s relative to the reference {s.change:+.1%} "
                     f"({s.baseline_ratio:.3f} -> {s.candidate_ratio:.3f}x the reference's; "
@@ -454,9 +465,47 @@ def _machine_notes(manifests: dict[str, dict[str, Any]]) -> list[str]:
     return []
 
 
+def _with_replay(result: GateResult, baseline: Run, candidate: Run, max_slowdown: float) -> GateResult:
+    """The replay benchmark's verdicts (results/replay.py) when both runs were benched
+    against a comparable reference; the result unchanged otherwise."""
+    from results.replay import (
+        load_replay,
+        replay_comparable,
+        replay_notes,
+        replay_verdicts,
+        replay_warnings,
+    )
+
+    benches = [load_replay(run.path) for run in (baseline, candidate)]
+    reference = next((p for p in result.pairs if p.label == result.reference), None)
+    if reference is None or None in benches:
+        if reference is not None and any(benches):
+            side = "baseline" if benches[0] is None else "candidate"
+            note = f"replay: only one run was benched (not the {side}); closed-loop speed decides"
+            return dataclasses.replace(result, notes=(*result.notes, note))
+        return result
+    why = replay_comparable(benches[0], benches[1])
+    if why:
+        return dataclasses.replace(result, notes=(*result.notes, f"replay not comparable: {why}"))
+    speeds, notes = replay_verdicts(result.pairs, reference, benches[0], benches[1], max_slowdown)
+    notes = replay_notes(benches[0], benches[1]) + notes
+    if speeds:
+        notes.append(
+            "speed: judged on the replay benchmark (replay.json); the closed-loop tokens/s ratio is "
+            "reported beside it, not judged"
+        )
+    return dataclasses.replace(
+        result,
+        replay=tuple(speeds),
+        notes=(*result.notes, *notes),
+        warnings=(*result.warnings, *replay_warnings(speeds)),
+    )
+
+
 def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
     """`gate` on two loaded runs: thread counts, CPUs, calibration drift and simulator
-    versions from their manifests."""
+    versions from their manifests, and the replay benchmark's figures (replay.json) when
+    both runs have them."""
     manifests = {"baseline": baseline.manifest, "candidate": candidate.manifest}
     skipped = options.pop("speed_skipped", "") or _speed_comparable(manifests)
     result = gate(baseline.episodes, candidate.episodes, speed_skipped=skipped, **options)
@@ -482,7 +531,8 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
         notes = (f"success moved ({_moves(moved)}); first suspect: {suspect}", *notes)
     elif suspect and not moved:
         notes = (suspect, *notes)
-    return dataclasses.replace(result, notes=notes, warnings=warnings, simulator_suspect=suspect)
+    result = dataclasses.replace(result, notes=notes, warnings=warnings, simulator_suspect=suspect)
+    return _with_replay(result, baseline, candidate, options.get("max_slowdown", 0.10))
 
 
 def _moves(tasks: list[TaskDiff]) -> str:

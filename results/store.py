@@ -6,6 +6,9 @@
       pending.jsonl     one row per finished episode, appended and flushed before the
                         next episode starts; survives a SIGKILL of the process
       episodes.parquet  all rows, compacted from pending.jsonl when a run ends
+      replay.json       after `dvla-harness bench`: per configuration, seconds per chunk of
+                        each round of decoding the recorded observations (results/replay.py)
+      replay_observations.npz  the observations `bench` decodes (arrays, no pickle)
       traces.jsonl      with --traces: one line per action chunk, which positions each
                         forward pass committed; an episode's lines are written (one
                         flushed write) just before its row (docs/sweeps-and-plots.md)
@@ -55,9 +58,11 @@ EPISODES = "episodes.parquet"
 EVENTS = "events.jsonl"
 PENDING = "pending.jsonl"
 TRACES = "traces.jsonl"
+REPLAY = "replay.json"  # `dvla-harness bench`: the replay benchmark's figures (results/replay.py)
+REPLAY_OBSERVATIONS = "replay_observations.npz"  # ... and the recorded observations it decoded
 # Everything the harness writes into a run folder; --overwrite deletes only these (and
 # their temporaries), and refuses a folder that holds anything else.
-HARNESS_FILES = (MANIFEST, EPISODES, EVENTS, PENDING, TRACES, LOCK)
+HARNESS_FILES = (MANIFEST, EPISODES, EVENTS, PENDING, TRACES, REPLAY, REPLAY_OBSERVATIONS, LOCK)
 # atomic_write's and _write_table's temporaries (".NAME.PID.tmp"), left behind by a kill
 _TEMPORARY = re.compile(r"^\.(" + "|".join(re.escape(n) for n in HARNESS_FILES) + r")\.\d+\.tmp$")
 # Fields of every trace line besides what the policy put in its trace ("committed": a

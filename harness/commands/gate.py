@@ -15,6 +15,7 @@ from harness.errors import UsageError
 
 if TYPE_CHECKING:  # pandas and the gate load only when the command runs, not for every CLI call
     from results.gate import GateResult, SpeedDiff, TaskDiff
+    from results.replay import ReplaySpeed
 
 DESCRIPTION = """\
 Compare a candidate run with a baseline run of the same episodes and exit 1 on a
@@ -36,6 +37,12 @@ What fails the gate:
             the machine's speed, CPU model and load cancel out. Where no such reference
             exists (not in both runs, changed, different torch thread counts), the table
             says "not comparable" with the reason, and speed does not fail the gate.
+  replay    when both runs were benched (`dvla-harness bench`, replay.json), speed is
+            judged on the replay benchmark instead: the same ratio, round by round
+            over recorded observations, with a 95% bootstrap interval. It fails only
+            when the whole interval lies beyond --max-slowdown; when the interval
+            straddles it the gate passes with a warning ("inconclusive"). The
+            closed-loop ratio is then reported, not judged.
 
 Episodes pair by (suite, task, episode_index, seed, init_state_id). Policy
 configurations pair by name + params + checkpoint hash; then by name alone when that
@@ -49,11 +56,13 @@ files, another schema version, mismatched episodes). Details: docs/ci-gate.md.
 EXAMPLES = """\
 examples:
   # the committed CI baseline: a fresh short run (its bidirectional rows are the
-  # reference), then the gate; 0.25 leaves room for the ratio's spread across machines
+  # reference), the replay benchmark on the baseline's recorded observations, then the gate
   OMP_NUM_THREADS=1 dvla-harness run --config results/baselines/metaworld-mt10-smoke.toml \\
       --out runs/ci --quiet
+  OMP_NUM_THREADS=1 dvla-harness bench runs/ci \\
+      --observations results/baselines/metaworld-mt10-smoke --quiet
   dvla-harness gate --baseline results/baselines/metaworld-mt10-smoke --candidate runs/ci \\
-      --max-slowdown 0.25
+      --max-slowdown 0.10
 
   # yesterday's run against today's, stricter, NFE allowed to grow
   dvla-harness gate --baseline runs/old/episodes.parquet --candidate runs/new \\
@@ -108,16 +117,24 @@ def render(result: GateResult, title: str) -> Table:
     chains = any(t.length_p is not None for t in result.tasks)
     columns = ["configuration", "task", "episodes", "successes", "drops/gains", "p (drop)"]
     columns += ["subtasks/chain (shorter/longer, p)"] if chains else []
+    replay = {r.pair: r for r in result.replay}
     table = Table(
         *columns,
         "NFE/chunk",
         "tokens/s vs ref.",
+        *(["replay vs ref. [95%]"] if replay else []),
         "verdict",
         title=title,
         caption=(
             "successes and NFE/chunk: baseline -> candidate; * = significant drop; tokens/s vs ref.: "
             "change of tokens/s over the reference decoder's in the same run"
             + ("; subtasks/chain: mean subtasks completed, chains paired" if chains else "")
+            + (
+                "; replay: the same ratio over the bench's rounds, with its bootstrap interval "
+                "(judged in place of tokens/s)"
+                if replay
+                else ""
+            )
         ),
     )
     skipped = dict(result.not_comparable)
@@ -126,13 +143,14 @@ def render(result: GateResult, title: str) -> Table:
     previous = None
     for t in result.tasks:
         s = speed.get(t.pair) if t.task == "ALL" else None
+        r = replay.get(t.pair) if t.task == "ALL" else None
         bad = [
             name
             for name, hit in (
                 ("success", t.success_regressed),
                 ("chain length", t.length_regressed),
                 ("NFE", t.nfe_increased and t.nfe_gated),
-                ("speed", s is not None and s.regressed),
+                ("speed", r.verdict == "fail" if r is not None else s is not None and s.regressed),
             )
             if hit
         ]
@@ -147,6 +165,7 @@ def render(result: GateResult, title: str) -> Table:
             *([_length_cell(t)] if chains else []),
             nfe + (" (up)" if t.nfe_increased else ""),
             _speed_cell(t.task, t.pair, s, skipped, result.reference),
+            *([_replay_cell(r, t.task == "ALL" and t.pair == result.reference)] if replay else []),
             "[red]FAIL " + ", ".join(bad) + "[/red]" if bad else "[green]ok[/green]",
             end_section=t.task == "ALL",
         )
@@ -173,9 +192,17 @@ def _speed_cell(task: str, pair: str, s: SpeedDiff | None, skipped: dict[str, st
     return "not comparable" if pair in skipped else ""
 
 
+def _replay_cell(r: ReplaySpeed | None, is_reference: bool) -> str:
+    if r is None:
+        return "reference" if is_reference else ""
+    shown = f"{r.change:+.1%} [{r.low:+.1%}, {r.high:+.1%}]"
+    return shown + (" inconclusive" if r.verdict == "inconclusive" else "")
+
+
 def cmd_gate(args: argparse.Namespace) -> int:
     from harness.console import console, err_console
     from results.gate import GateInputError, gate_runs
+    from results.replay import ReplayFileError
     from results.runs import load_run
     from results.store import ResultsFileError
 
@@ -200,6 +227,8 @@ def cmd_gate(args: argparse.Namespace) -> int:
         )
     except GateInputError as exc:
         raise UsageError(f"cannot compare {args.baseline} with {args.candidate}: {exc}") from None
+    except ReplayFileError as exc:
+        raise UsageError(str(exc)) from None
     title = f"gate: {args.candidate} vs baseline {args.baseline}"
     console.print(render(result, title))
     for pair in result.pairs:
@@ -210,7 +239,9 @@ def cmd_gate(args: argparse.Namespace) -> int:
     for warning in result.warnings:
         console.print(f"[yellow]warning[/yellow]: {warning}")
     if result.passed:
-        console.print("[green]gate passed[/green]: no significant success drop, no NFE increase, no slowdown")
+        unsure = [r.pair for r in result.replay if r.verdict == "inconclusive"]
+        speed = f"speed inconclusive for {', '.join(unsure)} (warning above)" if unsure else "no slowdown"
+        console.print(f"[green]gate passed[/green]: no significant success drop, no NFE increase, {speed}")
         return 0
     err_console.print("[red]gate failed[/red]:\n  " + "\n  ".join(result.failures))
     return 1
