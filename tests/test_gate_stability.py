@@ -1,0 +1,95 @@
+"""benchmarks/gate_stability.py: it runs the documented CI job, and its test policies
+change only what they claim to change (time for slow15, work per pass for morework)."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import shlex
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from harness.nfe import NFECounter
+from policies.base import EpisodeContext
+from policies.registry import get_policy, parse_params
+from tests.test_dvla_policies import make_checkpoint
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def load_benchmark():
+    spec = importlib.util.spec_from_file_location("gate_stability", ROOT / "benchmarks" / "gate_stability.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_benchmark_runs_the_ci_job_the_docs_give():
+    bench = load_benchmark()
+    text = (ROOT / "docs" / "ci-gate.md").read_text()
+    block = re.search(r"```bash\n(.*?)```", text, re.S).group(1)
+    documented = [shlex.split(line)[1:] for line in block.splitlines() if "dvla-harness" in line]
+    documented = [[a for a in argv if a != "dvla-harness"] for argv in documented]
+    ours = [[a.replace("{out}", "runs/ci") for a in command] for command in bench.CI_COMMANDS]
+    assert documented == ours
+
+
+def test_verdicts_are_read_from_the_gate_exit_and_its_warning():
+    bench = load_benchmark()
+    assert bench.verdict(0, "gate passed: ...") == "pass"
+    assert bench.verdict(0, "warning: fast_dvla: replay speed inconclusive") == "inconclusive"
+    assert bench.verdict(1, "gate failed:\n  fast_dvla: ...") == "fail"
+    assert bench.verdict(2, "error: ...") == "error (exit 2)"
+    assert bench.failing_lines("table\ngate failed:\n  fast_dvla: NFE up") == ["gate failed:", "fast_dvla: NFE up"]
+
+
+def test_unknown_conditions_and_candidates_are_refused():
+    bench = load_benchmark()
+    with pytest.raises(SystemExit, match="valid: idle, busy2, tests"):
+        bench.choices("idle,noisy", bench.CONDITIONS, "conditions")
+
+
+@pytest.fixture
+def one_thread():
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _decode(policy, observations, contexts):
+    counter = NFECounter()
+    policy.reset(contexts)
+    with counter.counting():
+        batch = policy.act(observations)
+    return batch, counter.take()
+
+
+def test_the_test_policies_keep_actions_and_passes(tmp_path, one_thread):
+    """slow15 and morework must differ from fast_dvla only in time and in work per pass;
+    otherwise the benchmark's detection rates would measure something else."""
+    bench = load_benchmark()
+    ckpt = make_checkpoint(tmp_path / "m.safetensors", "block_causal", 4)
+    spec = get_policy("fast_dvla")
+    space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
+    contexts = [
+        EpisodeContext("metaworld/mt10", "reach-v3", "reach the goal", space, gym.spaces.Box(-9, 9, (39,)), 50, 0)
+    ]
+    observations = [np.random.default_rng(0).uniform(-1, 1, 39).astype(np.float32)]
+    params = parse_params(spec, {"checkpoint": str(ckpt)})
+    plain, plain_nfe = _decode(spec.build(params), observations, contexts)
+
+    slowed = spec.build(params)
+    bench.spin_after_each_pass(slowed.model, 0.15)
+    slow, slow_nfe = _decode(slowed, observations, contexts)
+    doubled, doubled_nfe = _decode(bench.DoubledBatch(spec.build(params)), observations, contexts)
+
+    for batch, nfe in ((slow, slow_nfe), (doubled, doubled_nfe)):
+        np.testing.assert_array_equal(batch.actions, plain.actions)
+        assert batch.action_tokens == plain.action_tokens
+        assert nfe == plain_nfe > 0
