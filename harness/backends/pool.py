@@ -115,6 +115,8 @@ def worker_main(
     record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
     record["device"] = worker_device_record()
     try:
+        for event in worker.warming():  # each policy's first calls, held to --episode-timeout
+            conn.send(event)
         conn.send(("ready", record | {"warm_up": worker.warm_up}))
         while True:
             message = conn.recv()

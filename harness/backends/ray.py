@@ -243,10 +243,17 @@ class EpisodeActor:
             return
         apply_threads(threads, workers)
         record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
-        self.record = record | {"device": worker_device_record(gpu_ids), "warm_up": self.worker.warm_up}
+        self.record = record | {"device": worker_device_record(gpu_ids)}
 
-    def ready(self) -> tuple[str, Any]:
-        return ("error", self.error) if self.error else ("ready", self.record)
+    def ready(self) -> Iterator[tuple[str, Any]]:
+        """A Ray streaming generator: ("warming", policy_config_id) before each policy's
+        warm-up calls (each held to --episode-timeout by the scheduler), then "ready"
+        with this worker's record, or "error" saying why it could not start."""
+        if self.error:
+            yield "error", self.error
+            return
+        yield from self.worker.warming()
+        yield "ready", self.record | {"warm_up": self.worker.warm_up}
 
     def run(self, jid: JobId) -> tuple[str, Any]:
         (event,) = self.worker.run([jid], alone=True)
@@ -302,8 +309,16 @@ class RayWorkers:
         )
         actor = self.actor_class.remote(*args)
         self.actors[slot] = actor
-        self.refs[actor.ready.remote()] = (slot, actor)
+        self.refs[self._stream(actor.ready)] = (slot, actor)
         return worker_id
+
+    def _stream(self, method: Any, *args: Any) -> Any:
+        """Call an actor's generator method, its events streamed back as yielded."""
+        try:
+            return method.options(**self.stream).remote(*args)
+        except (TypeError, ValueError):  # a Ray without the (private) backpressure option
+            self.stream = {"num_returns": "streaming"}
+            return method.options(**self.stream).remote(*args)
 
     def submit(self, slot: int, group: list[JobId], alone: bool) -> None:
         actor = self.actors[slot]
@@ -311,12 +326,7 @@ class RayWorkers:
             for jid in group:
                 self.refs[actor.run.remote(jid)] = (slot, actor)
         else:
-            try:
-                batch = actor.run_batch.options(**self.stream).remote(group)
-            except (TypeError, ValueError):  # a Ray without the (private) backpressure option
-                self.stream = {"num_returns": "streaming"}
-                batch = actor.run_batch.options(**self.stream).remote(group)
-            self.refs[batch] = (slot, actor)
+            self.refs[self._stream(actor.run_batch, group)] = (slot, actor)
 
     def wait(self, timeout: float) -> list[Event]:
         if not self.refs:
