@@ -109,3 +109,36 @@ def test_every_json_file_a_run_writes_parses_strictly(tmp_path):
     trace = json.loads((out / "traces.jsonl").read_text().splitlines()[0])
     assert trace["confidence"] is None and trace["margin"] is None and trace["order"] == [0, 1]
     assert run_dir.read_manifest()["probe"] == {"rate": None}
+
+
+def test_a_checkpoint_swapped_under_running_workers_stops_the_run_naming_both_hashes(
+    cli, tmp_path, monkeypatch
+):
+    from harness.backends.pool import ProcessWorkers
+    from harness.config import sha256_file
+    from policies.dvla.checkpoint import load, save
+    from tests.test_dvla_policies import make_checkpoint
+
+    ckpt, other = tmp_path / "m.safetensors", tmp_path / "other.safetensors"
+    make_checkpoint(ckpt, "bidirectional")
+    changed = load(ckpt)
+    changed.meta["recipe"] = "retrained"
+    save(changed, other)
+    hashed, swapped = sha256_file(str(ckpt)), sha256_file(str(other))
+    start = ProcessWorkers.start
+
+    def swap_then_start(self, slot):  # the file is replaced after the run hashed it
+        if other.exists():
+            other.replace(ckpt)
+        return start(self, slot)
+
+    monkeypatch.setattr(ProcessWorkers, "start", swap_then_start)
+    out = tmp_path / "run"
+    argv = ["run", "--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "2", "--quiet"]
+    argv += ["--policy", f"bidirectional:checkpoint={ckpt}", "--workers", "2", "--out", str(out)]
+    code, _out, err = cli(*argv)
+    assert code == 3, err
+    assert str(ckpt) in err and hashed in err and swapped in err
+    run_dir = RunDir(out)
+    assert len(run_dir.read_episodes()) == 0  # no row claims the hashed model ran
+    assert run_dir.read_manifest()["status"] == "failed"

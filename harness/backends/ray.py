@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from harness.backends.pool import heartbeat_interval, rebuild_from_config, worker_threads
 from harness.backends.schedule import Event, JobId
+from harness.config import checkpoint_pins
 from harness.errors import UsageError
 
 if TYPE_CHECKING:
@@ -225,8 +226,10 @@ class EpisodeActor:
         batch_envs: int = 1,
         heartbeat_s: float | None = None,
         device: str | None = None,
+        pins: tuple[tuple[str, str, str], ...] = (),
     ):
         from harness.backends.local import HOST, Worker
+        from harness.config import check_checkpoints
         from harness.device import apply_device, worker_device, worker_device_record
         from harness.threads import apply_threads, threads_record
 
@@ -234,7 +237,9 @@ class EpisodeActor:
         apply_threads(threads, workers)
         gpu_ids = reserved_gpu_ids()
         try:
+            check_checkpoints(pins)  # the content the run hashed, on this node too
             resolved = rebuild()
+            check_checkpoints(pins, resolved)
             if device is not None:  # before the warm-up, on the GPU Ray gave this actor if any
                 apply_device(resolved.policies, device, used=worker_device(device, gpu_ids))
             self.worker = Worker(resolved, traces, worker_id, batch_envs, heartbeat_s)
@@ -280,6 +285,7 @@ class RayWorkers:
         self.threads, self.asked = worker_threads(execution), execution.threads
         self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
         self.device = execution.device  # each actor resolves it on its node
+        self.pins = checkpoint_pins(resolved)
         self.workers, self.traces = execution.workers, traces
         self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
         self.actor_class = ray.remote(EpisodeActor).options(
@@ -306,6 +312,7 @@ class RayWorkers:
             self.batch_envs,
             self.heartbeat_s,
             self.device,
+            self.pins,
         )
         actor = self.actor_class.remote(*args)
         self.actors[slot] = actor
