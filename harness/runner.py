@@ -23,6 +23,7 @@ from harness.config import PolicyRun, ResolvedRun
 from harness.episode import EpisodeOutcome
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.manifest import now, record_end_calibration
+from harness.resume import run_again
 from harness.run_folder import acquire, check_output, check_path, io_error, open_run
 from harness.warmup import record_warm_up, warm_up_run
 from results.lock import RunLock
@@ -86,7 +87,9 @@ def plan(resolved: ResolvedRun) -> list[EpisodeJob]:
     ]
 
 
-def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob], limit: float | None = None) -> dict[str, gym.Env]:
+def preflight(
+    resolved: ResolvedRun, jobs: list[EpisodeJob], limit: float | None = None
+) -> dict[str, gym.Env]:
     """Let each policy that can (`check_spaces`) refuse the suite before anything is
     written: a checkpoint trained on another suite's observations would otherwise fail
     every episode alike. Uses the first task's env and returns it, by task name, for the
@@ -267,8 +270,8 @@ def _run_planned(
     except OSError as exc:
         raise io_error(out, "opening the run folder", exc) from None
     traces = traces or bool(manifest.get("traces"))
-    if retry_failed and len(recorded):
-        recorded = recorded[recorded["failure_reason"].isna()]
+    if len(recorded):  # lost workers and servers (and with --retry-failed, every failure) again
+        recorded = recorded[~run_again(recorded["failure_reason"], retry_failed)]
     done = {_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")} if len(recorded) else set()
     jobs = [job for job in planned if job_key(resolved, job) not in done]
     skipped = len(planned) - len(jobs)

@@ -6,12 +6,17 @@ restarts."""
 from __future__ import annotations
 
 import json
+import os
+import re
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from harness.backends import Execution
@@ -21,7 +26,9 @@ from policies.base import ChunkBatch
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, FakeBuild, fake_resolved
 
-MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--episodes-per-task", "1"]
+SUITE = "metaworld/mt1/reach-v3"
+MT1 = ["run", "--suite", SUITE, "--policy", "random", "--episodes-per-task", "1"]
+REPO = Path(__file__).resolve().parent.parent
 
 
 def _within(seconds: float, call):
@@ -64,7 +71,12 @@ class CheckHangs(ChunkPolicy):
 def test_a_check_spaces_that_never_returns_stops_the_run_naming_the_policy(tmp_path):
     start = time.monotonic()
     with pytest.raises(HarnessError) as stopped:
-        _within(30, lambda: run(fake_resolved(CheckHangs()), tmp_path / "r", execution=Execution(episode_timeout=1.0)))
+        _within(
+            30,
+            lambda: run(
+                fake_resolved(CheckHangs()), tmp_path / "r", execution=Execution(episode_timeout=1.0)
+            ),
+        )
     assert time.monotonic() - start < 15
     assert "policy fake" in str(stopped.value) and "check_spaces" in str(stopped.value)
     assert not (tmp_path / "r").exists()
@@ -142,3 +154,110 @@ def test_a_checkpoint_swapped_under_running_workers_stops_the_run_naming_both_ha
     run_dir = RunDir(out)
     assert len(run_dir.read_episodes()) == 0  # no row claims the hashed model ran
     assert run_dir.read_manifest()["status"] == "failed"
+
+
+def _serve(port: int = 0) -> tuple[subprocess.Popen, str]:
+    """`dvla-harness serve` of the random policy in its own process; (process, ws:// address)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "harness", "serve", "--policy", "random", "--suite", SUITE, "--port", str(port)],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=os.environ | {"OMP_NUM_THREADS": "1", "COLUMNS": "200"},
+    )  # fmt: skip
+    line = proc.stdout.readline()
+    match = re.search(r"on (ws://[0-9.]+:[0-9]+)", line)
+    assert match, line
+    return proc, match.group(1)
+
+
+def _remote_run(cli, out: Path, url: str, *extra: str) -> tuple[int, str]:
+    code, _, err = cli(
+        "run", "--suite", SUITE, "--policy", f"remote:url={url}", "--episodes-per-task", "4",
+        "--out", str(out), "--quiet", *extra,
+    )  # fmt: skip
+    return code, err
+
+
+def test_a_policy_server_restarted_mid_run_loses_no_episode(cli, tmp_path):
+    pytest.importorskip("msgpack")
+    pytest.importorskip("websockets")
+    out = tmp_path / "run"
+    servers = [_serve()]
+    url = servers[0][1]
+
+    def restart() -> None:  # once the first row is on disk: kill the server, start it again
+        pending = out / "pending.jsonl"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not (pending.exists() and pending.read_text().count("\n")):
+            time.sleep(0.05)
+        servers[0][0].kill()
+        servers[0][0].wait()
+        time.sleep(1.0)  # and it takes seconds to load again: longer than three quick attempts
+        servers.append(_serve(int(url.rsplit(":", 1)[1])))
+
+    restarter = threading.Thread(target=restart, daemon=True)
+    restarter.start()
+    try:
+        code, err = _remote_run(cli, out, url)
+        restarter.join(60)
+        assert len(servers) == 2, "the server was not restarted during the run"
+        rows = RunDir(out).read_episodes().sort_values("episode_index")
+        reasons = rows["failure_reason"].dropna().tolist()
+        # at most the episode in flight when the server died is lost, as a lost connection
+        assert len(rows) == 4 and len(reasons) <= 1, reasons
+        assert all(r.startswith("ConnectionLost:") and "closed the connection" in r for r in reasons)
+        assert code == (1 if reasons else 0), err
+        # a plain --resume runs a lost connection's episode again, and only that
+        code, err = _remote_run(cli, out, url, "--resume")
+        assert code == 0, err
+        again = RunDir(out).read_episodes()
+        assert len(again) == 4 and again["failure_reason"].isna().all()
+    finally:
+        for proc, _ in servers:
+            proc.kill()
+            proc.wait()
+
+
+def test_rows_of_a_lost_connection_are_run_again_by_a_plain_resume(cli, tmp_path):
+    pytest.importorskip("msgpack")
+    from websockets.sync.server import serve
+
+    from policies.wire import pack, unpack
+
+    connections = [0]
+
+    def handle(ws) -> None:  # the first connection drops on its fourth call (mid-episode)
+        connections[0] += 1
+        ws.send(pack({"server": "openpi-like"}))
+        for call, data in enumerate(ws):
+            unpack(data)
+            if connections[0] == 1 and call == 3:
+                ws.close()
+                return
+            ws.send(pack({"actions": np.zeros((4, 4), np.float32)}))
+
+    server = serve(handle, "127.0.0.1", 0, compression=None)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    url = f"ws://127.0.0.1:{server.socket.getsockname()[1]}"
+    out = tmp_path / "run"
+    try:
+        code, _, _ = cli(
+            *MT1[:3],
+            "--policy",
+            f"remote:url={url}",
+            "--episodes-per-task",
+            "2",
+            "--out",
+            str(out),
+            "--quiet",
+        )
+        rows = RunDir(out).read_episodes().sort_values("episode_index")
+        lost = rows["failure_reason"].iloc[0]
+        assert code == 1 and "closed the connection" in lost and pd.isna(rows["failure_reason"].iloc[1])
+        code, _, _ = cli("run", "--out", str(out), "--resume", "--quiet")
+        rows = RunDir(out).read_episodes()
+        assert code == 0 and rows["failure_reason"].isna().all() and len(rows) == 2
+        assert lost.startswith("ConnectionLost:")  # the server's failure, named as such
+        events = [json.loads(line)["event"] for line in (out / "events.jsonl").read_text().splitlines()]
+        assert events.count("episode_failed") == 1  # the re-run did not fail again
+    finally:
+        server.shutdown()
