@@ -132,9 +132,14 @@ class _Slot:
             **chain_fields(self.info),
         )
 
-    def charge(self, passes: int | None, server_time: float) -> None:
+    def charge(self, passes: int | None, server_time: float, connect_wait: float = 0.0) -> None:
+        """Count a call's passes and server time; a remote policy's wait to connect again
+        (a server restart) moves from policy time to overhead, as in run_episode."""
         self.nfe = None if passes is None or self.nfe is None else self.nfe + passes
         self.server_time += server_time
+        moved = min(connect_wait, self.policy_time)
+        self.policy_time -= moved
+        self.overhead += moved
 
 
 def _shares(total: int, parts: int) -> list[int]:
@@ -153,14 +158,16 @@ class _Loop:
         self.finished: list[tuple[int, _Slot | EpisodeOutcome]] = []
         self.remote = remote_policy(policy)
 
-    def passes(self) -> tuple[int | None, float]:
+    def passes(self) -> tuple[int | None, float, float]:
         """Forward passes since the last take, here and (remote policies) on the server,
-        with the server's own policy time; passes None when the server reports none."""
+        with the server's own policy time and the client's wait to connect again; passes
+        None when the server reports none."""
         local = self.nfe.take()
         if self.remote is None:
-            return local, 0.0
+            return local, 0.0, 0.0
         totals = self.remote.take_remote()
-        return (None if totals.nfe is None else local + totals.nfe), totals.server_time_s
+        nfe = None if totals.nfe is None else local + totals.nfe
+        return nfe, totals.server_time_s, totals.connect_wait_s
 
     def close_env(self, i: int) -> None:
         env, self.envs[i] = self.envs[i], None
@@ -200,7 +207,7 @@ class _Loop:
             raise
         except BaseException as exc:
             slot.fail(exc)
-        slot.overhead += clock() - t0 - slot.env_time - slot.policy_time
+        slot.overhead = clock() - t0 - slot.env_time - slot.policy_time  # a fresh slot: all of it
         if slot.done:
             self.finished.append((index, slot))
             self.close_env(i)
@@ -223,20 +230,20 @@ class _Loop:
         except KeyboardInterrupt:
             raise
         except BaseException as exc:
-            elapsed, (passes, server) = clock() - t, self.passes()
+            elapsed, (passes, server, wait) = clock() - t, self.passes()
             for _, slot in slots:
                 slot.policy_time += elapsed / len(slots)
-                slot.charge(passes, server / len(slots))
+                slot.charge(passes, server / len(slots), wait / len(slots))
                 if len(slots) == 1:
                     slot.fail(exc)
             if len(slots) > 1:  # which episode raised? ask each alone (the failed call stays charged)
                 elapsed += sum(self.act([served]) for served in slots)
             return elapsed
-        elapsed, (passes, server) = clock() - t, self.passes()
+        elapsed, (passes, server, wait) = clock() - t, self.passes()
         tokens = _shares(int(batch.action_tokens), len(slots))
         for row, (_, slot) in enumerate(slots):
             slot.policy_time += elapsed / len(slots)
-            slot.charge(passes, server / len(slots))
+            slot.charge(passes, server / len(slots), wait / len(slots))
             slot.tokens += tokens[row]
             slot.chunks += 1
             if slot.traces is not None and batch.trace:

@@ -374,7 +374,9 @@ def _write(
         "created_at": now(),
         "environment": environment(),
     }
-    (staging / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+    from results.store import strict_json
+
+    (staging / MANIFEST).write_text(json.dumps(strict_json(manifest), indent=2, allow_nan=False) + "\n")
     if out.exists():
         shutil.rmtree(out)
     staging.rename(out)

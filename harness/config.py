@@ -19,7 +19,7 @@ from typing import Any
 from adapters.base import EpisodeSpec, Suite, TaskSpec
 from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
 from harness.action_space import DEFAULT_OUT_OF_SPACE, check_rule
-from harness.errors import UsageError
+from harness.errors import HarnessError, UsageError
 from harness.plugins import HARNESS
 from policies.base import Policy
 from policies.registry import (
@@ -293,7 +293,40 @@ def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
         policy = spec.build(params)
     except (ValueError, OSError) as exc:
         raise UsageError(f"policy {spec.name!r} could not be built: {exc}") from None
+    if checkpoint:  # what was loaded is what was hashed: the file did not change meanwhile
+        check_checkpoints(((spec.name, checkpoint, digest),))
     return PolicyRun(spec, params, pjson, checkpoint, digest, config_id, policy)
+
+
+class CheckpointChanged(HarnessError):
+    """A checkpoint file no longer has the content the run hashed (exit 3)."""
+
+
+CheckpointPin = tuple[str, str, str]  # policy name, checkpoint path, the sha256 the run recorded
+
+
+def checkpoint_pins(resolved: ResolvedRun) -> tuple[CheckpointPin, ...]:
+    """What a worker must find at each checkpoint path: the content this run hashed."""
+    return tuple((p.spec.name, p.checkpoint, p.checkpoint_sha256) for p in resolved.policies if p.checkpoint)
+
+
+def check_checkpoints(pins: tuple[CheckpointPin, ...], resolved: ResolvedRun | None = None) -> None:
+    """Refuse (CheckpointChanged) a checkpoint whose file, or whose copy in `resolved`
+    (a worker's rebuilt run), is not the one the run hashed. Rows name a model by its
+    sha256; a worker that loaded other bytes would record another model's episodes
+    under it, or (its policy ids no longer matching) lose every episode it is sent."""
+    built = {p.checkpoint: p.checkpoint_sha256 for p in resolved.policies} if resolved else {}
+    for name, path, digest in pins:
+        try:
+            now = built[path] if path in built else sha256_file(path)
+        except OSError as exc:
+            now = f"unreadable ({exc.strerror or exc})"
+        if now != digest:
+            raise CheckpointChanged(
+                f"policy {name}: checkpoint {path} changed during the run: the run hashed sha256 "
+                f"{digest}, the file now has {now}; put the original back and --resume, or start a "
+                "new run (--out) for the new file"
+            )
 
 
 def resolve(config: RunConfig) -> ResolvedRun:

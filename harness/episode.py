@@ -191,6 +191,9 @@ def run_episode(
     if remote is not None:  # the server's hooks counted its passes; None if it reports none
         totals = remote.take_remote()
         passes = None if totals.nfe is None else passes + totals.nfe
+        # connecting again to a server that went away (a restart) is nobody's compute:
+        # it stays in wall_clock_s, so it lands in overhead_s
+        policy_time = max(0.0, policy_time - totals.connect_wait_s)
         transport = max(0.0, policy_time - totals.server_time_s)
     return EpisodeOutcome(
         success=success,

@@ -7,6 +7,10 @@ typed: the suite and its tasks by the names they resolve to (an index and a name
 by their validated parameters (`seed=1` from a flag and `seed = 1` from TOML are one),
 and the order of either does not matter.
 
+Recorded rows are not run again, except those whose failure says the machinery failed,
+not the policy (INFRASTRUCTURE_FAILURES: a lost worker, a lost policy server); with
+--retry-failed, every failed row.
+
 Two differences are not refused:
 
 - More episodes per task than recorded (or the whole protocol) extends the run. An
@@ -34,6 +38,20 @@ from harness.config import ResolvedRun, build_config
 from harness.errors import UsageError
 from policies.registry import PolicyParamError, UnknownPolicyError, get_policy, params_json, parse_params
 from results.store import ResultsFileError, RunDir
+
+# Failure reasons that say the machinery failed, not the policy: a worker process or Ray
+# actor lost (after --max-retries), a remote policy's server gone (policies/remote.py
+# ConnectionLost). A plain --resume runs these episodes again; --retry-failed runs every
+# failed episode again.
+INFRASTRUCTURE_FAILURES = ("worker lost:", "ConnectionLost:")
+
+
+def run_again(failure_reasons: pd.Series, retry_failed: bool = False) -> pd.Series:
+    """Which recorded rows --resume runs again (True): infrastructure failures, and with
+    --retry-failed every failure."""
+    if retry_failed:
+        return failure_reasons.notna()
+    return failure_reasons.map(lambda r: isinstance(r, str) and r.startswith(INFRASTRUCTURE_FAILURES))
 
 
 def recorded_config_data(out: Path) -> dict[str, Any] | None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -17,10 +18,12 @@ import gymnasium as gym
 from adapters.base import EpisodeSpec, TaskSpec
 from adapters.simpler_variants import label as variant_label
 from harness.backends import Execution, execute, record_execution
+from harness.bounded import CallTimedOut, call_within
 from harness.config import PolicyRun, ResolvedRun
 from harness.episode import EpisodeOutcome
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.manifest import now, record_end_calibration
+from harness.resume import run_again
 from harness.run_folder import acquire, check_output, check_path, io_error, open_run
 from harness.warmup import record_warm_up, warm_up_run
 from results.lock import RunLock
@@ -84,12 +87,16 @@ def plan(resolved: ResolvedRun) -> list[EpisodeJob]:
     ]
 
 
-def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob]) -> dict[str, gym.Env]:
+def preflight(
+    resolved: ResolvedRun, jobs: list[EpisodeJob], limit: float | None = None
+) -> dict[str, gym.Env]:
     """Let each policy that can (`check_spaces`) refuse the suite before anything is
     written: a checkpoint trained on another suite's observations would otherwise fail
     every episode alike. Uses the first task's env and returns it, by task name, for the
     episodes to reuse (a LIBERO env takes seconds to build); an env that does not build
-    is left to the episodes, which record why."""
+    is left to the episodes, which record why. With --episode-timeout (`limit`) each
+    check is held to it: a policy that does not answer stops the run (exit 3) naming it,
+    with nothing written, where it would otherwise hang it."""
     checks = [(p, getattr(p.policy, "check_spaces", None)) for p in resolved.policies]
     checks = [(p, check) for p, check in checks if callable(check)]
     if not checks or not jobs:
@@ -100,7 +107,13 @@ def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob]) -> dict[str, gym.En
         return {}
     for p, check in checks:
         try:
-            check(env.observation_space, env.action_space)
+            call_within(partial(check, env.observation_space, env.action_space), limit)
+        except CallTimedOut:
+            env.close()
+            raise HarnessError(
+                f"policy {p.spec.name} did not answer check_spaces within --episode-timeout {limit:g} s "
+                "(a policy that hangs on its first call); nothing was written"
+            ) from None
         except ValueError as exc:
             env.close()
             raise UsageError(
@@ -202,7 +215,8 @@ def run(
             acquire(lock)  # a folder another process writes is refused, naming it
         check_output(out, resume, overwrite)
         planned = plan(resolved)
-        envs = preflight(resolved, planned)
+        limit = execution.episode_timeout if execution else None
+        envs = preflight(resolved, planned, limit)
         try:
             return _run_planned(
                 resolved,
@@ -220,19 +234,20 @@ def run(
         finally:
             while envs:  # the run stopped before its episodes took them over
                 envs.popitem()[1].close()
-            close_policies(resolved)
+            close_policies(resolved, limit)
     finally:
         lock.release()
 
 
-def close_policies(resolved: ResolvedRun) -> None:
+def close_policies(resolved: ResolvedRun, limit: float | None = None) -> None:
     """Let policies that hold something open (a remote policy's connection) let go when
-    the run ends; a later call on the same policy opens it again."""
+    the run ends; a later call on the same policy opens it again. With --episode-timeout
+    (`limit`) a close that does not return in time is abandoned."""
     for p in resolved.policies:
         close = getattr(p.policy, "close", None)
         if callable(close):
             try:
-                close()
+                call_within(close, limit)
             except Exception:  # a policy that fails to let go must not hide the run's outcome
                 pass
 
@@ -258,8 +273,8 @@ def _run_planned(
     except OSError as exc:
         raise io_error(out, "opening the run folder", exc) from None
     traces = traces or bool(manifest.get("traces"))
-    if retry_failed and len(recorded):
-        recorded = recorded[recorded["failure_reason"].isna()]
+    if len(recorded):  # lost workers and servers (and with --retry-failed, every failure) again
+        recorded = recorded[~run_again(recorded["failure_reason"], retry_failed)]
     done = {_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")} if len(recorded) else set()
     jobs = [job for job in planned if job_key(resolved, job) not in done]
     skipped = len(planned) - len(jobs)
@@ -289,8 +304,9 @@ def _run_planned(
 
     try:
         execution = execution or Execution()
-        # one-off costs (first calls, lazy init) paid here, outside the rows (harness/warmup.py)
-        record_warm_up(run_dir, warm_up_run(resolved, jobs, envs, execution.batch_envs))
+        if execution.in_process:  # workers warm their own policies up, each call held to the timeout
+            # one-off costs (first calls, lazy init) paid here, outside the rows (harness/warmup.py)
+            record_warm_up(run_dir, warm_up_run(resolved, jobs, envs, execution.batch_envs))
         on_worker = record_execution(run_dir, execution)  # backend and workers, per session
         execute(resolved, jobs, on_done, traces, envs, execution, on_worker)
     except KeyboardInterrupt:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -44,15 +44,20 @@ def warm_up_observation(space: gym.Space) -> Any:
     return space.sample()
 
 
-def warm_up(
+def warm_up_steps(
     policies: Sequence[PolicyRun],
     suite: str,
     task: TaskSpec,
     spec: EpisodeSpec,
     env: gym.Env,
     batch_envs: int = 1,
-) -> dict[str, Any]:
-    """Call each policy once (reset, then act) and return the manifest's record of it.
+) -> Generator[PolicyRun, None, dict[str, Any]]:
+    """Call each policy once (reset, then act), yielding each policy just before its
+    calls, and return the manifest's record of it.
+
+    The yields let a worker tell the scheduler which policy it is calling, so that a
+    policy hanging on its first call is stopped by --episode-timeout and charged to an
+    episode of that policy (harness/backends/schedule.py), not to another one.
 
     batch_envs > 1 (--batch-envs): one act_batch over that many copies of the
     observation too, so the batched shapes' first calls are paid here as well.
@@ -64,6 +69,7 @@ def warm_up(
     observation = warm_up_observation(env.observation_space)
     record: dict[str, Any] = {"at": now(), "definition": WARM_UP_DEFINITION, "policies": []}
     for p in policies:
+        yield p
         error = None
         start = time.perf_counter()
         try:
@@ -86,12 +92,32 @@ def warm_up(
     return record
 
 
-def warm_up_run(
+def warm_up(
+    policies: Sequence[PolicyRun],
+    suite: str,
+    task: TaskSpec,
+    spec: EpisodeSpec,
+    env: gym.Env,
+    batch_envs: int = 1,
+) -> dict[str, Any]:
+    """`warm_up_steps` run through: every policy warmed up, the record returned."""
+    return _drain(warm_up_steps(policies, suite, task, spec, env, batch_envs))
+
+
+def _drain(steps: Generator[Any, None, Any]) -> Any:
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
+def warm_up_run_steps(
     resolved: Any, jobs: Sequence[Any], envs: dict[str, gym.Env], batch_envs: int = 1
-) -> dict[str, Any] | None:
+) -> Generator[PolicyRun, None, dict[str, Any] | None]:
     """Warm up the policies that have episodes in `jobs`, on the first job's task, with its
-    env from `envs` (built and left there for the episodes to reuse if missing).
-    None when there is nothing to run."""
+    env from `envs` (built and left there for the episodes to reuse if missing), yielding
+    each policy before its calls (`warm_up_steps`). Returns None when there is nothing to run."""
     if not jobs:
         return None
     first = jobs[0]
@@ -105,7 +131,15 @@ def warm_up_run(
             }
     running = {id(job.policy) for job in jobs}
     policies = [p for p in resolved.policies if id(p) in running]
-    return warm_up(policies, resolved.suite.name, first.task, first.spec, envs[first.task.name], batch_envs)
+    env = envs[first.task.name]
+    return (yield from warm_up_steps(policies, resolved.suite.name, first.task, first.spec, env, batch_envs))
+
+
+def warm_up_run(
+    resolved: Any, jobs: Sequence[Any], envs: dict[str, gym.Env], batch_envs: int = 1
+) -> dict[str, Any] | None:
+    """`warm_up_run_steps` run through, in the calling process (no limit on its calls)."""
+    return _drain(warm_up_run_steps(resolved, jobs, envs, batch_envs))
 
 
 def record_warm_up(run_dir: Any, record: dict[str, Any] | None) -> None:

@@ -14,11 +14,15 @@ server's policy time and transport (`transport_time_s`). A server that reports n
 (openpi's) gives NFE as null, never 0.
 
 Reliability: every receive has a timeout (`timeout_s`), so a server that stops answering
-fails that episode instead of hanging the run; a server that goes away fails the episode
-with the disconnect named, and the next episode connects again (`retries` attempts with
-doubling back-off). Before anything runs, `check_spaces` compares the server's metadata
-(when it describes its observation and action) with the suite's, so a mismatch is a
-usage error (exit 2) with nothing written.
+fails that episode instead of hanging the run. Before anything runs, `check_spaces`
+connects (`retries` attempts: a wrong address is refused in a second) and compares the
+server's metadata (when it describes its observation and action) with the suite's, so a
+mismatch is a usage error (exit 2) with nothing written. Once the run is going, a server
+that goes away (a crash, a restart that takes seconds to reload its model) fails the
+episode in flight with `ConnectionLost`, and the next episode keeps trying to connect,
+with back-off, for `reconnect_s` seconds before it fails with `ConnectionLost` too; that
+wait is neither policy nor env time (`take_remote`), and a plain `--resume` runs
+`ConnectionLost` rows again (harness/resume.py), as it does episodes of lost workers.
 
 Keys: a server that wants one (`serve --token-env`, openpi's `api_key`) gets it in
 openpi's header, read from an environment variable (`token_env=NAME`) or a file
@@ -65,7 +69,17 @@ class RemoteParams:
     token_file: str = param("", "file holding the API key (never recorded)", identity=False)
     timeout_s: float = param(30.0, "seconds to wait for the server's reply before the episode fails", low=0.1)
     connect_timeout_s: float = param(10.0, "seconds to wait for a connection", low=0.1)
-    retries: int = param(3, "connection attempts per episode, with doubling back-off", low=1, high=20)
+    retries: int = param(
+        3, "connection attempts before the run starts, with doubling back-off", low=1, high=20
+    )
+    reconnect_s: float = param(
+        60.0,
+        "seconds an episode keeps trying to reconnect, with back-off, to a server that went away "
+        "(a restart) before it fails",
+        low=0.0,
+        high=86400.0,
+        identity=False,  # how long to wait is no part of what is evaluated
+    )
     state_key: str = param("state", "observation key of the state vector on the wire")
     prompt_key: str = param("prompt", "observation key of the instruction on the wire")
     actions_key: str = param("actions", "reply key of the action (or action chunk)")
@@ -120,6 +134,16 @@ class RemoteTotals:
 
     nfe: int | None = 0
     server_time_s: float = 0.0
+    connect_wait_s: float = 0.0  # connecting again within an episode: neither policy nor env time
+
+
+class ConnectionLost(ConnectionError):
+    """The connection to the server was lost, or could not be made again within
+    `reconnect_s`: the server's trouble, not the policy's (a plain --resume runs the
+    episode again)."""
+
+
+BACK_OFF_MAX_S = 5.0  # the longest pause between two connection attempts
 
 
 class RemotePolicy:
@@ -137,13 +161,19 @@ class RemotePolicy:
 
     # --- connection ----------------------------------------------------------------
 
-    def _connect(self) -> None:
+    def _connect(self, window: float | None = None) -> None:
+        """Connect: `retries` attempts (before the run starts), or with `window` seconds,
+        as many attempts as fit in it (at least `retries`), back-off doubling from 0.25 s
+        up to BACK_OFF_MAX_S; ConnectionLost when none succeeds."""
         from policies.wire import MAX_MESSAGE_BYTES, WireError
         from policies.wsclient import HandshakeRefused, WebSocket
 
         headers = self._headers()
-        delay, last = 0.25, None
-        for attempt in range(self.params.retries):
+        delay, last, attempt = 0.25, None, 0
+        start = time.monotonic()
+        end = start + (window or 0.0)
+        while True:
+            attempt += 1
             try:
                 self._ws = WebSocket(
                     self.params.url,
@@ -161,12 +191,21 @@ class RemotePolicy:
             except (OSError, WireError) as exc:
                 last = exc
                 self.close()
-                if attempt + 1 < self.params.retries:
-                    time.sleep(delay)
-                    delay *= 2
-        raise ConnectionError(
-            f"{self.params.url}: no connection after {self.params.retries} attempts ({last})"
-        )
+            left = end - time.monotonic()
+            if attempt >= self.params.retries and left <= 0:
+                break
+            time.sleep(delay if attempt < self.params.retries else max(0.0, min(delay, left)))
+            delay = min(delay * 2, BACK_OFF_MAX_S)
+        within = f" in {time.monotonic() - start:.0f} s (reconnect_s={window:g})" if window else ""
+        raise ConnectionLost(f"{self.params.url}: no connection after {attempt} attempts{within} ({last})")
+
+    def _reconnect(self) -> None:
+        """Connect again within an episode, the wait set aside from its policy time."""
+        start = time.perf_counter()
+        try:
+            self._connect(self.params.reconnect_s)
+        finally:
+            self._totals.connect_wait_s += time.perf_counter() - start
 
     def _headers(self) -> dict[str, str] | None:
         """openpi's header (`Authorization: Api-Key KEY`), the key read now."""
@@ -186,19 +225,19 @@ class RemotePolicy:
         from policies.wsclient import ConnectionClosed, ProtocolError
 
         if self._ws is None:
-            self._connect()
+            self._reconnect()
         try:
             self._ws.send(pack(message))
             reply = self._receive()
-        except ConnectionClosed as exc:
-            self.close()  # the next episode connects again
-            raise ConnectionError(f"{self.params.url}: the server closed the connection ({exc})") from None
-        except ProtocolError as exc:
-            self.close()
-            raise ConnectionError(f"{self.params.url}: {exc}") from None
         except (TimeoutError, WireError):
             self.close()  # a late reply must not be read as the next call's
             raise
+        except ProtocolError as exc:  # the server broke the protocol: its fault, not the network's
+            self.close()
+            raise ConnectionError(f"{self.params.url}: {exc}") from None
+        except (ConnectionClosed, ConnectionError) as exc:  # closed, reset, a broken pipe
+            self.close()  # the next episode connects again
+            raise ConnectionLost(f"{self.params.url}: the server closed the connection ({exc})") from None
         if not isinstance(reply, dict):
             raise WireError(f"the server replied with {type(reply).__name__}, not a map")
         nfe = reply.get("dvla/nfe")
@@ -258,7 +297,7 @@ class RemotePolicy:
             raise ValueError("the remote policy starts one episode per reset call")
         self._contexts = episodes
         if self._ws is None:
-            self._connect()
+            self._reconnect()
         if self.metadata.get("server") == "dvla-harness":  # openpi servers have no reset
             self._call({RESET: _context_map(episodes[0])})
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import stat
@@ -160,6 +161,21 @@ def repair_tail(path: Path) -> tuple[str, bytes] | None:
         fh.flush()
         os.fsync(fh.fileno())
     return action, tail
+
+
+def strict_json(value: Any) -> Any:
+    """`value` with every non-finite number as null: strict JSON (RFC 8259, and most
+    readers outside Python) has no NaN or Infinity, so a file holding one cannot be read
+    by them. Numpy scalars become Python numbers first, so theirs are caught too."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [strict_json(v) for v in value]
+    if hasattr(value, "item") and getattr(value, "ndim", None) == 0:  # a numpy scalar
+        return strict_json(value.item())
+    return value
 
 
 def _json_default(value: Any) -> Any:
@@ -354,7 +370,8 @@ class RunDir:
             self._repair(name)
 
     def write_manifest(self, manifest: Mapping[str, Any]) -> None:
-        atomic_write(self.manifest_path, (json.dumps(manifest, indent=2) + "\n").encode())
+        text = json.dumps(strict_json(manifest), indent=2, allow_nan=False)
+        atomic_write(self.manifest_path, (text + "\n").encode())
 
     def read_manifest(self, required: tuple[str, ...] = ()) -> dict[str, Any]:
         """The manifest, checked (results.manifest_check); `required`: fields it must have."""
@@ -373,7 +390,7 @@ class RunDir:
     def log_event(self, event: str, **fields: Any) -> None:
         record = {"time": time.time(), "event": event, **fields}
         with self._open_append(EVENTS) as fh:
-            fh.write(json.dumps(record, default=str) + "\n")
+            fh.write(json.dumps(strict_json(record), default=str, allow_nan=False) + "\n")
             fh.flush()
 
     def append_episode(self, row: Mapping[str, Any]) -> None:
@@ -389,7 +406,9 @@ class RunDir:
         a recorded row always has its traces; an episode killed in between runs again on
         --resume and its newer lines win on read."""
         text = "".join(
-            json.dumps(dict(t), default=_json_default, separators=(",", ":")) + "\n" for t in lines
+            json.dumps(strict_json(dict(t)), default=_json_default, separators=(",", ":"), allow_nan=False)
+            + "\n"
+            for t in lines
         )
         if not text:
             return

@@ -179,7 +179,10 @@ def test_a_batched_worker_warms_up_at_the_batch_shape_and_reports_each_episode()
     worker = Worker(FakeBuild(episodes=4, batch=True)(), False, "w-0", batch_envs=3, heartbeat_s=0.0)
     policy = worker.runner.resolved.policies[0].policy
     try:
+        assert policy.sizes == [] and worker.warm_up is None  # built; warmed up next, step by step
+        assert list(worker.warming()) == [("warming", "fakeconfig01")]  # the policy it calls next
         assert policy.sizes == [1, 3]  # warm-up: one act, then one act_batch of 3
+        assert worker.warm_up["policies"][0]["error"] is None
         group = sorted(worker.jobs)
         events = list(worker.run(group, alone=False))
         started = [payload for kind, payload in events if kind == "started"]
@@ -552,7 +555,7 @@ MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--epis
     [
         (["--workers", "0"], "--workers must be at least 1, got 0; 1 runs in this process"),
         (["--max-retries", "-1"], "--max-retries must be 0 or more, got -1"),
-        (["--episode-timeout", "0"], "--episode-timeout must be a positive number of seconds, got 0"),
+        (["--episode-timeout", "0"], "--episode-timeout must be a positive, finite number of seconds, got 0"),
         (["--ray-address", "auto"], "--ray-address and --ray-num-gpus apply to --backend ray"),
         (
             ["--backend", "ray", "--ray-address", "127.0.0.1:1"],

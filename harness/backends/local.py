@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 HOST = socket.gethostname()  # the `host` column: where an episode ran
 IN_PROCESS = "main"  # the `worker_id` of episodes run by the process that writes the run
+WARMING = "warming"  # a worker's event: it calls this policy (config id) for its warm-up
 
 
 def episode_context(suite: str, task: TaskSpec, spec: EpisodeSpec, env: gym.Env) -> EpisodeContext:
@@ -151,8 +152,8 @@ class Worker:
     exactly those if the worker is lost) and, with --episode-timeout, that the batch
     still moves at least every `heartbeat_s` seconds.
 
-    The warm-up (harness/warmup.py) pays the first calls at the batched shapes too, on
-    the run's first task, before the worker reports ready.
+    The warm-up (harness/warmup.py, `warming`) pays the first calls at the batched shapes
+    too, on the run's first task, before the worker reports ready.
     """
 
     def __init__(
@@ -165,7 +166,6 @@ class Worker:
     ):
         from harness.backends.schedule import index_jobs
         from harness.batched import BatchedRunner
-        from harness.warmup import warm_up_run
 
         self.worker_id, self.heartbeat_s = worker_id, heartbeat_s
         self.runner = EpisodeRunner(resolved, traces)
@@ -175,7 +175,23 @@ class Worker:
             if batch_envs > 1
             else None
         )
-        self.warm_up = warm_up_run(resolved, list(self.jobs.values()), self.runner.envs, batch_envs)
+        self.resolved, self.batch_envs = resolved, batch_envs
+        self.warm_up: dict[str, Any] | None = None
+
+    def warming(self) -> Iterator[tuple[str, Any]]:
+        """Warm the policies up (into `self.warm_up`), yielding ("warming",
+        policy_config_id) before each one's calls: the scheduler holds each to
+        --episode-timeout, so a policy that hangs on its first call cannot hang the run."""
+        from harness.warmup import warm_up_run_steps
+
+        steps = warm_up_run_steps(self.resolved, list(self.jobs.values()), self.runner.envs, self.batch_envs)
+        while True:
+            try:
+                p = next(steps)
+            except StopIteration as done:
+                self.warm_up = done.value
+                return
+            yield WARMING, p.config_id
 
     def _placed(self, outcome: EpisodeOutcome) -> EpisodeOutcome:
         outcome.host, outcome.worker_id = HOST, self.worker_id

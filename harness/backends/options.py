@@ -8,6 +8,7 @@ naming the fix, nothing written.
 from __future__ import annotations
 
 import argparse
+import math
 
 from harness.backends import BACKENDS, DEFAULT_MAX_RETRIES, Execution
 from harness.errors import UsageError
@@ -78,8 +79,11 @@ def execution_from_args(args: argparse.Namespace) -> Execution:
     if args.max_retries < 0:
         raise UsageError(f"--max-retries must be 0 or more, got {args.max_retries}")
     timeout = args.episode_timeout
-    if timeout is not None and not timeout > 0:
-        raise UsageError(f"--episode-timeout must be a positive number of seconds, got {timeout:g}")
+    if timeout is not None and not (math.isfinite(timeout) and timeout > 0):
+        raise UsageError(
+            f"--episode-timeout must be a positive, finite number of seconds, got {timeout:g}; "
+            "leave it out for no limit"
+        )
     if backend != "ray" and (args.ray_address is not None or args.ray_num_gpus):
         raise UsageError("--ray-address and --ray-num-gpus apply to --backend ray; add it or drop them")
     if args.ray_num_gpus < 0:

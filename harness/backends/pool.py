@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from harness.backends.local import HOST, Worker
 from harness.backends.schedule import Event, JobId
+from harness.config import CheckpointPin, check_checkpoints, checkpoint_pins
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -92,6 +93,7 @@ def worker_main(
     batch_envs: int = 1,
     heartbeat_s: float | None = None,
     device: str | None = None,
+    pins: tuple[CheckpointPin, ...] = (),
 ) -> None:
     """A worker's life: set threads, build (policies on --device), say ready, run groups of episodes until told
     to stop, sending each event as it happens (a finished episode's row is written by the
@@ -103,7 +105,9 @@ def worker_main(
 
     apply_threads(threads, workers)  # before the policies load torch
     try:
+        check_checkpoints(pins)  # before loading: the content this run hashed, or stop the run
         resolved = rebuild()
+        check_checkpoints(pins, resolved)  # and what was loaded
         if device is not None:  # before the warm-up (a GPU's one-off costs are paid there)
             apply_device(resolved.policies, device)
         worker = Worker(resolved, traces, worker_id, batch_envs, heartbeat_s)
@@ -115,6 +119,8 @@ def worker_main(
     record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
     record["device"] = worker_device_record()
     try:
+        for event in worker.warming():  # each policy's first calls, held to --episode-timeout
+            conn.send(event)
         conn.send(("ready", record | {"warm_up": worker.warm_up}))
         while True:
             message = conn.recv()
@@ -136,6 +142,7 @@ class ProcessWorkers:
         self.context = get_context("spawn")
         self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
         self.device = execution.device
+        self.pins = checkpoint_pins(resolved)
         self.threads, self.asked = worker_threads(execution), execution.threads
         self.workers, self.traces = execution.workers, traces
         self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
@@ -148,7 +155,7 @@ class ProcessWorkers:
         self.started += 1
         mine, theirs = self.context.Pipe()
         args = (theirs, worker_id, self.rebuild, self.asked, self.workers, self.traces)
-        args += (self.batch_envs, self.heartbeat_s, self.device)
+        args += (self.batch_envs, self.heartbeat_s, self.device, self.pins)
         proc = self.context.Process(target=worker_main, args=args, name=f"dvla-{worker_id}", daemon=True)
         proc.start()
         theirs.close()

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from harness.backends.pool import heartbeat_interval, rebuild_from_config, worker_threads
 from harness.backends.schedule import Event, JobId
+from harness.config import checkpoint_pins
 from harness.errors import UsageError
 
 if TYPE_CHECKING:
@@ -225,8 +226,10 @@ class EpisodeActor:
         batch_envs: int = 1,
         heartbeat_s: float | None = None,
         device: str | None = None,
+        pins: tuple[tuple[str, str, str], ...] = (),
     ):
         from harness.backends.local import HOST, Worker
+        from harness.config import check_checkpoints
         from harness.device import apply_device, worker_device, worker_device_record
         from harness.threads import apply_threads, threads_record
 
@@ -234,7 +237,9 @@ class EpisodeActor:
         apply_threads(threads, workers)
         gpu_ids = reserved_gpu_ids()
         try:
+            check_checkpoints(pins)  # the content the run hashed, on this node too
             resolved = rebuild()
+            check_checkpoints(pins, resolved)
             if device is not None:  # before the warm-up, on the GPU Ray gave this actor if any
                 apply_device(resolved.policies, device, used=worker_device(device, gpu_ids))
             self.worker = Worker(resolved, traces, worker_id, batch_envs, heartbeat_s)
@@ -243,10 +248,17 @@ class EpisodeActor:
             return
         apply_threads(threads, workers)
         record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
-        self.record = record | {"device": worker_device_record(gpu_ids), "warm_up": self.worker.warm_up}
+        self.record = record | {"device": worker_device_record(gpu_ids)}
 
-    def ready(self) -> tuple[str, Any]:
-        return ("error", self.error) if self.error else ("ready", self.record)
+    def ready(self) -> Iterator[tuple[str, Any]]:
+        """A Ray streaming generator: ("warming", policy_config_id) before each policy's
+        warm-up calls (each held to --episode-timeout by the scheduler), then "ready"
+        with this worker's record, or "error" saying why it could not start."""
+        if self.error:
+            yield "error", self.error
+            return
+        yield from self.worker.warming()
+        yield "ready", self.record | {"warm_up": self.worker.warm_up}
 
     def run(self, jid: JobId) -> tuple[str, Any]:
         (event,) = self.worker.run([jid], alone=True)
@@ -273,6 +285,7 @@ class RayWorkers:
         self.threads, self.asked = worker_threads(execution), execution.threads
         self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
         self.device = execution.device  # each actor resolves it on its node
+        self.pins = checkpoint_pins(resolved)
         self.workers, self.traces = execution.workers, traces
         self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
         self.actor_class = ray.remote(EpisodeActor).options(
@@ -299,11 +312,20 @@ class RayWorkers:
             self.batch_envs,
             self.heartbeat_s,
             self.device,
+            self.pins,
         )
         actor = self.actor_class.remote(*args)
         self.actors[slot] = actor
-        self.refs[actor.ready.remote()] = (slot, actor)
+        self.refs[self._stream(actor.ready)] = (slot, actor)
         return worker_id
+
+    def _stream(self, method: Any, *args: Any) -> Any:
+        """Call an actor's generator method, its events streamed back as yielded."""
+        try:
+            return method.options(**self.stream).remote(*args)
+        except (TypeError, ValueError):  # a Ray without the (private) backpressure option
+            self.stream = {"num_returns": "streaming"}
+            return method.options(**self.stream).remote(*args)
 
     def submit(self, slot: int, group: list[JobId], alone: bool) -> None:
         actor = self.actors[slot]
@@ -311,12 +333,7 @@ class RayWorkers:
             for jid in group:
                 self.refs[actor.run.remote(jid)] = (slot, actor)
         else:
-            try:
-                batch = actor.run_batch.options(**self.stream).remote(group)
-            except (TypeError, ValueError):  # a Ray without the (private) backpressure option
-                self.stream = {"num_returns": "streaming"}
-                batch = actor.run_batch.options(**self.stream).remote(group)
-            self.refs[batch] = (slot, actor)
+            self.refs[self._stream(actor.run_batch, group)] = (slot, actor)
 
     def wait(self, timeout: float) -> list[Event]:
         if not self.refs:

@@ -8,6 +8,10 @@ Unbatched, a worker holds one episode at a time; what it held when it was lost (
 segfault, the kernel's out-of-memory killer, an exit) is run again on a fresh worker, up
 to `max_retries` times, then recorded as a failure row saying why. An episode past
 `episode_timeout` is a failure row with reason `timeout: ...` and its worker is replaced.
+A worker's warm-up (each policy's first calls, before it reports ready) is held to the
+same limit, policy by policy: past it the worker is replaced and the next episode of the
+policy it was calling gets the `timeout` row (`warm_up_victim`), so a policy that hangs on
+every call ends the run with timeout rows instead of hanging it.
 Every outcome comes back here, to the one process that writes the run folder, and an
 episode whose outcome was already handed on is never handed on twice.
 
@@ -69,7 +73,8 @@ def index_jobs(resolved: ResolvedRun) -> dict[JobId, EpisodeJob]:
 @dataclass
 class Event:
     slot: int
-    kind: str  # "ready" (payload: the worker's record), "started" (JobId, batched only),
+    kind: str  # "warming" (the policy_config_id it calls next, for its warm-up), "ready"
+    # (payload: the worker's record), "started" (JobId, batched only),
     # "stepped" (a batch still moves), "done" ((JobId, outcome)), "lost" (why the
     # worker is gone), "error" (why it could not start)
     payload: Any = None
@@ -94,6 +99,8 @@ class Slot:
     queued: list[JobId] = field(default_factory=list)  # sent in a batch, not started
     alone: bool = False  # the group in flight runs episode by episode
     heard: float = 0.0  # monotonic time the worker last said something of its group
+    warming: str | None = None  # the policy (config id) a starting worker is warming up
+    warming_since: float = 0.0
     start_failures: int = 0  # workers lost in a row before reporting ready
 
     @property
@@ -149,6 +156,24 @@ def next_group(slot: Slot, units: deque[deque[JobId]], batch_envs: int) -> tuple
     return group, False
 
 
+def warm_up_victim(slot: Slot, units: deque[deque[JobId]], policy: str) -> JobId | None:
+    """The episode charged with a warm-up that ran past --episode-timeout: the next one
+    of that policy the slot's worker would have run (taking up a task if it has none).
+    Each replacement warms up again, so a policy that hangs on every call gets one
+    `timeout` row per episode, each after the limit, and the run ends."""
+    if not slot.solo and not slot.unit and units:
+        slot.unit = units.popleft()
+    for queue in (slot.solo, slot.unit):
+        for jid in queue:
+            if jid[2] == policy:
+                queue.remove(jid)
+                return jid
+    for queue in (slot.solo, slot.unit):
+        if queue:
+            return queue.popleft()
+    return None
+
+
 def failure(reason: str, slot: Slot, started_at: datetime | None) -> EpisodeOutcome:
     """The row of an episode whose worker did not return it."""
     return failure_outcome(reason, started_at, host=slot.host, worker_id=slot.worker_id)
@@ -190,12 +215,14 @@ def schedule(
 
     def restart(i: int) -> None:
         slot = slots[i]
-        slot.ready, slot.alone = False, False
+        slot.ready, slot.alone, slot.warming = False, False, None
         slot.held, slot.queued = {}, []
         if slot.has_work or units:
             slot.worker_id = workers.start(i)
 
     def deadline(slot: Slot) -> float | None:
+        if limit is not None and not slot.ready and slot.warming is not None:
+            return slot.warming_since + limit  # a policy's first calls, in its warm-up
         if limit is None or not slot.busy:
             return None
         if slot.alone:
@@ -227,8 +254,10 @@ def schedule(
         for event in workers.wait(timeout):
             slot = slots[event.slot]
             slot.heard = time.monotonic()
-            if event.kind == "ready":
-                slot.ready, slot.start_failures = True, 0
+            if event.kind == "warming":
+                slot.warming, slot.warming_since = event.payload, slot.heard
+            elif event.kind == "ready":
+                slot.ready, slot.start_failures, slot.warming = True, 0, None
                 slot.host = event.payload.get("host", "")
                 on_worker(event.payload)
             elif event.kind == "started":
@@ -268,7 +297,12 @@ def schedule(
             if due is None or now <= due:
                 continue
             workers.kill(i)
-            if slot.alone:
+            if not slot.ready:  # its warm-up: charged to an episode of the policy it called
+                jid = warm_up_victim(slot, units, str(slot.warming))
+                if jid is not None:
+                    reason = f"timeout: its policy's warm-up call ran past --episode-timeout {limit:g} s"
+                    hand_on(jid, failure(reason, slot, None))
+            elif slot.alone:
                 for jid, (_, started_at) in slot.held.items():
                     reason = f"timeout: ran past --episode-timeout {limit:g} s"
                     hand_on(jid, failure(reason, slot, started_at))
