@@ -66,9 +66,9 @@ def test_labels_show_a_lone_configurations_non_default_parameters():
         }
     )
     assert plots.config_labels(frame) == {
-        "a": "fast_dvla tau_conf=0.3",
-        "b": "bidirectional steps=12",
-        "c": "bidirectional steps=8",
+        "a": "fast_dvla (tau_conf=0.3)",
+        "b": "bidirectional (steps=12)",
+        "c": "bidirectional (steps=8)",
         "d": "autoregressive",
     }
     default = frame.iloc[:1].assign(policy_params=json.dumps({"tau_conf": 0.5}))
@@ -80,7 +80,7 @@ def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
     frame = plots.plot_frame(RunDir(sweep.path).read_episodes())
     assert set(frame["block_size"]) == {4, 8} and set(frame["param.tau_conf"]) == {0.5}
     assert set(frame["noise_schedule"]) == {"frontier"} and set(frame["checkpoint.recipe"]) == {"distill"}
-    assert set(frame["config_label"]) == {"fast_dvla block_size=4", "fast_dvla block_size=8"}
+    assert set(frame["config_label"]) == {"fast_dvla (block_size=4)", "fast_dvla (block_size=8)"}
     zero = frame.assign(policy_params=frame["policy_params"].str.replace('"block_size":4', '"block_size":0'))
     zero = zero.drop(columns=[c for c in zero if c.startswith(("param.", "checkpoint."))])
     assert set(plots.plot_frame(zero)["block_size"]) == {4, 8}  # 0 is the checkpoint's 4
@@ -115,7 +115,7 @@ def test_pareto_has_one_marker_per_configuration(sweep, cli, tmp_path):
     fig = plots.pareto_plot(episodes)  # the signature other outputs (the HTML report) use
     assert isinstance(fig, Figure)
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
-    assert sum(label.startswith("fast_dvla block_size=") for label in labels) == 2
+    assert sum(label.startswith("fast_dvla (block_size=") for label in labels) == 2
     out = tmp_path / "pareto.svg"
     code, _, err = cli(
         "plot", "pareto", str(sweep.path), "--x", "tokens_per_s", "--y", "success", "--out", str(out)

@@ -231,7 +231,7 @@ def execute_run(
     from harness.device import apply_device
     from harness.runner import run
     from harness.threads import apply_threads
-    from results.leaderboard import config_labels
+    from results.labels import config_labels
     from results.render import summary_table
     from results.summary import summarize
 

@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from results.leaderboard import config_labels
+    from results.labels import config_labels
     from results.render import summary_table
     from results.runs import speed_warning
     from results.store import ResultsFileError, RunDir
