@@ -8,7 +8,6 @@ import json
 import pandas as pd
 import pyarrow.parquet as pq
 
-from harness.config import PolicyRun
 from harness.runner import run
 from results import schema
 from results.labels import config_labels, with_config_labels
