@@ -13,6 +13,7 @@ import base64
 import html
 import io
 import os
+import re
 import shlex
 import shutil
 from collections.abc import Sequence
@@ -36,10 +37,12 @@ class ReportError(ValueError):
 _CSS = """
 body{font:14px/1.45 system-ui,sans-serif;margin:2em auto;max-width:1400px;padding:0 1em;color:#222}
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:2em;border-bottom:1px solid #ddd}
-table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums}
+table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums;font-size:13px}
 .scroll{overflow-x:auto;max-width:100%}
-th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
-th:first-child,td:first-child{text-align:left}
+th,td{border:1px solid #ccc;padding:2px 5px;text-align:right;white-space:nowrap}
+th{white-space:normal;min-width:3.5em;vertical-align:bottom}
+th:first-child,td:first-child{text-align:left;white-space:normal;min-width:10em}
+td .ci{display:block;color:#666;font-size:.85em}
 thead th{background:#f3f3f3;cursor:pointer;user-select:none}
 th[aria-sort=ascending]::after{content:" \\25B2"}th[aria-sort=descending]::after{content:" \\25BC"}
 tbody.published td{color:#555;background:#fafafa;font-style:italic}
@@ -74,16 +77,44 @@ def _e(value: Any) -> str:
     return html.escape(str(value), quote=True)
 
 
+# "86.0% [74, 93] (43/50)": the rate, then its interval and its count on lines of their
+# own, so a ten-task table fits a laptop screen and every cell breaks alike.
+_SUCCESS = re.compile(r"^(-?[\d.]+%) (\[[^\]]*\]) (\(\d+/\d+\))$")
+
+
 def _td(cell: Cell) -> str:
     value = "" if cell.value is None else f' data-value="{_e(cell.value)}"'
-    return f"<td{value}>{_e(cell.text)}</td>"
+    m = _SUCCESS.match(cell.text)
+    text = (
+        "".join([_e(m[1]), *(f"<span class='ci'> {_e(part)}</span>" for part in m.groups()[1:])])
+        if m
+        else _e(cell.text)
+    )
+    return f"<td{value}>{text}</td>"
+
+
+def empty_columns(headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -> list[int]:
+    """Columns (never the first) with no value in any row: tokens/s and speedup on a suite
+    whose policies decode no tokens, NFE for policies without a model."""
+    return [
+        i for i in range(1, len(headers)) if rows and all(i >= len(r) or r[i].value is None for r in rows)
+    ]
 
 
 def table_html(
     headers: Sequence[str], rows: Sequence[Sequence[Cell]], published_from: int | None = None
 ) -> str:
     """A sortable table; rows from `published_from` on go in their own tbody, so sorting
-    never interleaves published reference rows with measured ones."""
+    never interleaves published reference rows with measured ones. Columns with no value
+    in any row are left out, and a note under the table names them with why."""
+    drop = set(empty_columns(headers, rows))
+    why = {
+        h: sorted({r[i].text for r in rows if i < len(r) and r[i].text not in ("", "-")})
+        for i, h in enumerate(headers)
+        if i in drop
+    }
+    headers = [h for i, h in enumerate(headers) if i not in drop]
+    rows = [[c for i, c in enumerate(r) if i not in drop] for r in rows]
     split = len(rows) if published_from is None else published_from
     head = "".join(f'<th scope="col">{_e(h)}</th>' for h in headers)
     bodies = []
@@ -91,9 +122,13 @@ def table_html(
         if part:
             trs = "".join("<tr>" + "".join(_td(c) for c in r) + "</tr>" for r in part)
             bodies.append(f'<tbody class="{cls}">{trs}</tbody>')
-    # Ten task columns do not fit a laptop screen: the table scrolls, the page does not.
+    # A table wider than the window scrolls on its own; the page does not.
     table = f'<table class="sortable"><thead><tr>{head}</tr></thead>{"".join(bodies)}</table>'
-    return f'<div class="scroll">{table}</div>'
+    note = ""
+    if why:
+        parts = [f"{h}" + (f" ({'; '.join(texts)})" if texts else "") for h, texts in why.items()]
+        note = f'<p class="note dropped">Not shown, no value in any row: {_e(", ".join(parts))}.</p>'
+    return f'<div class="scroll">{table}</div>{note}'
 
 
 def _board_html(board: Leaderboard) -> str:
@@ -195,7 +230,7 @@ def render_page(
     )
     sections += [_board_html(b) for b in boards]
     if paper:
-        sections.append("<h2>In the layout of Fast-dVLA's LIBERO table</h2>")
+        sections.append("<h2>Beside the published results</h2>")
         sections += [_block_html(b) for b in paper]
     if figures:
         sections.append("<h2>Figures</h2>" + _figures_html(episodes))
