@@ -357,7 +357,7 @@ def rich_table(board: Leaderboard) -> Table:
     headers, rows = board.cells()
     table = Table(title=board.suite, caption=board.ranking.text() if board.ranking else None)
     for i, h in enumerate(headers):
-        table.add_column(h, justify="left" if i == 0 or h == "machine" else "right")
+        table.add_column(h, justify="left" if i == 0 or h == "machine" else "right", overflow="fold")
     for row in rows:
         table.add_row(*(c.text for c in row))
     return table

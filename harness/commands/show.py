@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from harness.console import console
+from harness.console import console, print_table
 from harness.errors import UsageError
 
 
@@ -52,7 +52,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     if len(episodes):
         from harness.commands.run import print_chain_table
 
-        console.print(summary_table(summarize(episodes), labels=config_labels(episodes)))
+        print_table(summary_table(summarize(episodes), labels=config_labels(episodes)))
         print_chain_table(episodes)
     return 0
 
