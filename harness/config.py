@@ -19,7 +19,7 @@ from typing import Any
 from adapters.base import EpisodeSpec, Suite, TaskSpec
 from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
 from harness.errors import UsageError
-from harness.plugins import HARNESS
+from harness.plugins import HARNESS, install_hint
 from policies.base import Policy
 from policies.registry import (
     PolicyParamError,
@@ -219,7 +219,7 @@ def sha256_file(path: str) -> str:
 def _check_installed(modules: tuple[str, ...], extra: str, what: str, package: str = HARNESS) -> None:
     missing = [m for m in modules if importlib.util.find_spec(m) is None]
     if missing:
-        how = f"pip install '{package}[{extra}]'" if extra else "install them"
+        how = install_hint(extra, package) if extra else "install them"
         raise UsageError(f"{what} needs {', '.join(missing)}: {how}")
 
 

@@ -38,6 +38,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from harness.plugins import install_hint
 from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.registry import PolicySpec, param
 
@@ -71,7 +72,7 @@ class RemotePolicy:
         if not params.url.startswith(("ws://", "wss://")):
             raise ValueError(f"url must start with ws:// or wss://, got {params.url!r}")
         if importlib.util.find_spec("msgpack") is None:
-            raise ValueError("it needs msgpack: pip install 'dvla-harness[remote]'")
+            raise ValueError(f"it needs msgpack: {install_hint('remote')}")
         self.params = params
         self._ws: Any = None
         self.metadata: dict[str, Any] = {}

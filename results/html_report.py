@@ -22,6 +22,7 @@ from typing import Any
 
 import pandas as pd
 
+from results.labels import config_labels
 from results.leaderboard import Block, Cell, Leaderboard, leaderboards, to_csv, to_markdown
 from results.paper_table import blocks_markdown, paper_blocks, paper_table
 from results.runs import Run, combined_episodes
@@ -43,6 +44,7 @@ th,td{border:1px solid #ccc;padding:2px 5px;text-align:right;white-space:nowrap}
 th{white-space:normal;min-width:3.5em;vertical-align:bottom}
 th:first-child,td:first-child{text-align:left;white-space:normal;min-width:10em}
 td .ci{display:block;color:#666;font-size:.85em}
+table.failures td{text-align:left;white-space:normal}
 thead th{background:#f3f3f3;cursor:pointer;user-select:none}
 th[aria-sort=ascending]::after{content:" \\25B2"}th[aria-sort=descending]::after{content:" \\25BC"}
 tbody.published td{color:#555;background:#fafafa;font-style:italic}
@@ -151,34 +153,91 @@ def _block_html(block: Block) -> str:
     )
 
 
+def _png(fig: Any) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def _figure(data: str, alt: str) -> str:
+    return (
+        f"<figure><img alt='{_e(alt)}' src='data:image/png;base64,{data}'>"
+        f"<figcaption>{_e(alt)}</figcaption></figure>"
+    )
+
+
 def _figures_html(episodes: pd.DataFrame) -> str:
-    """A Pareto plot per suite from results.plots (tokens/s against success)."""
+    """Per suite: a Pareto plot (tokens/s against success, results.plots) of the
+    configurations that decode tokens; for a suite where none does, success per task
+    and configuration with its intervals (results.success_plot)."""
     try:
         from results.plots import PlotInputError, pareto_plot
+        from results.success_plot import success_plot
     except ImportError:
         return '<p class="note">No figures: results.plots is not available.</p>'
     parts = []
     for suite, rows in episodes.groupby("suite", sort=False):
         # Configurations that decode no tokens (scripted, random) have no place on a tokens/s axis.
         decoding = rows.groupby("policy_config_id")["tokens_per_s"].transform(lambda v: v.notna().any())
-        rows = rows[decoding]
-        if rows.empty:
-            parts.append(f'<p class="note">{_e(suite)}: no Pareto plot (no policy decodes tokens)</p>')
+        if not decoding.any():
+            alt = f"{suite}: success per task and configuration (Wilson 95%); no policy decodes tokens"
+            parts.append(_figure(_png(success_plot(rows, title=str(suite))), alt))
             continue
         try:
-            fig = pareto_plot(rows)
+            fig = pareto_plot(rows[decoding])
         except (PlotInputError, ValueError, OSError) as exc:
             parts.append(f'<p class="note">{_e(suite)}: no Pareto plot ({_e(exc)})</p>')
             continue
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-        data = base64.b64encode(buf.getvalue()).decode()
         alt = f"{suite}: success against tokens/s, one marker per policy configuration"
-        parts.append(
-            f"<figure><img alt='{_e(alt)}' src='data:image/png;base64,{data}'>"
-            f"<figcaption>{_e(alt)}</figcaption></figure>"
-        )
+        parts.append(_figure(_png(fig), alt))
     return "".join(parts)
+
+
+MAX_REASON = 300  # characters of an exception message shown; the rest is in events.jsonl
+
+
+def _failures_html(episodes: pd.DataFrame) -> str:
+    """Why episodes raised, per configuration: each distinct reason with its count and
+    one episode to look it up by (its traceback is in that run's events.jsonl)."""
+    failed = episodes[episodes["failure_reason"].notna()]
+    if failed.empty:
+        return (
+            '<p class="note">No episode raised: every failure to succeed was the task\'s, not an error.</p>'
+        )
+    labels = config_labels(episodes)
+    headers = ["configuration", "suite", "reason", "episodes", "example episode"]
+    rows = []
+    for (cid, suite, reason), group in failed.groupby(
+        ["policy_config_id", "suite", "failure_reason"], sort=False
+    ):
+        first = group.sort_values(["task_index", "episode_index"]).iloc[0]
+        short = reason if len(reason) <= MAX_REASON else reason[:MAX_REASON] + "…"
+        where = f"{first['task']} #{first['episode_index']}" + (
+            f" ({first['run']})" if "run" in group else ""
+        )
+        rows.append(
+            [
+                Cell(labels[cid], labels[cid]),
+                Cell(str(suite), str(suite)),
+                Cell(short, reason),
+                Cell(str(len(group)), len(group)),
+                Cell(where, where),
+            ]
+        )
+    rows.sort(key=lambda r: (str(r[0].value), -int(r[3].value or 0)))
+    note = '<p class="note">Tracebacks: each run folder\'s events.jsonl (event episode_failed).</p>'
+    return table_html(headers, rows).replace('class="sortable"', 'class="sortable failures"', 1) + note
+
+
+def _providers(manifest: dict[str, Any]) -> str:
+    """Which installed distribution (dvla-harness, or a plugin and its version) gave the
+    suite and each policy: a plugin's results are only as good as its version."""
+    suite = manifest.get("suite") or {}
+    parts = [f"suite {suite.get('name')}: {suite['provided_by']}"] if suite.get("provided_by") else []
+    for p in manifest.get("policies") or []:
+        if p.get("provided_by"):
+            parts.append(f"{p.get('name')}: {p['provided_by']}")
+    return "; ".join(dict.fromkeys(parts)) or "not recorded"
 
 
 def _provenance_html(run: Run) -> str:
@@ -207,6 +266,7 @@ def _provenance_html(run: Run) -> str:
         "policies": "; ".join(
             f"{p.get('name')} {p.get('config_id')} {p.get('params')}" for p in m.get("policies") or []
         ),
+        "provided by": _providers(m),
     }
     rows = "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in items.items())
     return f"<h3>{_e(run.label)}</h3><dl>{rows}</dl>"
@@ -232,6 +292,7 @@ def render_page(
     if paper:
         sections.append("<h2>Beside the published results</h2>")
         sections += [_block_html(b) for b in paper]
+    sections.append("<h2>Failures</h2>" + _failures_html(episodes))
     if figures:
         sections.append("<h2>Figures</h2>" + _figures_html(episodes))
     sections.append("<h2>Provenance</h2>" + "".join(_provenance_html(r) for r in runs))

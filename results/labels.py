@@ -36,6 +36,20 @@ def registered_defaults() -> dict[str, dict[str, Any]]:
         return {}
 
 
+def unused_params(policy: str, values: Mapping[str, Any]) -> set[str]:
+    """Parameters a configuration does not use (fast_dllm's steps_per_block when it decodes
+    by threshold), from the params class's optional `unused(values)`; labels leave them
+    out, so a legend never names a setting that had no effect."""
+    try:
+        from policies.registry import all_policies
+
+        spec = all_policies().get(policy)
+        unused = getattr(spec.params, "unused", None) if spec is not None else None
+        return set(unused(values)) if callable(unused) else set()
+    except Exception:  # a plugin's broken rule must not stop a table: show every parameter
+        return set()
+
+
 def show_value(key: str, value: Any) -> str:
     """A parameter value as a label prints it: a checkpoint by its file name (paths differ
     between machines; the name does not), floats to 4 significant digits, numpy scalars
@@ -87,7 +101,8 @@ def config_labels(
             or (default and k not in default)
         ]
         for cid in ids:
-            parts = [f"{k}={value(cid, k)}" for k in shown if k in parsed[cid]]
+            skip = unused_params(str(policy), parsed[cid])
+            parts = [f"{k}={value(cid, k)}" for k in shown if k in parsed[cid] and k not in skip]
             labels[cid] = f"{policy} ({', '.join(parts)})" if parts else str(policy)
     seen: dict[str, int] = {}
     for label in labels.values():

@@ -247,6 +247,7 @@ def ablation_plot(
     x = _resolve(df, x, "x")
     ys = [_resolve(df, c, "y", numeric=True) for c in y]
     hue = _resolve(df, hue, "hue") if hue else None
+    _check_not_pooled(df, hue)
     numeric_x = _numeric(df[x]) is not None
     xkey = _numeric(df[x]) if numeric_x else df[x].astype(str)
     df = df.assign(_x=xkey)
@@ -324,6 +325,23 @@ def ablation_plot(
         )
     _save(fig, out)
     return fig
+
+
+def _check_not_pooled(df: pd.DataFrame, hue: str | None) -> None:
+    """One point per x value per line: rows of two policies at one x (fast_dvla and
+    block_diffusion at block size 4) are different decoders, and pooling them into one
+    rate would show neither. A hue must keep the policies apart."""
+    policies = list(dict.fromkeys(df["policy"]))
+    if len(policies) < 2:
+        return
+    if hue is not None and (df.groupby(df[hue].map(_fmt), sort=False)["policy"].nunique() == 1).all():
+        return
+    why = "no --hue" if hue is None else f"--hue {hue} has values shared by several policies"
+    raise PlotInputError(
+        f"these rows hold {len(policies)} policies ({', '.join(map(str, policies))}) and {why}: "
+        "each point would pool different decoders; pass --hue policy or --hue config_label, "
+        "or plot runs of one policy"
+    )
 
 
 def _fmt(value: Any) -> str:

@@ -9,7 +9,7 @@ import pytest
 from results import html_report
 from results.runs import load_run
 from tests.test_html_report import browser  # noqa: F401  (the module's browser fixture)
-from tests.test_leaderboard import BIDI, FAST, episodes, write_run
+from tests.test_leaderboard import BIDI, FAST, MANIFEST, episodes, write_run
 
 MT10 = (
     "reach-v3 push-v3 pick-place-v3 door-open-v3 drawer-open-v3 drawer-close-v3 "
@@ -44,7 +44,21 @@ def _reach_rows() -> list[dict]:
         for r in episodes(policy, params, config, wins):
             no_tokens = {"action_tokens_total": 0, "tokens_per_s": None, "nfe_total": None}
             rows.append(r | {"suite": "acme/reach", "task": "reach", "nfe_per_chunk": None} | no_tokens)
+    for i in (2, 3):  # two episodes of gain=1 raised, for the same reason
+        rows[4 + i] |= {
+            "success": False,
+            "failure_reason": "ValueError: action [3.0, 0.0] is outside Box(-1, 1)",
+        }
     return rows
+
+
+REACH_MANIFEST = MANIFEST | {
+    "suite": MANIFEST["suite"] | {"name": "acme/reach", "provided_by": "acme-reach 1.2.0"},
+    "policies": [
+        {"name": "acme_pd", "config_id": c, "params": "{}", "provided_by": "acme-reach 1.2.0"}
+        for c in ("acme000005", "acme000010")
+    ],
+}
 
 
 def _libero_rows() -> list[dict]:
@@ -61,7 +75,7 @@ def reports(tmp_path_factory):
     root = tmp_path_factory.mktemp("fit")
     out = {}
     for name, rows in (("mt10", _mt10_rows()), ("reach", _reach_rows()), ("libero", _libero_rows())):
-        run = load_run(write_run(root / name, rows))
+        run = load_run(write_run(root / name, rows, REACH_MANIFEST if name == "reach" else None))
         out[name], _ = html_report.write_report([run], root / f"{name}-report")
     return out
 
@@ -134,4 +148,33 @@ def test_the_mt10_table_fits_a_1400_px_window_without_scrolling(browser, reports
                        .concat([Math.round(c.querySelector('.ci').getBoundingClientRect().height)])))"""
     )
     assert len(lines) == 3 * 11 and len({tuple(x) for x in lines}) == 1 and lines[0][:2] == [1, 1], lines
+    page.close()
+
+
+def test_failures_are_listed_per_configuration_with_a_count_and_an_example(browser, reports):  # noqa: F811
+    page = _open(browser, reports["reach"])
+    rows = page.evaluate(
+        "() => Array.from(document.querySelector('table.failures').tBodies[0].rows)"
+        ".map(r => Array.from(r.cells).map(c => c.textContent))"
+    )
+    ((label, suite, reason, count, example),) = rows
+    assert (label, suite, count) == ("acme_pd (gain=1)", "acme/reach", "2")
+    assert reason == "ValueError: action [3.0, 0.0] is outside Box(-1, 1)"
+    assert example == f"reach #2 ({reports['reach'].parent / 'reach'})"  # task, episode, run
+    page.close()
+
+
+def test_provenance_names_the_distribution_that_provided_the_suite_and_policy(browser, reports):  # noqa: F811
+    page = _open(browser, reports["reach"])
+    text = page.inner_text("body")
+    assert "suite acme/reach: acme-reach 1.2.0; acme_pd: acme-reach 1.2.0" in text
+    page.close()
+
+
+def test_a_suite_without_tokens_gets_a_success_plot_with_intervals(browser, reports):  # noqa: F811
+    page = _open(browser, reports["reach"])
+    images = page.eval_on_selector_all("img", "imgs => imgs.map(i => [i.alt, i.naturalWidth])")
+    assert len(images) == 1 and images[0][1] > 0
+    assert images[0][0].startswith("acme/reach: success per task and configuration (Wilson 95%)")
+    assert "no Pareto plot" not in page.inner_text("body")
     page.close()

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 from harness.backends.pool import heartbeat_interval, rebuild_from_config, worker_threads
 from harness.backends.schedule import Event, JobId
 from harness.errors import UsageError
+from harness.plugins import install_hint
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -44,7 +45,7 @@ if TYPE_CHECKING:
     from harness.backends import Execution
     from harness.config import ResolvedRun
 
-RAY_FIX = "pip install 'dvla-harness[ray]'"
+RAY_FIX = install_hint("ray")
 CONNECT_TIMEOUT_S = 5.0
 
 
