@@ -314,7 +314,15 @@ def simpler_block(board: Leaderboard, baseline: str) -> Block:
     return Block(f"{board.suite} (SimplerEnv layout)", headers, [*rows, *published], tuple(notes), len(rows))
 
 
+NO_PUBLISHED_TABLE = (
+    "No LIBERO, CALVIN-like or SimplerEnv-like suite in these runs: no published table to lay "
+    "them out beside (`dvla-harness leaderboard` shows them)."
+)
+
+
 def blocks_markdown(blocks: Sequence[Block]) -> str:
+    if not blocks:
+        return NO_PUBLISHED_TABLE + "\n"
     parts = []
     for b in blocks:
         parts.append(f"### {b.title}\n\n" + markdown_table(b.headers, [[c.text for c in r] for r in b.rows]))

@@ -84,13 +84,6 @@ def cmd_paper_table(args: argparse.Namespace) -> int:
         blocks = paper_blocks(table, args.allow_privileged)
     except PrivilegedRowsError as exc:
         raise UsageError(str(exc)) from None
-    if not blocks:
-        console.print(
-            "no LIBERO, CALVIN-like or SimplerEnv-like suite in these runs: no published table to "
-            "lay them out beside (`dvla-harness leaderboard` shows them)"
-        )
-        print_warnings(table.warnings)
-        return 0
     console.file.write(blocks_markdown(blocks))
     console.file.flush()
     print_warnings(table.warnings)
