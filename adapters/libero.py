@@ -56,10 +56,11 @@ from adapters.libero_states import (
     fresh_seed,
 )
 from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
+from harness.plugins import install_hint
 
 SUITE_VERSION = "1"
 EXTRA = "libero"
-INSTALL_HINT = "pip install 'dvla-harness[libero]'"
+INSTALL_HINT = install_hint("libero")
 
 # --- The protocol. Source: OpenVLA experiments/robot/libero/run_libero_eval.py
 # (num_trials_per_task, num_steps_wait, max_steps per suite, get_libero_dummy_action) and

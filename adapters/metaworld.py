@@ -39,6 +39,7 @@ from gymnasium.utils import seeding
 
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec, derive_seed
 from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
+from harness.plugins import install_hint
 
 SUITE_VERSION = "1"
 MAX_STEPS = 500  # Meta-World's max_path_length for every v3 task.
@@ -205,9 +206,7 @@ def _installed() -> bool:
 
 def _require_metaworld() -> None:
     if not _installed():
-        raise MissingExtraError(
-            "Meta-World suites need the 'metaworld' extra: pip install 'dvla-harness[metaworld]'"
-        )
+        raise MissingExtraError(f"Meta-World suites need the 'metaworld' extra: {install_hint('metaworld')}")
 
 
 class MetaWorldEpisodeEnv(gym.Wrapper):

@@ -31,6 +31,7 @@ import numpy as np
 from adapters import simpler_variants as sv
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec, derive_seed
 from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
+from harness.plugins import install_hint
 
 SUITE_VERSION = "1"
 # SimplerEnv's WidowX (Bridge) tasks run 24 episodes each; ours likewise, per task, in
@@ -104,7 +105,7 @@ def _installed() -> bool:
 def _require_maniskill() -> None:
     if not _installed():
         raise MissingExtraError(
-            "simpler/ suites need the 'maniskill' extra: pip install 'dvla-harness[maniskill]', then "
+            f"simpler/ suites need the 'maniskill' extra: {install_hint('maniskill')}, then "
             "`python -m adapters.vulkan install` for a CPU Vulkan driver (docs/simpler.md)"
         )
 

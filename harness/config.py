@@ -20,7 +20,7 @@ from adapters.base import EpisodeSpec, Suite, TaskSpec
 from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
 from harness.action_space import DEFAULT_OUT_OF_SPACE, check_rule
 from harness.errors import HarnessError, UsageError
-from harness.plugins import HARNESS
+from harness.plugins import HARNESS, install_hint
 from policies.base import Policy
 from policies.registry import (
     PolicyParamError,
@@ -226,7 +226,7 @@ def sha256_file(path: str) -> str:
 def _check_installed(modules: tuple[str, ...], extra: str, what: str, package: str = HARNESS) -> None:
     missing = [m for m in modules if importlib.util.find_spec(m) is None]
     if missing:
-        how = f"pip install '{package}[{extra}]'" if extra else "install them"
+        how = install_hint(extra, package) if extra else "install them"
         raise UsageError(f"{what} needs {', '.join(missing)}: {how}")
 
 

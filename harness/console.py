@@ -14,6 +14,7 @@ from contextlib import AbstractContextManager, contextmanager
 from typing import Any
 
 from rich.console import Console
+from rich.measure import Measurement
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -25,6 +26,24 @@ from rich.progress import (
 
 console = Console(width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
+
+
+def print_table(table: Any, target: Console | None = None) -> None:
+    """Print a rich Table whole. In a terminal its columns fold to the window (no name
+    is cut to `fast_…`); written to a pipe or a file, the console widens to the table's
+    natural width, so `dvla-harness leaderboard RUN > file` keeps every name and count
+    on one line."""
+    target = target or console
+    if target.is_terminal:
+        target.print(table)
+        return
+    need = Measurement.get(target, target.options.update_width(100_000), table).maximum
+    width = target.width
+    target.width = max(width, need)
+    try:
+        target.print(table)
+    finally:
+        target.width = width
 
 
 def episode_progress(

@@ -13,10 +13,29 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
 HARNESS = "dvla-harness"
+# A clone of the repository: its root holds the pinned constraints next to the packages.
+_CLONE = Path(__file__).resolve().parent.parent
+
+
+def install_hint(extra: str, package: str = HARNESS) -> str:
+    """How to install an extra, in the form that works where the user is: run from a
+    clone, `pip install -c constraints.txt ".[extra]"` in it (what the README does), and
+    the index form beside it; a plugin's or an installed harness's extra, the index form."""
+    index = f"pip install '{package}[{extra}]'"
+    if (
+        package == HARNESS
+        and (_CLONE / "constraints.txt").is_file()
+        and (_CLONE / "pyproject.toml").is_file()
+    ):
+        return f'pip install -c constraints.txt ".[{extra}]" in {_CLONE} (from an index: {index})'
+    return index
+
+
 _warned: set[str] = set()
 
 

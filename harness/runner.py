@@ -7,13 +7,14 @@ are measured side by side. Each row is on disk before the next episode starts.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import pandas as pd
 
 from adapters.base import EpisodeSpec, TaskSpec
 from adapters.simpler_variants import label as variant_label
@@ -26,6 +27,7 @@ from harness.manifest import now, record_end_calibration
 from harness.resume import run_again
 from harness.run_folder import acquire, check_output, check_path, io_error, open_run
 from harness.warmup import record_warm_up, warm_up_run
+from results.labels import config_labels
 from results.lock import RunLock
 from results.schema import EPISODE_KEY
 from results.store import RunDir
@@ -122,8 +124,26 @@ def preflight(
     return {jobs[0].task.name: env}
 
 
-def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOutcome) -> dict[str, Any]:
+def run_config_labels(resolved: ResolvedRun) -> dict[str, str]:
+    """The run's configuration labels (results.labels), from every configuration it lists,
+    so a row's config_label is the same whichever episodes have run so far."""
+    configs = pd.DataFrame(
+        [(p.config_id, p.spec.name, p.params_json) for p in resolved.policies],
+        columns=["policy_config_id", "policy", "policy_params"],
+    )
+    return config_labels(configs)
+
+
+def make_row(
+    run_id: str,
+    resolved: ResolvedRun,
+    job: EpisodeJob,
+    out: EpisodeOutcome,
+    labels: Mapping[str, str] | None = None,
+) -> dict[str, Any]:
+    """One episode's row; `labels`: run_config_labels(resolved), worked out once per run."""
     p, task, spec = job.policy, job.task, job.spec
+    labels = run_config_labels(resolved) if labels is None else labels
     return {
         "run_id": run_id,
         "suite": resolved.suite.name,
@@ -140,6 +160,7 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         "policy": p.spec.name,
         "policy_params": p.params_json,
         "policy_config_id": p.config_id,
+        "config_label": labels[p.config_id],
         "checkpoint": p.checkpoint,
         "checkpoint_sha256": p.checkpoint_sha256,
         "replan_every": resolved.config.replan_every,
@@ -280,12 +301,13 @@ def _run_planned(
     skipped = len(planned) - len(jobs)
     report = RunReport(run_dir, run_id, executed=0, skipped=skipped, failed=0)
     tick = progress(len(jobs), skipped) if progress else None
+    labels = run_config_labels(resolved)
 
     def on_done(job: EpisodeJob, outcome: EpisodeOutcome) -> None:
         try:
             if outcome.traces:
                 run_dir.append_traces(trace_lines(run_id, resolved, job, outcome))
-            run_dir.append_episode(make_row(run_id, resolved, job, outcome))
+            run_dir.append_episode(make_row(run_id, resolved, job, outcome, labels))
             report.executed += 1
             if outcome.failure_reason is not None:
                 report.failed += 1

@@ -10,17 +10,21 @@ point names a `PolicySpec`.
 from __future__ import annotations
 
 import dataclasses
+import fractions
 import json
 import math
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from harness.plugins import HARNESS, load_plugins, warn
 from policies.base import Policy
 
 ENTRY_POINT_GROUP = "dvla_harness.policies"
+# The shipped checkpoint sets (policies.dvla.policy.SHIPPED), named in `list policies`.
+SHIPPED_CHECKPOINTS = Path(__file__).resolve().parent / "checkpoints"
 
 
 class UnknownPolicyError(LookupError):
@@ -113,15 +117,47 @@ def get_policy(name: str) -> PolicySpec:
 
 
 def describe_param(f: dataclasses.Field, type_name: str) -> str:
+    """One line of `list policies`: a parameter as a person reads it (2/7 rather than
+    0.2857142857142857, "any integer >= 0" rather than the int64 limit, a shipped
+    checkpoint by its set's name rather than an install path)."""
     meta = f.metadata
     rng = ""
+    low, high = meta.get("low"), meta.get("high")
     if meta.get("choices"):
         rng = " one of " + "|".join(str(c) for c in meta["choices"])
-    elif meta.get("low") is not None or meta.get("high") is not None:
-        lo = "-inf" if meta.get("low") is None else meta["low"]
-        hi = "inf" if meta.get("high") is None else meta["high"]
+    elif type_name == "int" and low in (None, INT64[0]) and high in (None, INT64[1]):
+        rng = ", any integer"
+    elif type_name == "int" and high in (None, INT64[1]):
+        rng = f", any integer >= {low}"
+    elif low is not None or high is not None:
+        lo = "-inf" if low in (None, INT64[0]) else show_number(low)
+        hi = "inf" if high in (None, INT64[1]) else show_number(high)
         rng = f" in [{lo}, {hi}]"
-    return f"{f.name}: {type_name} = {f.default!r}{rng}  {meta.get('help', '')}"
+    return f"{f.name}: {type_name} = {show_default(f.default)}{rng}  {meta.get('help', '')}"
+
+
+def show_number(value: Any) -> str:
+    """A float to 4 significant digits, with the small fraction it is when it is one:
+    0.2857142857142857 -> '0.2857 (2/7)'; 0.5 -> '0.5'; an int as it is."""
+    if not isinstance(value, float) or not math.isfinite(value):
+        return str(value)
+    short = format(value, ".4g")
+    if "." not in short and "e" not in short:
+        short += ".0"  # still reads as a float
+    if float(short) == value:
+        return short
+    frac = fractions.Fraction(value).limit_denominator(64)
+    return f"{short} ({frac})" if abs(float(frac) - value) < 1e-12 else short
+
+
+def show_default(value: Any) -> str:
+    if isinstance(value, float):
+        return show_number(value)
+    if isinstance(value, str):
+        path = Path(value)
+        if path.is_absolute() and path.parent == SHIPPED_CHECKPOINTS and path.suffix == ".safetensors":
+            return f"{path.stem.rsplit('-', 1)[0]} (shipped set)"
+    return repr(value)
 
 
 def param_types(params_cls: type) -> dict[str, type]:

@@ -52,6 +52,7 @@ from urllib.parse import urlsplit
 import gymnasium as gym
 import numpy as np
 
+from harness.plugins import install_hint
 from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.registry import PolicySpec, param
 
@@ -151,7 +152,7 @@ class RemotePolicy:
         if not params.url.startswith(("ws://", "wss://")):
             raise ValueError(f"url must start with ws:// or wss://, got {params.url!r}")
         if importlib.util.find_spec("msgpack") is None:
-            raise ValueError("it needs msgpack: pip install 'dvla-harness[remote]'")
+            raise ValueError(f"it needs msgpack: {install_hint('remote')}")
         self.params = params
         self._headers()  # a missing or empty key is refused before anything runs
         self._ws: Any = None

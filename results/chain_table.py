@@ -147,7 +147,7 @@ def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
         "tokens/s",
         "speedup",
     ):
-        table.add_column(name, justify="left" if name in ("policy", "scene") else "right")
+        table.add_column(name, justify="left" if name in ("policy", "scene") else "right", overflow="fold")
     base = (
         summary[summary["policy"] == "bidirectional"]
         .drop_duplicates("task")

@@ -13,6 +13,7 @@ import base64
 import html
 import io
 import os
+import re
 import shlex
 import shutil
 from collections.abc import Sequence
@@ -21,6 +22,7 @@ from typing import Any
 
 import pandas as pd
 
+from results.labels import config_labels
 from results.leaderboard import Block, Cell, Leaderboard, leaderboards, to_csv, to_markdown
 from results.paper_table import blocks_markdown, paper_blocks, paper_table
 from results.runs import Run, combined_episodes
@@ -36,10 +38,13 @@ class ReportError(ValueError):
 _CSS = """
 body{font:14px/1.45 system-ui,sans-serif;margin:2em auto;max-width:1400px;padding:0 1em;color:#222}
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:2em;border-bottom:1px solid #ddd}
-table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums}
+table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums;font-size:13px}
 .scroll{overflow-x:auto;max-width:100%}
-th,td{border:1px solid #ccc;padding:3px 8px;text-align:right;white-space:nowrap}
-th:first-child,td:first-child{text-align:left}
+th,td{border:1px solid #ccc;padding:2px 5px;text-align:right;white-space:nowrap}
+th{white-space:normal;min-width:3.5em;vertical-align:bottom}
+th:first-child,td:first-child{text-align:left;white-space:normal;min-width:10em}
+td .ci{display:block;color:#666;font-size:.85em}
+table.failures td{text-align:left;white-space:normal}
 thead th{background:#f3f3f3;cursor:pointer;user-select:none}
 th[aria-sort=ascending]::after{content:" \\25B2"}th[aria-sort=descending]::after{content:" \\25BC"}
 tbody.published td{color:#555;background:#fafafa;font-style:italic}
@@ -74,16 +79,44 @@ def _e(value: Any) -> str:
     return html.escape(str(value), quote=True)
 
 
+# "86.0% [74, 93] (43/50)": the rate, then its interval and its count on lines of their
+# own, so a ten-task table fits a laptop screen and every cell breaks alike.
+_SUCCESS = re.compile(r"^(-?[\d.]+%) (\[[^\]]*\]) (\(\d+/\d+\))$")
+
+
 def _td(cell: Cell) -> str:
     value = "" if cell.value is None else f' data-value="{_e(cell.value)}"'
-    return f"<td{value}>{_e(cell.text)}</td>"
+    m = _SUCCESS.match(cell.text)
+    text = (
+        "".join([_e(m[1]), *(f"<span class='ci'> {_e(part)}</span>" for part in m.groups()[1:])])
+        if m
+        else _e(cell.text)
+    )
+    return f"<td{value}>{text}</td>"
+
+
+def empty_columns(headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -> list[int]:
+    """Columns (never the first) with no value in any row: tokens/s and speedup on a suite
+    whose policies decode no tokens, NFE for policies without a model."""
+    return [
+        i for i in range(1, len(headers)) if rows and all(i >= len(r) or r[i].value is None for r in rows)
+    ]
 
 
 def table_html(
     headers: Sequence[str], rows: Sequence[Sequence[Cell]], published_from: int | None = None
 ) -> str:
     """A sortable table; rows from `published_from` on go in their own tbody, so sorting
-    never interleaves published reference rows with measured ones."""
+    never interleaves published reference rows with measured ones. Columns with no value
+    in any row are left out, and a note under the table names them with why."""
+    drop = set(empty_columns(headers, rows))
+    why = {
+        h: sorted({r[i].text for r in rows if i < len(r) and r[i].text not in ("", "-")})
+        for i, h in enumerate(headers)
+        if i in drop
+    }
+    headers = [h for i, h in enumerate(headers) if i not in drop]
+    rows = [[c for i, c in enumerate(r) if i not in drop] for r in rows]
     split = len(rows) if published_from is None else published_from
     head = "".join(f'<th scope="col">{_e(h)}</th>' for h in headers)
     bodies = []
@@ -91,9 +124,13 @@ def table_html(
         if part:
             trs = "".join("<tr>" + "".join(_td(c) for c in r) + "</tr>" for r in part)
             bodies.append(f'<tbody class="{cls}">{trs}</tbody>')
-    # Ten task columns do not fit a laptop screen: the table scrolls, the page does not.
+    # A table wider than the window scrolls on its own; the page does not.
     table = f'<table class="sortable"><thead><tr>{head}</tr></thead>{"".join(bodies)}</table>'
-    return f'<div class="scroll">{table}</div>'
+    note = ""
+    if why:
+        parts = [f"{h}" + (f" ({'; '.join(texts)})" if texts else "") for h, texts in why.items()]
+        note = f'<p class="note dropped">Not shown, no value in any row: {_e(", ".join(parts))}.</p>'
+    return f'<div class="scroll">{table}</div>{note}'
 
 
 def _board_html(board: Leaderboard) -> str:
@@ -116,34 +153,91 @@ def _block_html(block: Block) -> str:
     )
 
 
+def _png(fig: Any) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def _figure(data: str, alt: str) -> str:
+    return (
+        f"<figure><img alt='{_e(alt)}' src='data:image/png;base64,{data}'>"
+        f"<figcaption>{_e(alt)}</figcaption></figure>"
+    )
+
+
 def _figures_html(episodes: pd.DataFrame) -> str:
-    """A Pareto plot per suite from results.plots (tokens/s against success)."""
+    """Per suite: a Pareto plot (tokens/s against success, results.plots) of the
+    configurations that decode tokens; for a suite where none does, success per task
+    and configuration with its intervals (results.success_plot)."""
     try:
         from results.plots import PlotInputError, pareto_plot
+        from results.success_plot import success_plot
     except ImportError:
         return '<p class="note">No figures: results.plots is not available.</p>'
     parts = []
     for suite, rows in episodes.groupby("suite", sort=False):
         # Configurations that decode no tokens (scripted, random) have no place on a tokens/s axis.
         decoding = rows.groupby("policy_config_id")["tokens_per_s"].transform(lambda v: v.notna().any())
-        rows = rows[decoding]
-        if rows.empty:
-            parts.append(f'<p class="note">{_e(suite)}: no Pareto plot (no policy decodes tokens)</p>')
+        if not decoding.any():
+            alt = f"{suite}: success per task and configuration (Wilson 95%); no policy decodes tokens"
+            parts.append(_figure(_png(success_plot(rows, title=str(suite))), alt))
             continue
         try:
-            fig = pareto_plot(rows)
+            fig = pareto_plot(rows[decoding])
         except (PlotInputError, ValueError, OSError) as exc:
             parts.append(f'<p class="note">{_e(suite)}: no Pareto plot ({_e(exc)})</p>')
             continue
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-        data = base64.b64encode(buf.getvalue()).decode()
         alt = f"{suite}: success against tokens/s, one marker per policy configuration"
-        parts.append(
-            f"<figure><img alt='{_e(alt)}' src='data:image/png;base64,{data}'>"
-            f"<figcaption>{_e(alt)}</figcaption></figure>"
-        )
+        parts.append(_figure(_png(fig), alt))
     return "".join(parts)
+
+
+MAX_REASON = 300  # characters of an exception message shown; the rest is in events.jsonl
+
+
+def _failures_html(episodes: pd.DataFrame) -> str:
+    """Why episodes raised, per configuration: each distinct reason with its count and
+    one episode to look it up by (its traceback is in that run's events.jsonl)."""
+    failed = episodes[episodes["failure_reason"].notna()]
+    if failed.empty:
+        return (
+            '<p class="note">No episode raised: every failure to succeed was the task\'s, not an error.</p>'
+        )
+    labels = config_labels(episodes)
+    headers = ["configuration", "suite", "reason", "episodes", "example episode"]
+    rows = []
+    for (cid, suite, reason), group in failed.groupby(
+        ["policy_config_id", "suite", "failure_reason"], sort=False
+    ):
+        first = group.sort_values(["task_index", "episode_index"]).iloc[0]
+        short = reason if len(reason) <= MAX_REASON else reason[:MAX_REASON] + "…"
+        where = f"{first['task']} #{first['episode_index']}" + (
+            f" ({first['run']})" if "run" in group else ""
+        )
+        rows.append(
+            [
+                Cell(labels[cid], labels[cid]),
+                Cell(str(suite), str(suite)),
+                Cell(short, reason),
+                Cell(str(len(group)), len(group)),
+                Cell(where, where),
+            ]
+        )
+    rows.sort(key=lambda r: (str(r[0].value), -int(r[3].value or 0)))
+    note = '<p class="note">Tracebacks: each run folder\'s events.jsonl (event episode_failed).</p>'
+    return table_html(headers, rows).replace('class="sortable"', 'class="sortable failures"', 1) + note
+
+
+def _providers(manifest: dict[str, Any]) -> str:
+    """Which installed distribution (dvla-harness, or a plugin and its version) gave the
+    suite and each policy: a plugin's results are only as good as its version."""
+    suite = manifest.get("suite") or {}
+    parts = [f"suite {suite.get('name')}: {suite['provided_by']}"] if suite.get("provided_by") else []
+    for p in manifest.get("policies") or []:
+        if p.get("provided_by"):
+            parts.append(f"{p.get('name')}: {p['provided_by']}")
+    return "; ".join(dict.fromkeys(parts)) or "not recorded"
 
 
 def _provenance_html(run: Run) -> str:
@@ -172,6 +266,7 @@ def _provenance_html(run: Run) -> str:
         "policies": "; ".join(
             f"{p.get('name')} {p.get('config_id')} {p.get('params')}" for p in m.get("policies") or []
         ),
+        "provided by": _providers(m),
     }
     rows = "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in items.items())
     return f"<h3>{_e(run.label)}</h3><dl>{rows}</dl>"
@@ -195,8 +290,9 @@ def render_page(
     )
     sections += [_board_html(b) for b in boards]
     if paper:
-        sections.append("<h2>In the layout of Fast-dVLA's LIBERO table</h2>")
+        sections.append("<h2>Beside the published results</h2>")
         sections += [_block_html(b) for b in paper]
+    sections.append("<h2>Failures</h2>" + _failures_html(episodes))
     if figures:
         sections.append("<h2>Figures</h2>" + _figures_html(episodes))
     sections.append("<h2>Provenance</h2>" + "".join(_provenance_html(r) for r in runs))

@@ -14,11 +14,9 @@ warnings, which outputs must show, not bury).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import PurePath
 from typing import Any
 
 import pandas as pd
@@ -26,6 +24,7 @@ from rich.table import Table
 
 from results.board_warnings import episode_warnings, provenance_warnings
 from results.chain_table import ChainStats, chain_cells, chain_columns, chain_stats, is_chain_run
+from results.labels import config_labels
 from results.published import observation_regime, privileged_label
 from results.render import Cell, finite_or_none, number_cell
 from results.runs import Run, combined_episodes, dedupe_episodes
@@ -182,69 +181,6 @@ class Leaderboard:
             ]
             rows.append(row)
         return headers, rows
-
-
-# --- labels -----------------------------------------------------------------------
-
-
-def registered_defaults() -> dict[str, dict[str, Any]]:
-    """Registered parameter defaults, so labels show only what a row changed."""
-    try:
-        import dataclasses
-
-        from policies.registry import all_policies
-
-        return {
-            name: {f.name: f.default for f in dataclasses.fields(spec.params)}
-            for name, spec in all_policies().items()
-        }
-    except Exception:  # a broken plugin must not stop a table; labels then show differences only
-        return {}
-
-
-def _show(key: str, value: Any) -> str:
-    if key == "checkpoint" and isinstance(value, str):
-        return PurePath(value).name  # paths differ between machines; the file name does not
-    if isinstance(value, float):
-        return format(value, ".4g")
-    return str(value)
-
-
-def config_labels(episodes: pd.DataFrame) -> dict[str, str]:
-    """policy_config_id -> 'policy (k=v, ...)' with the params that differ from the
-    defaults or between configurations of the same policy; unique per configuration."""
-    configs = episodes.drop_duplicates("policy_config_id")[["policy_config_id", "policy", "policy_params"]]
-    defaults = registered_defaults()
-    parsed: dict[str, dict[str, Any]] = {}
-    for cid, params in zip(configs["policy_config_id"], configs["policy_params"], strict=True):
-        try:
-            parsed[cid] = json.loads(params) if params else {}
-        except (TypeError, json.JSONDecodeError):
-            parsed[cid] = {"params": params}
-    labels: dict[str, str] = {}
-    for policy, group in configs.groupby("policy", sort=False):
-        ids = list(group["policy_config_id"])
-        default = defaults.get(str(policy), {})
-        keys = sorted({k for cid in ids for k in parsed[cid]})
-
-        def value(cid: str, key: str, default: dict[str, Any] = default) -> str:
-            # A parameter added after a run was recorded counts as its default there.
-            return _show(key, parsed[cid].get(key, default.get(key)))
-
-        shown = [
-            k
-            for k in keys
-            if len({value(cid, k) for cid in ids}) > 1
-            or (k in default and any(value(cid, k) != _show(k, default[k]) for cid in ids))
-            or (default and k not in default)
-        ]
-        for cid in ids:
-            parts = [f"{k}={value(cid, k)}" for k in shown if k in parsed[cid]]
-            labels[cid] = f"{policy} ({', '.join(parts)})" if parts else str(policy)
-    seen: dict[str, int] = {}
-    for label in labels.values():
-        seen[label] = seen.get(label, 0) + 1
-    return {cid: (f"{lab} [{cid}]" if seen[lab] > 1 else lab) for cid, lab in labels.items()}
 
 
 # --- speedups ---------------------------------------------------------------------
@@ -425,7 +361,7 @@ def rich_table(board: Leaderboard) -> Table:
     headers, rows = board.cells()
     table = Table(title=board.suite, caption=board.ranking.text() if board.ranking else None)
     for i, h in enumerate(headers):
-        table.add_column(h, justify="left" if i == 0 or h == "machine" else "right")
+        table.add_column(h, justify="left" if i == 0 or h == "machine" else "right", overflow="fold")
     for row in rows:
         table.add_row(*(c.text for c in row))
     return table

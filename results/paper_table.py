@@ -30,6 +30,7 @@ from results.published import (
     PRIVILEGED,
     SIMPLERENV,
     check_comparable,
+    is_libero,
     libero_column,
     privileged_label,
     tables_for,
@@ -64,14 +65,19 @@ class PaperTable:
 
 
 def paper_table(runs: Sequence[Run], baseline: str | None = None) -> PaperTable:
-    """Speedups are taken within each suite (its own leaderboard: the baseline's rows of
+    """LIBERO suites in the paper's layout, the chain and SimplerEnv-like suites in
+    theirs; other suites (Meta-World, plugins) have only their leaderboards.
+
+    Speedups are taken within each suite (its own leaderboard: the baseline's rows of
     that suite, on the same machine) and averaged over the suites a row has, never
     across suites: a LIBERO row is not measured against a Meta-World teacher. Tokens/s
     is the mean over those suites likewise, so each suite counts once."""
     every = leaderboards(runs, baseline)
     chain_boards = tuple(b for b in every if b.is_chain)  # CALVIN's layout: not averaged with LIBERO's
     variant_boards = tuple(b for b in every if is_simpler(b))  # SimplerEnv's: canonical vs aggregated
-    boards = [b for b in every if not b.is_chain and not is_simpler(b)]
+    # Only LIBERO suites take LIBERO's layout: a Meta-World or plugin suite has no published
+    # row to stand beside, and its own leaderboard already shows it.
+    boards = [b for b in every if not b.is_chain and not is_simpler(b) and is_libero(b.suite)]
     baseline = baseline or DEFAULT_BASELINE
     keys = list(dict.fromkeys((e.policy_config_id, e.machine) for b in boards for e in b.entries))
     out = []
@@ -309,7 +315,15 @@ def simpler_block(board: Leaderboard, baseline: str) -> Block:
     return Block(f"{board.suite} (SimplerEnv layout)", headers, [*rows, *published], tuple(notes), len(rows))
 
 
+NO_PUBLISHED_TABLE = (
+    "No LIBERO, CALVIN-like or SimplerEnv-like suite in these runs: no published table to lay "
+    "them out beside (`dvla-harness leaderboard` shows them)."
+)
+
+
 def blocks_markdown(blocks: Sequence[Block]) -> str:
+    if not blocks:
+        return NO_PUBLISHED_TABLE + "\n"
     parts = []
     for b in blocks:
         parts.append(f"### {b.title}\n\n" + markdown_table(b.headers, [[c.text for c in r] for r in b.rows]))

@@ -30,7 +30,7 @@ from matplotlib import rc_context
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator, PercentFormatter
 
-from results.leaderboard import registered_defaults
+from results.labels import config_labels as shared_config_labels
 from results.schema import COLUMNS
 from results.summary import wilson_interval
 
@@ -98,39 +98,13 @@ def plot_frame(
 
 
 def config_labels(df: pd.DataFrame) -> dict[str, str]:
-    """A short name per configuration: the policy, plus the parameters that vary across
-    that policy's configurations here or differ from its registered defaults (a checkpoint
-    by its file name), so a lone `fast_dvla tau_conf=0.3` is not drawn as plain fast_dvla
-    (the leaderboard's labels follow the same rule)."""
-    labels: dict[str, str] = {}
-    configs = df.drop_duplicates("policy_config_id")
-    defaults = registered_defaults()
-    for policy, group in configs.groupby("policy", sort=False):
-        params = {row.policy_config_id: json.loads(row.policy_params) for row in group.itertuples()}
-        for config_id in params:  # shown as used: a block size of 0 is the checkpoint's
-            row = group[group["policy_config_id"] == config_id].iloc[0]
-            params[config_id] = {k: row.get(PARAM + k, v) for k, v in params[config_id].items()}
-        keys = sorted({k for p in params.values() for k in p})
-        default = defaults.get(str(policy), {})
-
-        def shown(key: str, params: dict = params, default: dict = default) -> bool:
-            values = {_canonical(p.get(key, default.get(key))) for p in params.values()}
-            return len(values) > 1 or (key in default and values != {_canonical(default[key])})
-
-        varying = [k for k in keys if shown(k)]
-        for config_id, p in params.items():
-            parts = [
-                f"{k}={Path(str(p.get(k))).stem if k == 'checkpoint' else _fmt(p.get(k))}" for k in varying
-            ]
-            labels[config_id] = " ".join([str(policy), *parts])
-    return labels
-
-
-def _canonical(value: Any) -> str:
-    """One spelling per value: a row's numpy scalar (2, False) equals the default (2, False)."""
-    if isinstance(value, np.generic):
-        value = value.item()
-    return json.dumps(value, default=str)
+    """The configurations' labels (results.labels, the names every table prints), with
+    each parameter as the configuration used it: a block size of 0 is the checkpoint's."""
+    used: dict[str, dict[str, Any]] = {}
+    for row in df.drop_duplicates("policy_config_id").to_dict("records"):
+        params = json.loads(row["policy_params"]) if row["policy_params"] else {}
+        used[row["policy_config_id"]] = {k: row[PARAM + k] for k in params if row.get(PARAM + k) is not None}
+    return shared_config_labels(df, used)
 
 
 def natural_key(text: str) -> list[Any]:
@@ -273,6 +247,7 @@ def ablation_plot(
     x = _resolve(df, x, "x")
     ys = [_resolve(df, c, "y", numeric=True) for c in y]
     hue = _resolve(df, hue, "hue") if hue else None
+    _check_not_pooled(df, hue)
     numeric_x = _numeric(df[x]) is not None
     xkey = _numeric(df[x]) if numeric_x else df[x].astype(str)
     df = df.assign(_x=xkey)
@@ -350,6 +325,23 @@ def ablation_plot(
         )
     _save(fig, out)
     return fig
+
+
+def _check_not_pooled(df: pd.DataFrame, hue: str | None) -> None:
+    """One point per x value per line: rows of two policies at one x (fast_dvla and
+    block_diffusion at block size 4) are different decoders, and pooling them into one
+    rate would show neither. A hue must keep the policies apart."""
+    policies = list(dict.fromkeys(df["policy"]))
+    if len(policies) < 2:
+        return
+    if hue is not None and (df.groupby(df[hue].map(_fmt), sort=False)["policy"].nunique() == 1).all():
+        return
+    why = "no --hue" if hue is None else f"--hue {hue} has values shared by several policies"
+    raise PlotInputError(
+        f"these rows hold {len(policies)} policies ({', '.join(map(str, policies))}) and {why}: "
+        "each point would pool different decoders; pass --hue policy or --hue config_label, "
+        "or plot runs of one policy"
+    )
 
 
 def _fmt(value: Any) -> str:

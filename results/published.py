@@ -243,9 +243,16 @@ def check_comparable(suites: list[str] | tuple[str, ...], allow_privileged: bool
     return found
 
 
+def is_libero(suite: str) -> bool:
+    """A LIBERO suite (`libero/spatial`, `libero/10:obs=upstream`): the suites the
+    published LIBERO rows belong beside. Instruction chains on LIBERO scenes are not."""
+    return suite.lower().split(":", 1)[0].startswith("libero")
+
+
 def tables_for(suites: list[str]) -> list[PublishedTable]:
-    """The published tables worth showing beside these measured suites (LIBERO).
+    """The published tables worth showing beside these measured suites: LIBERO's, when
+    one of them is a LIBERO suite, and none beside a Meta-World or plugin suite.
     CALVIN's and SimplerEnv's rows go beneath each instruction-chain or SimplerEnv-like
     suite in that benchmark's own layout instead (results.paper_table.calvin_block and
     simpler_block)."""
-    return [LIBERO]
+    return [LIBERO] if any(is_libero(s) for s in suites) else []

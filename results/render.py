@@ -40,6 +40,7 @@ def success_cell(row: pd.Series) -> str:
 # Fewer episodes than this on either side and a per-task speedup is noise (one slow
 # episode moves it by tens of percent); the ALL row always has one.
 MIN_EPISODES_FOR_TASK_SPEEDUP = 10
+NO_BASELINE = "n/a: no bidirectional row"  # as results.leaderboard.speedups says it
 CAPTION = (
     "control Hz: env steps per second of policy time (the policy alone); loop Hz: env steps per "
     "second of wall-clock (policy + simulator + harness); speedup: tokens/s over bidirectional's "
@@ -63,7 +64,7 @@ def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str]
         ("errors", "right"),
         ("speedup vs bidirectional", "right"),
     ):
-        table.add_column(name, justify=justify)  # type: ignore[arg-type]
+        table.add_column(name, justify=justify, overflow="fold")  # type: ignore[arg-type]
     base = summary[summary["policy"] == "bidirectional"].drop_duplicates("task").set_index("task")
     previous = None
     for _, row in summary.iterrows():
@@ -72,7 +73,9 @@ def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str]
         policy = name if row["policy_config_id"] != previous else ""
         previous = row["policy_config_id"]
         speedup = "-"
-        if row["task"] in base.index:
+        if base.empty:
+            speedup = NO_BASELINE if is_all else "-"  # the leaderboard's wording, once per policy
+        elif row["task"] in base.index:
             enough = min(row["episodes"], base.loc[row["task"], "episodes"]) >= MIN_EPISODES_FOR_TASK_SPEEDUP
             if is_all or enough:
                 speedup = _num(row["tokens_per_s"] / base.loc[row["task"], "tokens_per_s"], ".2f") + "x"

@@ -17,6 +17,7 @@ from typing import Any
 
 import pandas as pd
 
+from results.labels import with_config_labels
 from results.schema import COLUMN_NAMES, EPISODE_KEY
 from results.store import EPISODES, MANIFEST, ResultsFileError, RunDir, read_table
 
@@ -110,7 +111,7 @@ def load_run(path: str | os.PathLike[str]) -> Run:
     elif p.is_file():
         if p.suffix != ".parquet":
             raise ResultsFileError(f"{p}: expected a run folder or an episodes .parquet file")
-        episodes = read_table(p).to_pandas()[list(COLUMN_NAMES)]
+        episodes = with_config_labels(read_table(p).to_pandas()[list(COLUMN_NAMES)])
         beside = p.parent / MANIFEST
         if beside.is_file():
             RunDir(p.parent).remove_temporaries_unless_locked()

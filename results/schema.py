@@ -14,8 +14,9 @@ import pyarrow as pa
 SCHEMA_VERSION = "4"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
 # columns as nulls, a version-2 table (before variants) a null `variant`, which is what
-# they mean for its suites; a version-3 table (before the action-space check) null
-# out-of-space columns: its actions were not checked.
+# they mean for its suites; a version-3 table (before the action-space check and
+# configuration labels) gets null out-of-space columns (its actions were not checked)
+# and `config_label` filled in on read (results.labels.with_config_labels).
 READABLE_VERSIONS = ("1", "2", "3", "4")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
@@ -76,6 +77,17 @@ COLUMNS: tuple[Column, ...] = (
     Column("policy", pa.string(), "", "Registered policy name."),
     Column("policy_params", pa.string(), "JSON", "All policy parameters, defaults included."),
     Column("policy_config_id", pa.string(), "", "Short hash of policy, params and checkpoint."),
+    Column(
+        "config_label",
+        pa.string(),
+        "",
+        "The configuration's name as the tables print it: the policy, plus the parameters that "
+        "set it apart from the run's other configurations of that policy or from its defaults, "
+        "e.g. `fast_dvla`, `acme_pd (gain=0.5)`. Unique per configuration within a run: group "
+        "by it instead of parsing policy_params. Null in rows written before it was recorded "
+        "(the harness's readers fill it in).",
+        nullable=True,
+    ),
     Column("checkpoint", pa.string(), "path", "Checkpoint file the policy loaded; empty if none."),
     Column("checkpoint_sha256", pa.string(), "", "SHA-256 of the checkpoint; empty if none."),
     Column(

@@ -44,6 +44,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from results.labels import with_config_labels
 from results.lock import LOCK, RunLock, RunLockedError
 from results.manifest_check import ManifestError, check_manifest
 from results.schema import (
@@ -453,7 +454,7 @@ class RunDir:
             return arrow_schema().empty_table().to_pandas()
         df = pa.concat_tables(tables).to_pandas()
         df = df.drop_duplicates(subset=list(EPISODE_KEY), keep="last")
-        return df.reset_index(drop=True)[list(COLUMN_NAMES)]
+        return with_config_labels(df.reset_index(drop=True)[list(COLUMN_NAMES)])
 
     def stamp_rows(self, column: str, value: Any) -> None:
         """Set `column` to `value` in every row of episodes.parquet (atomically): a verdict

@@ -108,6 +108,17 @@ def test_listings(cli):
     assert code == 0 and "open the drawer" in out and "peg-insert-side-v3" in out
 
 
+def test_list_policies_prints_what_a_person_reads(cli):
+    from policies.registry import SHIPPED_CHECKPOINTS
+
+    code, out, _ = cli("list", "policies")
+    assert code == 0
+    assert "tau_add: float = 0.2857 (2/7) in [0.0, 1.0]" in out and "0.2857142857142857" not in out
+    assert "seed: int = 0, any integer >= 0" in out and "9223372036854775807" not in out
+    assert "checkpoint: str = metaworld-mt10 (shipped set)" in out
+    assert str(SHIPPED_CHECKPOINTS) not in out  # no install path (site-packages) as a default
+
+
 @pytest.mark.parametrize("sub", ["", "run", "list", "show", "collect", "train"])
 def test_help_everywhere_and_python_dash_m(sub):
     argv = [sys.executable, "-m", "harness", *([sub] if sub else []), "--help"]
@@ -140,3 +151,15 @@ def test_an_unforeseen_exception_prints_its_traceback_and_exits_3(monkeypatch, c
     err = capsys.readouterr().err
     assert "Traceback" in err and "RuntimeError: a bug in a command" in err
     assert err.rstrip().splitlines()[-1] == "dvla-harness: internal error (traceback above); exit status 3"
+
+
+def test_install_hints_give_the_clone_form_and_the_index_form(monkeypatch, tmp_path):
+    from harness import plugins
+
+    hint = plugins.install_hint("libero")  # these tests run from a clone
+    assert (
+        'pip install -c constraints.txt ".[libero]"' in hint and "pip install 'dvla-harness[libero]'" in hint
+    )
+    assert plugins.install_hint("linesim", "dvla-line-plugin") == "pip install 'dvla-line-plugin[linesim]'"
+    monkeypatch.setattr(plugins, "_CLONE", tmp_path)  # installed from an index: no clone around it
+    assert plugins.install_hint("libero") == "pip install 'dvla-harness[libero]'"

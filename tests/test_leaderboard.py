@@ -63,6 +63,7 @@ def row(policy: str = "bidirectional", params: str = BIDI, config: str = "bidi00
         "policy": policy,
         "policy_params": params,
         "policy_config_id": config,
+        "config_label": None,
         "checkpoint": "",
         "checkpoint_sha256": "",
         "replan_every": 0,

@@ -66,9 +66,9 @@ def test_labels_show_a_lone_configurations_non_default_parameters():
         }
     )
     assert plots.config_labels(frame) == {
-        "a": "fast_dvla tau_conf=0.3",
-        "b": "bidirectional steps=12",
-        "c": "bidirectional steps=8",
+        "a": "fast_dvla (tau_conf=0.3)",
+        "b": "bidirectional (steps=12)",
+        "c": "bidirectional (steps=8)",
         "d": "autoregressive",
     }
     default = frame.iloc[:1].assign(policy_params=json.dumps({"tau_conf": 0.5}))
@@ -80,7 +80,7 @@ def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
     frame = plots.plot_frame(RunDir(sweep.path).read_episodes())
     assert set(frame["block_size"]) == {4, 8} and set(frame["param.tau_conf"]) == {0.5}
     assert set(frame["noise_schedule"]) == {"frontier"} and set(frame["checkpoint.recipe"]) == {"distill"}
-    assert set(frame["config_label"]) == {"fast_dvla block_size=4", "fast_dvla block_size=8"}
+    assert set(frame["config_label"]) == {"fast_dvla (block_size=4)", "fast_dvla (block_size=8)"}
     zero = frame.assign(policy_params=frame["policy_params"].str.replace('"block_size":4', '"block_size":0'))
     zero = zero.drop(columns=[c for c in zero if c.startswith(("param.", "checkpoint."))])
     assert set(plots.plot_frame(zero)["block_size"]) == {4, 8}  # 0 is the checkpoint's 4
@@ -115,7 +115,7 @@ def test_pareto_has_one_marker_per_configuration(sweep, cli, tmp_path):
     fig = plots.pareto_plot(episodes)  # the signature other outputs (the HTML report) use
     assert isinstance(fig, Figure)
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
-    assert sum(label.startswith("fast_dvla block_size=") for label in labels) == 2
+    assert sum(label.startswith("fast_dvla (block_size=") for label in labels) == 2
     out = tmp_path / "pareto.svg"
     code, _, err = cli(
         "plot", "pareto", str(sweep.path), "--x", "tokens_per_s", "--y", "success", "--out", str(out)
@@ -223,3 +223,48 @@ def test_experts_say_why_there_is_no_pareto_or_decoding_order(cli, tmp_path):
     assert code == 0, err
     code, _, err = cli("plot", "decoding-order", str(out), "--out", str(tmp_path / "o.png"))
     assert code == 2 and "its policies (random, scripted) returned no decode trace" in err
+
+
+def _two_decoders() -> pd.DataFrame:
+    from tests.test_leaderboard import episodes
+
+    rows = []
+    for policy, config, block, tau in (
+        ("fast_dvla", "fast04", 4, 0.5),
+        ("fast_dvla", "fast08", 8, 0.5),
+        ("block_diffusion", "bd04", 4, 0.5),
+    ):
+        params = json.dumps({"block_size": block, "tau_conf": tau})
+        rows += episodes(policy, params, config, [1, 0, 1])
+    return pd.DataFrame(rows)
+
+
+def test_an_ablation_of_several_decoders_needs_a_hue_that_keeps_them_apart(tmp_path):
+    frame = _two_decoders()
+    with pytest.raises(plots.PlotInputError, match=r"2 policies \(fast_dvla, block_diffusion\) and no --hue"):
+        plots.ablation_plot(frame, "block_size", ["success"])
+    with pytest.raises(plots.PlotInputError, match="--hue tau_conf has values shared by several policies"):
+        plots.ablation_plot(frame, "block_size", ["success"], hue="tau_conf")
+    plots.ablation_plot(frame, "block_size", ["success"], hue="policy", out=tmp_path / "a.png")
+    plots.ablation_plot(frame, "block_size", ["success"], hue="config_label", out=tmp_path / "b.png")
+    one = frame[frame["policy"] == "fast_dvla"]
+    plots.ablation_plot(one, "block_size", ["success"], out=tmp_path / "c.png")  # one decoder: no hue needed
+    assert all((tmp_path / f).stat().st_size > 1000 for f in ("a.png", "b.png", "c.png"))
+
+
+def test_labels_leave_out_parameters_a_configuration_does_not_use():
+    """fast_dllm decoding by threshold never uses steps_per_block: a legend must not name it."""
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["t", "f"],
+            "policy": ["fast_dllm", "fast_dllm"],
+            "policy_params": [
+                json.dumps({"threshold": 0.9, "steps_per_block": 4}),
+                json.dumps({"threshold": 0.0, "steps_per_block": 2}),
+            ],
+        }
+    )
+    assert plots.config_labels(frame) == {
+        "t": "fast_dllm (threshold=0.9)",
+        "f": "fast_dllm (steps_per_block=2, threshold=0)",
+    }

@@ -256,3 +256,39 @@ def test_a_plugin_suite_missing_its_simulator_names_the_plugin_not_an_empty_extr
     sys.modules.pop("dvla_line_plugin", None)
     code, _, err = cli("run", "--suite", "line/walk", "--policy", "constant", "--out", str(tmp_path / "s"))
     assert code == 2 and "pip install 'dvla-line-plugin[linesim]'" in err  # the plugin's extra, not ours
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "SuiteProvider",
+        "SuiteInfo",
+        "Suite",
+        "TaskSpec",
+        "EpisodeSpec",
+        "PolicySpec",
+        "EpisodeContext",
+        "ChunkBatch",
+    ],
+)
+def test_the_plugin_reference_lists_every_field_in_order(name):
+    """docs/plugins.md's reference tables are the dataclasses: every field, in order, and
+    'required' (no default) exactly where the dataclass has no default."""
+    import dataclasses
+    import re
+    from pathlib import Path
+
+    from adapters import base, registry
+    from policies import base as policy_base
+    from policies import registry as policy_registry
+
+    kinds = {m.__name__: m for m in (base, registry, policy_base, policy_registry)}
+    cls = next(getattr(m, name) for m in kinds.values() if hasattr(m, name))
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "plugins.md").read_text()
+    section = doc.split(f"<!-- reference:{name} -->")[1].split("<!-- reference:")[0]
+    rows = re.findall(r"^\| `(\w+)` \|[^|]+\|([^|]*)\|", section, re.M)
+    fields = dataclasses.fields(cls)
+    assert [r[0] for r in rows] == [f.name for f in fields]
+    for (field_name, default), f in zip(rows, fields, strict=True):
+        required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+        assert (default.strip() == "") == required, field_name

@@ -38,6 +38,7 @@ from harness.backends.pool import heartbeat_interval, rebuild_from_config, worke
 from harness.backends.schedule import Event, JobId
 from harness.config import checkpoint_pins
 from harness.errors import UsageError
+from harness.plugins import install_hint
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -45,7 +46,7 @@ if TYPE_CHECKING:
     from harness.backends import Execution
     from harness.config import ResolvedRun
 
-RAY_FIX = "pip install 'dvla-harness[ray]'"
+RAY_FIX = install_hint("ray")
 CONNECT_TIMEOUT_S = 5.0
 
 

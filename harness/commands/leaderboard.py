@@ -101,7 +101,7 @@ def print_warnings(warnings: Sequence[str]) -> None:
 
 
 def cmd_leaderboard(args: argparse.Namespace) -> int:
-    from harness.console import console
+    from harness.console import console, print_table
     from results.leaderboard import leaderboards, rich_table, to_csv, to_markdown
 
     fmt = output_format(args.format, args.out)
@@ -112,7 +112,7 @@ def cmd_leaderboard(args: argparse.Namespace) -> int:
     warnings = [f"{b.suite}: {w}" for b in boards for w in b.warnings]
     if fmt is None:
         for board in boards:
-            console.print(rich_table(board))
+            print_table(rich_table(board))
         print_warnings(warnings)
         return 0
     if fmt == "md":

@@ -7,8 +7,9 @@ import argparse
 from rich.markup import escape
 from rich.table import Table
 
-from harness.console import console
+from harness.console import console, print_table
 from harness.errors import UsageError
+from harness.plugins import install_hint
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,13 +37,13 @@ def cmd_list(args: argparse.Namespace) -> int:
                 else (
                     f"{info.extra} (installed)"
                     if info.installed
-                    else f"[yellow]pip install '{info.package}{escape('[' + info.extra + ']')}'[/yellow]"
+                    else f"[yellow]{escape(install_hint(info.extra, info.package))}[/yellow]"
                 )
             )
             table.add_row(
                 info.name, str(info.num_tasks), str(info.episodes_per_task), info.description, extra
             )
-        console.print(table)
+        print_table(table)
     elif args.what == "policies":
         import dataclasses
 

@@ -11,7 +11,7 @@ import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from harness.console import console, episode_progress, err_console, raise_interrupt
+from harness.console import console, episode_progress, err_console, print_table, raise_interrupt
 from harness.errors import EXIT_STATUS_HELP, UsageError
 
 if TYPE_CHECKING:
@@ -229,7 +229,7 @@ def print_chain_table(episodes: pd.DataFrame) -> None:
     from results.chain_table import chain_summary, chain_table, is_chain_run
 
     if is_chain_run(episodes):
-        console.print(chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)"))
+        print_table(chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)"))
 
 
 def execute_run(
@@ -244,7 +244,7 @@ def execute_run(
     from harness.device import apply_device
     from harness.runner import run
     from harness.threads import apply_threads
-    from results.leaderboard import config_labels
+    from results.labels import config_labels
     from results.render import summary_table
     from results.summary import summarize
 
@@ -279,7 +279,7 @@ def execute_run(
     if labels and len(episodes):
         episodes["policy"] = episodes["policy_config_id"].map(labels).fillna(episodes["policy"])
     if len(episodes):
-        console.print(
+        print_table(
             summary_table(
                 summarize(episodes),
                 title=f"{resolved.suite.name} - run {report.run_id}",

@@ -7,6 +7,7 @@ import signal
 
 from harness.device import DEFAULT_DEVICE, DEVICES
 from harness.errors import UsageError
+from harness.plugins import install_hint
 
 EPILOG = """\
 examples:
@@ -144,7 +145,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from harness.console import console, raise_interrupt
 
     if importlib.util.find_spec("websockets") is None or importlib.util.find_spec("msgpack") is None:
-        raise UsageError("serve needs websockets and msgpack: pip install 'dvla-harness[remote]'")
+        raise UsageError(f"serve needs websockets and msgpack: {install_hint('remote')}")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port must be 0..65535, got {args.port}")
     if args.max_batch < 1:

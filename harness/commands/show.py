@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from harness.console import console
+from harness.console import console, print_table
 from harness.errors import UsageError
 
 
@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from results.leaderboard import config_labels
+    from results.labels import config_labels
     from results.render import summary_table
     from results.runs import speed_warning
     from results.store import ResultsFileError, RunDir
@@ -52,7 +52,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     if len(episodes):
         from harness.commands.run import print_chain_table, print_out_of_space
 
-        console.print(summary_table(summarize(episodes), labels=config_labels(episodes)))
+        print_table(summary_table(summarize(episodes), labels=config_labels(episodes)))
         print_chain_table(episodes)
         print_out_of_space(episodes, config_labels(episodes))
     return 0

@@ -144,6 +144,11 @@ class FastDLLMParams:
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "bidirectional")
 
+    @staticmethod
+    def unused(values: Mapping[str, Any]) -> set[str]:
+        """Decoding by threshold, the fixed-step settings have no effect (labels omit them)."""
+        return {"steps_per_block", "schedule"} if float(values.get("threshold", 0.9)) > 0 else set()
+
 
 @dataclass(frozen=True)
 class BlockDiffusionParams:
