@@ -65,7 +65,9 @@ def episode_progress(
         TextColumn("ETA"),
         TimeRemainingColumn(),
         console=err_console,
-        disable=quiet,
+        # Off a terminal the plain lines below are the whole display: rich would add its
+        # own last frame when it stops, a duplicate of the last plain line.
+        disable=quiet or not err_console.is_terminal,
     )
     state = {"done": 0, "ok": 0, "shown": False}
 

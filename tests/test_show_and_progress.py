@@ -30,6 +30,17 @@ def test_progress_prints_a_line_every_five_percent_without_a_terminal(capsys):
     assert lines[-1].startswith("episodes 40/40 (100%), success 50% (20/40)")
 
 
+def test_progress_written_to_a_file_ends_with_one_last_frame(capsys):
+    """Off a terminal the plain lines are the display: no rich frame repeats the last one."""
+    progress, start = episode_progress(quiet=False)
+    with progress:
+        tick = start(4, 0)
+        for _ in range(4):
+            tick(True)
+    err = capsys.readouterr().err
+    assert err.count("episodes 4/4") == 1 and err.count("4/4") == 2 and "━" not in err
+
+
 def test_quiet_prints_no_progress_lines(capsys):
     progress, start = episode_progress(quiet=True)
     with progress:

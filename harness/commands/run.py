@@ -98,7 +98,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     from harness.action_space import OUT_OF_SPACE_RULES, RULES_HELP
 
     p.add_argument("--out-of-space", choices=OUT_OF_SPACE_RULES, metavar="RULE", help=RULES_HELP)
-    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/<run id>)")
+    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/<UTC date and time>, printed with the table)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument(
         "--resume",
@@ -282,7 +282,7 @@ def execute_run(
         print_table(
             summary_table(
                 summarize(episodes),
-                title=f"{resolved.suite.name} - run {report.run_id}",
+                title=f"{resolved.suite.name} - {report.run_dir.path}",  # the name the user typed or was shown
                 labels=config_labels(episodes),
             )
         )
