@@ -25,6 +25,18 @@ bookkeeping: on this project's 2-core CPU, one thread, replaying a decoder's own
 took 0.96-1.05x the time of the decoder itself at this shape (fast_dvla's numpy
 bookkeeping is the 5%).
 
+The reference row, bidirectional_cached, is the same T = 12 decode with an exact
+prefix cache (`bidirectional:cache_prefix=true` on a model whose prefix does not see the
+actions): one pass computes the 256 prefix positions, the other 11 run the 56 action
+positions against their cached keys/values. Each speedup over bidirectional then splits
+into what caching the prefix buys (the reference over bidirectional) and what the
+decoder buys beyond it (the "vs cached" column: fewer passes, fewer positions per pass).
+Beside the time the table prints what explains it, counted from the passes' shapes
+(decoder_traces.Chunk.counts): passes, positions run, keys/values attended, query-key
+scores. On this CPU time follows positions run (compute-bound); on a GPU at batch 1 a
+pass over 312 positions costs little more than one over 56, so there time follows the
+pass count, and prefix caching buys less than here (run with --device cuda to see).
+
 All decoders run in one process on one set of weights per attention pattern, taking
 turns within each round (the order rotates); each round times every decoder on its own
 chunks, so the speedups are per-round ratios measured side by side, reported as mean
@@ -50,18 +62,39 @@ import statistics
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-DECODERS = ("bidirectional", "fast_dllm", "block_diffusion", "fast_dvla", "autoregressive")
+sys.path.insert(0, str(ROOT))
+from benchmarks.decoder_traces import COUNTS, EXTRACT, RECORD, TRACES, Chunk, extract, load_traces  # noqa: E402
+
+# bidirectional_cached is the reference row: the bidirectional decode (T = 12) with an
+# exact prefix cache, so a speedup splits into what caching the prefix buys and the rest.
+DECODERS = (
+    "bidirectional",
+    "bidirectional_cached",
+    "fast_dllm",
+    "block_diffusion",
+    "fast_dvla",
+    "autoregressive",
+)
+REFERENCE = "bidirectional_cached"
 RECORDED = ("fast_dllm", "fast_dvla")  # data-dependent: replayed from trained checkpoints' traces
+# which model each decoder runs on: an attention pattern, and for the reference a
+# bidirectional model whose prefix does not see the actions (so caching it is exact)
 PATTERN = {
     "bidirectional": "bidirectional",
+    "bidirectional_cached": "bidirectional_prefix_blind",
     "fast_dllm": "bidirectional",
     "block_diffusion": "block_causal",
     "fast_dvla": "block_causal",
     "autoregressive": "causal",
+}
+MODELS = {
+    "bidirectional": {"pattern": "bidirectional"},
+    "bidirectional_prefix_blind": {"pattern": "bidirectional", "prefix_sees_actions": False},
+    "block_causal": {"pattern": "block_causal"},
+    "causal": {"pattern": "causal"},
 }
 SHAPE = {
     "action_dim": 7,
@@ -76,135 +109,20 @@ SHAPE = {
     "bins": 256,
     "vocab_words": 1024,
 }
-TRACES = ROOT / "benchmarks" / "traces" / "libero-spatial.json"
-RECORD = (
-    "dvla-harness run --suite libero/spatial --episodes-per-task 1 "
-    "--policy fast_dvla:checkpoint=libero-spatial --policy fast_dllm:checkpoint=libero-spatial "
-    "--traces --out runs/traces-spatial --quiet"
-)
-EXTRACT = "python benchmarks/decoders.py --extract runs/traces-spatial"
-
-
-# ------------------------------------------------------------------------- traces
-
-
-@dataclass
-class Chunk:
-    """One chunk's passes: per pass the action positions run, whether the prefix was
-    computed, and the positions read from the KV cache (prefix included)."""
-
-    query: list[list[int]]
-    prefix: list[bool]
-    cached: list[int]
-
-    def at_prefix(self, recorded: int, prefix_len: int) -> Chunk:
-        """The same passes for a model whose prefix has `prefix_len` positions where the
-        recording model's had `recorded`: every cache read includes the whole prefix."""
-        shift = prefix_len - recorded
-        return Chunk(self.query, self.prefix, [c + shift if c else 0 for c in self.cached])
-
-    def counts(self, prefix_len: int) -> dict[str, int]:
-        prefix_passes = sum(self.prefix)
-        queries = sum(len(q) for q in self.query)
-        return {
-            "nfe": len(self.query),
-            "prefix_passes": prefix_passes,
-            "query_tokens": queries,
-            "tokens_run": queries + prefix_passes * prefix_len,
-            "cached_read": sum(self.cached),
-        }
-
-
-def to_runs(positions: Sequence[int]) -> list[list[int]]:
-    """[start, stop) runs of consecutive positions, in order: [0..6, 14..20] -> [[0, 7], [14, 21]]."""
-    runs: list[list[int]] = []
-    for p in positions:
-        if runs and runs[-1][1] == p:
-            runs[-1][1] += 1
-        else:
-            runs.append([p, p + 1])
-    return runs
-
-
-def from_runs(runs: Sequence[Sequence[int]]) -> list[int]:
-    return [p for start, stop in runs for p in range(start, stop)]
-
-
-def extract(run_dir: str | Path, out: str | Path = TRACES) -> dict:
-    """The compact trace file from a `--traces` run: per policy, its parameters, the
-    checkpoint's prefix length, and every chunk's passes (queries as [start, stop) runs)."""
-    from policies.dvla.checkpoint import load
-    from results.store import RunDir
-
-    run = RunDir(run_dir)
-    manifest = json.loads((Path(run_dir) / "manifest.json").read_text())
-    traces = run.read_traces()
-    tasks = manifest["suite"]["tasks"]
-    decoders: dict[str, dict] = {}
-    for policy in manifest["policies"]:
-        mine = traces[traces["policy_config_id"] == policy["config_id"]].copy()
-        mine["task_index"] = mine["task"].map(tasks.index)
-        mine = mine.sort_values(["task_index", "episode_index", "chunk"])
-        cfg = load(policy["checkpoint"]).model.cfg
-        params = json.loads(policy["params"])
-        if Path(params["checkpoint"]).is_relative_to(ROOT):
-            params["checkpoint"] = str(Path(params["checkpoint"]).relative_to(ROOT))
-        decoders[policy["name"]] = {
-            "params": params,
-            "checkpoint_sha256": policy["checkpoint_sha256"],
-            "prefix_len": cfg.prefix_len,
-            "action_tokens": cfg.action_tokens,
-            "chunks": [
-                {
-                    "task": int(row.task_index),
-                    "episode": int(row.episode_index),
-                    "chunk": int(row.chunk),
-                    "query": [to_runs(q) for q in row.query],
-                    "prefix": [int(p) for p in row.prefix],
-                    "cached": [int(c) for c in row.cached],
-                }
-                for row in mine.itertuples()
-            ],
-        }
-    record = {
-        "source": f"{manifest['suite']['name']}, run {manifest['run_id']}",
-        "commands": [RECORD, EXTRACT],
-        "decoders": decoders,
-    }
-    lines = json.dumps({k: v for k, v in record.items() if k != "decoders"}, indent=1)[:-2]
-    body = []  # one chunk a line: small, and diffs read per chunk
-    for name, d in decoders.items():
-        head = json.dumps({k: v for k, v in d.items() if k != "chunks"})[:-1]
-        chunks = ",\n".join("    " + json.dumps(c, separators=(",", ":")) for c in d["chunks"])
-        body.append(f'  {json.dumps(name)}: {head}, "chunks": [\n{chunks}\n  ]}}')
-    text = lines + ',\n "decoders": {\n' + ",\n".join(body) + "\n }\n}\n"
-    assert json.loads(text) == record
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    Path(out).write_text(text)
-    return record
-
-
-def load_traces(path: str | Path = TRACES) -> dict[str, dict]:
-    """Per recorded decoder: its record, with `chunks` as Chunk objects at the recorded prefix."""
-    record = json.loads(Path(path).read_text())
-    out = {}
-    for name, d in record["decoders"].items():
-        chunks = [
-            Chunk([from_runs(q) for q in c["query"]], [bool(p) for p in c["prefix"]], c["cached"])
-            for c in d["chunks"]
-        ]
-        out[name] = {**d, "chunks": chunks}
-    return out
 
 
 def decode(name: str, model, words, state):
-    """The decoder itself, default parameters (bidirectional T = 12)."""
+    """The decoder itself, default parameters (bidirectional T = 12; the reference row is
+    `bidirectional:cache_prefix=true`)."""
     from policies.dvla import decoders as d
     from policies.dvla.fast_dllm import decode_fast_dllm
     from policies.dvla.fast_dvla import decode_fast_dvla
 
     return {
         "bidirectional": lambda: d.decode_bidirectional(model, words, state, steps=12),
+        "bidirectional_cached": lambda: d.decode_bidirectional(
+            model, words, state, steps=12, reuse_prefix_cache=True
+        ),
         "fast_dllm": lambda: decode_fast_dllm(model, words, state),
         "block_diffusion": lambda: d.decode_block_diffusion(model, words, state),
         "fast_dvla": lambda: decode_fast_dvla(model, words, state),
@@ -301,9 +219,9 @@ def build(shape: dict, device: str) -> tuple[dict, tuple, dict]:
     from policies.dvla.model import ActionTokenModel, ModelConfig
 
     models = {}
-    for pattern in sorted(set(PATTERN.values())):
+    for kind, options in MODELS.items():
         torch.manual_seed(0)
-        models[pattern] = ActionTokenModel(ModelConfig(**shape, pattern=pattern)).eval().to(device)
+        models[kind] = ActionTokenModel(ModelConfig(**shape, **options)).eval().to(device)
     linears = sum(isinstance(m, torch.nn.Linear) for m in models["bidirectional"].modules())
     packed = 0
     for model in models.values():
@@ -395,18 +313,24 @@ def measure(
                     + ", ".join(f"{n} {samples[n][-1]['ms_per_chunk']:.0f} ms" for n in decoders)
                 )
     rows = []
-    base = samples.get("bidirectional")
     for name in decoders:
         mine = samples[name]
         ms, ms_ci = mean_ci([s["ms_per_chunk"] for s in mine])
         row = {"decoder": name, "source": "recorded" if name in RECORDED else "generated"}
-        for key in ("nfe", "prefix_passes", "query_tokens", "tokens_run", "cached_read"):
+        for key in COUNTS:
             row[key] = statistics.fmean(s[key] for s in mine)
         row |= {"ms_per_chunk": ms, "ms_per_chunk_ci95": ms_ci, "chunks_timed": rounds * chunks}
         row["tokens_per_s"] = cfg.action_tokens * 1000 / ms
-        if base:
-            ratios = [b["ms_per_chunk"] / s["ms_per_chunk"] for b, s in zip(base, mine, strict=True)]
-            row["speedup_vs_bidirectional"], row["speedup_ci95"] = mean_ci(ratios)
+        speedups = (
+            ("bidirectional", "speedup_vs_bidirectional", "speedup_ci95"),
+            (REFERENCE, "speedup_vs_cached", "speedup_vs_cached_ci95"),
+        )
+        for base, key, ci in speedups:
+            if base in samples:
+                ratios = [
+                    b["ms_per_chunk"] / s["ms_per_chunk"] for b, s in zip(samples[base], mine, strict=True)
+                ]
+                row[key], row[ci] = mean_ci(ratios)
         row["all_chunks"] = whole[name]
         if device == "cuda":
             row["peak_gpu_mb"] = max(s["peak_gpu_mb"] for s in mine)
@@ -421,6 +345,10 @@ def measure(
     }
 
 
+def _speed(r: dict, key: str, ci: str) -> str:
+    return f"{r[key]:.2f}x ± {r[ci]:.2f}" if ci in r else ""
+
+
 def report(result: dict) -> None:
     threads = result["threads"]
     print(
@@ -430,19 +358,36 @@ def report(result: dict) -> None:
         f"({result['packed_linears']} layers packed)"
     )
     print(
-        f"{'decoder':16}{'source':>10}{'NFE':>7}{'prefix':>8}{'queries':>9}{'tokens run':>12}"
-        f"{'cached read':>13}{'ms/chunk':>18}{'speedup':>16}"
+        f"{'decoder':21}{'source':>10}{'NFE':>6}{'prefix':>7}{'queries':>8}{'run':>6}{'cached':>8}"
+        f"{'kv attended':>12}{'scores':>10}{'ms/chunk':>16}{'vs bidirectional':>17}{'vs cached':>14}"
     )
     for r in result["rows"]:
         ms = f"{r['ms_per_chunk']:.1f} ± {r['ms_per_chunk_ci95']:.1f}"
-        speed = (
-            f"{r['speedup_vs_bidirectional']:.2f}x ± {r['speedup_ci95']:.2f}" if "speedup_ci95" in r else ""
-        )
         print(
-            f"{r['decoder']:16}{r['source']:>10}{r['nfe']:>7.1f}{r['prefix_passes']:>8.1f}{r['query_tokens']:>9.0f}"
-            f"{r['tokens_run']:>12.0f}{r['cached_read']:>13.0f}{ms:>18}{speed:>16}"
+            f"{r['decoder']:21}{r['source']:>10}{r['nfe']:>6.1f}{r['prefix_passes']:>7.1f}"
+            f"{r['query_tokens']:>8.0f}{r['tokens_run']:>6.0f}{r['cached_read']:>8.0f}"
+            f"{r['kv_attended']:>12.0f}{r['scores'] / 1000:>9.0f}k{ms:>16}"
+            f"{_speed(r, 'speedup_vs_bidirectional', 'speedup_ci95'):>17}"
+            f"{_speed(r, 'speedup_vs_cached', 'speedup_vs_cached_ci95'):>14}"
         )
-    print("(per chunk: means over the timed chunks; ± is a 95% Student t interval over rounds)")
+    print(
+        "(per chunk, means over the timed chunks: forward passes, passes computing the prefix, action "
+        "queries, positions run, cached keys/values read, keys/values attended, query-key scores; "
+        "± is a 95% Student t interval over rounds)"
+    )
+    rows = {r["decoder"]: r for r in result["rows"]}
+    ref = rows.get(REFERENCE, {})
+    if "speedup_vs_bidirectional" in ref:
+        print(
+            f"split: caching the prefix alone buys {ref['speedup_vs_bidirectional']:.2f}x "
+            f"({REFERENCE} over bidirectional); over the cached reference:"
+        )
+        for r in result["rows"]:
+            if r["decoder"] not in ("bidirectional", REFERENCE) and "speedup_vs_cached" in r:
+                print(
+                    f"  {r['decoder']}: {r['speedup_vs_cached']:.2f}x ({r['nfe']:.1f} passes against {ref['nfe']:.0f}, "
+                    f"{r['tokens_run'] / ref['tokens_run']:.2f}x the positions run)"
+                )
     for r in result["rows"]:
         if r["source"] == "recorded":
             a = r["all_chunks"]

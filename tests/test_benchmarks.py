@@ -114,7 +114,8 @@ def test_replay_runs_the_recorded_passes(bench, tiny, name):
 
 
 @pytest.mark.parametrize(
-    "name", ["bidirectional", "block_diffusion", "autoregressive", "fast_dvla", "fast_dllm"]
+    "name",
+    ["bidirectional", "bidirectional_cached", "block_diffusion", "autoregressive", "fast_dvla", "fast_dllm"],
 )
 def test_replay_of_a_decoders_own_trace_makes_its_calls(bench, tiny, name):
     """A decode's passes, replayed, are the decoder's own calls (fixed-schedule decoders'
@@ -132,7 +133,41 @@ def test_replay_of_a_decoders_own_trace_makes_its_calls(bench, tiny, name):
     assert [pre for _, pre, _ in decoded] == chunk.prefix and [c for *_, c in decoded] == chunk.cached
 
 
-def test_worker_times_every_decoder_side_by_side(bench):
+def test_the_reference_row_decodes_the_bidirectional_rows_tokens(bench, tiny):
+    """The prefix-cached reference is the bidirectional decode with less work: on the
+    benchmark's own models, same tokens and commits, the prefix computed once."""
+    import torch
+
+    models, (words, state), _ = tiny
+    with torch.inference_mode():
+        plain = bench.decode("bidirectional", models[bench.PATTERN["bidirectional_cached"]], words, state)
+        cached = bench.decode(
+            "bidirectional_cached", models[bench.PATTERN["bidirectional_cached"]], words, state
+        )
+    assert torch.equal(plain.tokens, cached.tokens)
+    assert [p.committed for p in plain.passes] == [p.committed for p in cached.passes]
+    assert sum(p.prefix for p in plain.passes) == 12 and sum(p.prefix for p in cached.passes) == 1
+    # its model shares the bidirectional one's weights; only the prefix's mask differs
+    a, b = models["bidirectional"].state_dict(), models[bench.PATTERN["bidirectional_cached"]].state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not models[bench.PATTERN["bidirectional_cached"]].cfg.prefix_sees_actions
+
+
+def test_chunk_counts_what_each_pass_processes(bench):
+    # a prefix pass over 2 queries, then 3 queries against a cache of 10 (prefix of 8)
+    counts = bench.Chunk([[0, 1], [2, 3, 4]], [True, False], [0, 10]).counts(8)
+    assert counts == {
+        "nfe": 2,
+        "prefix_passes": 1,
+        "query_tokens": 5,
+        "tokens_run": 13,
+        "cached_read": 10,
+        "kv_attended": 10 + 13,
+        "scores": 10 * 10 + 3 * 13,
+    }
+
+
+def test_worker_times_every_decoder_side_by_side(bench, capsys):
     import torch
 
     grad = torch.is_grad_enabled()
@@ -145,9 +180,27 @@ def test_worker_times_every_decoder_side_by_side(bench):
     assert list(rows) == list(bench.DECODERS) and result["device"] == "cpu"
     assert rows["bidirectional"]["nfe"] == 12 and rows["bidirectional"]["cached_read"] == 0
     assert rows["bidirectional"]["speedup_vs_bidirectional"] == pytest.approx(1.0)
+    p, a = result["prefix_len"], result["action_tokens"]
+    ref = rows["bidirectional_cached"]  # one prefix pass, 11 passes of the actions against it
+    assert (ref["nfe"], ref["prefix_passes"], ref["query_tokens"]) == (12, 1, 12 * a)
+    assert ref["tokens_run"] == p + 12 * a and ref["cached_read"] == 11 * p
+    assert ref["kv_attended"] == rows["bidirectional"]["kv_attended"] == 12 * (p + a)
+    assert ref["scores"] == (p + a) ** 2 + 11 * a * (p + a)
+    assert rows["bidirectional"]["scores"] == 12 * (p + a) ** 2
+    assert ref["speedup_vs_cached"] == pytest.approx(1.0)
+    for row in rows.values():
+        assert {
+            "speedup_vs_bidirectional",
+            "speedup_ci95",
+            "speedup_vs_cached",
+            "speedup_vs_cached_ci95",
+        } <= set(row)
+    bench.report(result)
+    table = capsys.readouterr().out
+    assert "bidirectional_cached" in table and "vs cached" in table and "kv attended" in table
+    assert "caching the prefix alone buys" in table and "  fast_dvla: " in table
     assert rows["autoregressive"]["nfe"] == 56 and rows["autoregressive"]["query_tokens"] == 56
     assert rows["block_diffusion"]["nfe"] == 32
-    p = result["prefix_len"]
     # autoregressive pass i reads the prefix and tokens 0..i-1
     assert rows["autoregressive"]["cached_read"] == sum(p + i for i in range(1, 56))
     for row in rows.values():

@@ -91,6 +91,13 @@ FAST_DVLA_PIPELINED = {"tau_conf": 0.5, "tau_add": 0.0, "tau_act": 0.9, "n": 2}
             {"steps": 5, "reuse_prefix_cache": True},
         ),
         (
+            "bidirectional, exact prefix cache, as benchmarks/decoders.py's reference row",
+            "bidirectional",
+            {"prefix_sees_actions": False},
+            decode_bidirectional,
+            {"steps": 12, "schedule": "cosine", "confidence": "max_prob", "reuse_prefix_cache": True},
+        ),
+        (
             "block_diffusion",
             "block_causal",
             {"block_size": 4},
@@ -224,3 +231,18 @@ def test_fast_dvla_with_random_block_sizes_attends_by_its_own_partition():
     assert sorted(p for step in out.trace for p in step) == list(range(16))
     with pytest.raises(ValueError, match="do not partition"):
         decode_fast_dvla(model, words, state, block_sizes=[4, 4, 4])
+
+
+@pytest.mark.parametrize("steps", [5, 12])
+def test_an_exact_prefix_cache_decodes_the_plain_decodes_tokens(steps):
+    """The prefix-cached bidirectional decode (the speed benchmark's reference row) is the
+    plain one computed with less work: same tokens, same commits per step, prefix once."""
+    model = tiny_model("bidirectional", prefix_sees_actions=False)
+    words, state = _inputs(batch=3)
+    with torch.no_grad():
+        plain = decode_bidirectional(model, words, state, steps=steps)
+        cached = decode_bidirectional(model, words, state, steps=steps, reuse_prefix_cache=True)
+    assert torch.equal(plain.tokens, cached.tokens)
+    assert [p.committed for p in plain.passes] == [p.committed for p in cached.passes]
+    assert [p.prefix for p in plain.passes] == [True] * steps
+    assert [p.prefix for p in cached.passes] == [True] + [False] * (steps - 1)

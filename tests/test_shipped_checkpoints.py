@@ -136,3 +136,41 @@ def test_the_chain_set_on_the_language_only_suite_names_the_option(cli, tmp_path
     code, _, err = cli(*args.split(), "--out", str(out), "--quiet")
     assert code == 2 and "goal_positions=on" in err, err
     assert not out.exists()
+
+
+def paper_deviations(train_config: dict) -> str:
+    """What a checkpoint's training does that its recipe's paper does not, read from its
+    header's train_config (the shared ones, model size and data, are stated once above
+    the README's table): Fast-dVLA distils with D2F's noise profile and LoRA rank 32,
+    BD3-LM trains block diffusion with clean context, neither adds other losses."""
+    recipe, schedule = train_config["recipe"], train_config.get("noise_schedule", "")
+    out = []
+    if recipe == "distill":
+        if schedule != "d2f":
+            out.append(f"`{schedule}` noise schedule (paper: D2F's rising profile, `--noise-schedule d2f`)")
+        out.append("full fine-tuning (paper: LoRA rank 32)")
+        if train_config.get("demo_ce", 0.0):
+            out.append(f"`--demo-ce {train_config['demo_ce']}` (not in the paper)")
+    if recipe == "block_diffusion" and schedule != "clean_context":
+        out.append(f"`{schedule}` noise schedule (BD3-LM: clean context)")
+    if train_config.get("ema", 0.0):
+        out.append(f"`--ema {train_config['ema']}` (not in the paper)")
+    return "; ".join(out) or "none beyond those shared by every set"
+
+
+def test_the_checkpoint_readme_names_each_checkpoints_deviations_from_its_paper():
+    """Every shipped checkpoint has a row, and its deviations are its header's, so a
+    retrained file with another schedule or loss cannot keep a stale label."""
+    import json
+
+    readme = (SHIPPED / "README.md").read_text()
+    sidecars = sorted(SHIPPED.glob("*.json"))
+    assert len(sidecars) == len(list(SHIPPED.glob("*.safetensors")))
+    for sidecar in sidecars:
+        train_config = json.loads(sidecar.read_text())["meta"]["train_config"]
+        row = next((line for line in readme.splitlines() if line.startswith(f"| `{sidecar.stem}` |")), None)
+        assert row, f"{sidecar.stem} has no row in policies/checkpoints/README.md"
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[1] == train_config["recipe"] and cells[-1] == paper_deviations(train_config), row
+    # the shipped students are not trained with the paper's schedule, and the table says so
+    assert "`frontier` noise schedule" in readme and "`--demo-ce 0.5` (not in the paper)" in readme
