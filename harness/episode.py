@@ -28,6 +28,7 @@ import numpy as np
 
 from adapters.base import EpisodeSpec
 from harness.nfe import NFECounter
+from harness.work import Work
 from policies.base import EpisodeContext, Policy
 
 
@@ -57,6 +58,8 @@ class EpisodeOutcome:
     subtasks_completed: int | None = None
     # Remote policies: the part of policy_time_s that was not the server's own policy time.
     transport_time_s: float | None = None
+    # Counted work of its passes (harness/work.py); a None field: not measured.
+    work: Work = dataclasses.field(default_factory=Work)
 
 
 def remote_policy(policy: Any) -> Any:
@@ -124,6 +127,7 @@ def run_episode(
     traces: list[dict[str, Any]] | None = [] if record_traces else None
     info: dict[str, Any] = {}
     nfe.take()
+    nfe.take_work()
     remote = remote_policy(policy)
     if remote is not None:
         remote.take_remote()
@@ -178,16 +182,19 @@ def run_episode(
         success = False
     wall = clock() - start
     passes: int | None = nfe.take()
+    work = nfe.take_work()
     transport = None
     if remote is not None:  # the server's hooks counted its passes; None if it reports none
         totals = remote.take_remote()
         passes = None if totals.nfe is None else passes + totals.nfe
+        work += totals.work
         transport = max(0.0, policy_time - totals.server_time_s)
     return EpisodeOutcome(
         success=success,
         steps=steps,
         chunks=chunks,
         nfe_total=passes,
+        work=work,
         transport_time_s=transport,
         action_tokens_total=tokens,
         policy_time_s=policy_time,
