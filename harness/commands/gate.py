@@ -30,6 +30,11 @@ What fails the gate:
             its 5/5 chains hold.
   NFE       any increase of NFE per chunk (forward passes are counted, not timed,
             so they are exact for deterministic decoders), unless --allow-nfe-increase.
+  work      any increase of counted work per chunk (FLOPs of the passes' matrix
+            products, read from tensor shapes by the same hooks: exact on any machine
+            under any load), unless --allow-work-increase. Not measured on either side
+            (a remote server that reports none, rows from before it was recorded):
+            not compared, said in a note.
   tokens/s  a slowdown beyond --max-slowdown of each configuration's tokens/s relative
             to a reference decoder's (--reference, default bidirectional) timed in the
             same run, episode by episode, against the same ratio in the baseline run:
@@ -97,6 +102,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--allow-nfe-increase", action="store_true", help="report NFE/chunk increases but do not fail"
     )
+    p.add_argument(
+        "--allow-work-increase",
+        action="store_true",
+        help="report counted work (GFLOP/chunk) increases but do not fail",
+    )
     p.set_defaults(func=cmd_gate)
 
 
@@ -111,11 +121,13 @@ def render(result: GateResult, title: str) -> Table:
     table = Table(
         *columns,
         "NFE/chunk",
+        "GFLOP/chunk",
         "tokens/s vs ref.",
         "verdict",
         title=title,
         caption=(
-            "successes and NFE/chunk: baseline -> candidate; * = significant drop; tokens/s vs ref.: "
+            "successes, NFE/chunk and GFLOP/chunk (counted work): baseline -> candidate; "
+            "* = significant drop; tokens/s vs ref.: "
             "change of tokens/s over the reference decoder's in the same run"
             + ("; subtasks/chain: mean subtasks completed, chains paired" if chains else "")
         ),
@@ -132,6 +144,7 @@ def render(result: GateResult, title: str) -> Table:
                 ("success", t.success_regressed),
                 ("chain length", t.length_regressed),
                 ("NFE", t.nfe_increased and t.nfe_gated),
+                ("work", t.work_increased and t.work_gated),
                 ("speed", s is not None and s.regressed),
             )
             if hit
@@ -146,12 +159,20 @@ def render(result: GateResult, title: str) -> Table:
             f"{t.p_value:.3g}" + (" *" if t.success_regressed else ""),
             *([_length_cell(t)] if chains else []),
             nfe + (" (up)" if t.nfe_increased else ""),
+            _work_cell(t),
             _speed_cell(t.task, t.pair, s, skipped, result.reference),
             "[red]FAIL " + ", ".join(bad) + "[/red]" if bad else "[green]ok[/green]",
             end_section=t.task == "ALL",
         )
         previous = t.pair
     return table
+
+
+def _work_cell(t: TaskDiff) -> str:
+    if t.baseline_work is None or t.candidate_work is None:
+        return "not measured" if t.task == "ALL" else "-"
+    text = f"{t.baseline_work / 1e9:.3f} -> {t.candidate_work / 1e9:.3f}"
+    return text + (" (up)" if t.work_increased else "")
 
 
 def _length_cell(t: TaskDiff) -> str:
@@ -196,6 +217,7 @@ def cmd_gate(args: argparse.Namespace) -> int:
             alpha=args.alpha,
             max_slowdown=args.max_slowdown,
             allow_nfe_increase=args.allow_nfe_increase,
+            allow_work_increase=args.allow_work_increase,
             reference=args.reference,
         )
     except GateInputError as exc:
@@ -210,7 +232,10 @@ def cmd_gate(args: argparse.Namespace) -> int:
     for warning in result.warnings:
         console.print(f"[yellow]warning[/yellow]: {warning}")
     if result.passed:
-        console.print("[green]gate passed[/green]: no significant success drop, no NFE increase, no slowdown")
+        console.print(
+            "[green]gate passed[/green]: no significant success drop, no NFE or counted work increase, "
+            "no slowdown"
+        )
         return 0
     err_console.print("[red]gate failed[/red]:\n  " + "\n  ".join(result.failures))
     return 1
