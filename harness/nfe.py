@@ -75,7 +75,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from harness.work import ATTENTION, Work, attention_work, cost_of, unseen_kind
+from harness.work import ATTENTION, LINEAR, Work, attention_work, cost_of, unseen_kind
 
 _starts_pass_cache: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
 _counting: NFECounter | None = None  # the counter inside counting(), if any
@@ -119,31 +119,47 @@ def work_plan(module: Any) -> tuple[bool, list[Any]]:
     cached = _plan_cache.get(module)
     if cached is None:
         below = list(module.modules())[1:]
-        cached = (
-            not any(unseen_kind(m) for m in (module, *below)),
-            [m for m in below if cost_of(m) is not None],
-        )
+        if any(_is_compiled(m) for m in (module, *below)):
+            cached = (False, [])  # its modules run in a compiled graph, unseen (and untouched)
+        else:
+            cached = (
+                not any(unseen_kind(m) for m in (module, *below)),
+                [m for m in below if cost_of(m) is not None],
+            )
         _plan_cache[module] = cached
     return cached
 
 
 class _Counted:
     """A counted module's `forward`, wrapped for one policy call: counts the call's work
-    while a single-thread pass is open, then runs the forward it replaced. A wrapper
-    costs one Python call; a forward pre-hook sends every call through torch's slow
-    hook path (~5 us a call, 4x the NFE counter's own cost on the shipped models)."""
+    while a single-thread pass is open (and the module is not that pass's own module,
+    which the process-wide hook counted), then runs the forward it replaced. A wrapper
+    costs a Python call; a forward pre-hook would send every call through torch's slow
+    hook path, ~5 us a call (4x the NFE counter's own cost on the shipped models)."""
 
     def __init__(self, counter: NFECounter, module: Any):
         self.module = weakref.ref(module)
         self.own = module.__dict__.get("forward")  # an instance's own forward, kept as it was
         inner, cost = module.forward, cost_of(module)
+        if cost is LINEAR:  # most counted calls: the count inlined, no call of its own
+            per_element = 2 * module.out_features
 
-        def forward(*args: Any, **kwargs: Any) -> Any:
-            if counter._pass_module is not None and counter._pass_module is not module_ref():
-                counter._count(module_ref(), args, cost, counter._pass_tid)
-            return inner(*args, **kwargs)
+            def forward(*args: Any, **kwargs: Any) -> Any:
+                opened = counter._pass_module
+                if opened is not None and opened is not module:
+                    if args:
+                        counter._flops += per_element * args[0].numel()
+                    else:  # the input passed by keyword: its shape is not in reach
+                        counter._flops_measured = False
+                return inner(*args, **kwargs)
+        else:
 
-        module_ref = self.module
+            def forward(*args: Any, **kwargs: Any) -> Any:
+                opened = counter._pass_module
+                if opened is not None and opened is not module:
+                    counter._count(module, args, cost, counter._pass_tid)
+                return inner(*args, **kwargs)
+
         module.__dict__["forward"] = forward
 
     def remove(self) -> None:

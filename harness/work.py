@@ -161,7 +161,7 @@ COUNTED: dict[tuple[str, str], Callable[[Any, tuple], int | None]] = {
     ("torch.nn.modules.conv", "Conv3d"): _conv,
     ("policies.dvla.model", "Attention"): _attention,
 }
-ATTENTION = _attention
+ATTENTION, LINEAR = _attention, _linear
 # Kinds that hold parameters but compute no matrix product: they do not make a pass's
 # FLOPs unmeasurable.
 NO_PRODUCTS = frozenset(
