@@ -90,7 +90,9 @@ def main() -> None:
         "cpu": platform.processor() or platform.machine(),
         "torch": torch.__version__,
         "us_per_pass_median": {k: round(v, 1) for k, v in median.items()},
-        "added_us_per_pass": {k: round(v - median["no counter"], 1) for k, v in median.items() if k != "no counter"},
+        "added_us_per_pass": {
+            k: round(v - median["no counter"], 1) for k, v in median.items() if k != "no counter"
+        },
     }
     print(json.dumps(result, indent=2))
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")

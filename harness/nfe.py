@@ -59,6 +59,30 @@ process-wide hooks left on) cost 75-135 us per pass. With other Python threads a
 a pass keeps the process-wide hooks on and nests per thread, so no thread's module
 calls go unseen.
 
+Counted work (harness/work.py says what is counted and why). The same hooks count how
+big each pass was: FLOPs of the matrix products of the counted module kinds (nn.Linear,
+PackedLinear, nn.Conv*, and attention through the parameter-free `Attention` module of
+policies/dvla/model.py, the hook point that shows the hooks the query and key shapes),
+and per pass the query, key/value and cached key/value positions of its attention. All
+are read from the shapes of the tensors a module is called with, never from anything the
+policy reports. Between passes, and during threaded passes, the process-wide pre-hook
+sees every counted module and counts it. A single-thread pass takes that hook off, so
+its module's counted modules (found once per module, cached like the pass decision) get
+their `forward` wrapped for the rest of the policy call: the wrapper counts while a
+single-thread pass is open and is removed with the other hooks when the call ends, so
+nothing runs wrapped outside counting. A wrapper, not a forward pre-hook: a pre-hook
+sends each call through torch's slow hook path (~5 us a call; 23 counted calls per MT10
+pass made the counter 4x dearer), a wrapper costs one Python call. A pass module that
+holds parameters in a kind whose products are not counted, or a compiled module (its
+modules run in a graph, unseen, and are left untouched), leaves the call's FLOPs not
+measured (`take_work()` gives None), never an under-count. Limitation: in a
+single-thread pass, a counted module outside the pass module's subtree (held in a
+closure, called from its forward) is not wrapped, so its work is not seen; the shipped
+models hold all their modules. Measured (benchmarks/counter_overhead.py, thread CPU time,
+MT10's shape, 8 passes a call, a 2-core EPYC at load ~9 where every figure is ~4x an idle
+machine's): the counter added 118 us per pass at width 8 (NFE alone, before counted work:
+50 us) and 180 us per ~1.26 ms pass at the shipped width 128 (NFE alone: 93 us).
+
 Only one counter counts at a time (the runner interleaves policies one call at a time,
 so each counter sees only its own policy's calls); entering `counting()` while another
 counter is counting raises RuntimeError. The hooks are removed when the call ends,
