@@ -116,12 +116,14 @@ def _fmt(value: float | None, digits: int = 2) -> str:
 
 def render(result: GateResult, title: str) -> Table:
     chains = any(t.length_p is not None for t in result.tasks)
+    # counted work: a column when either run measured it (a note says when it is not compared)
+    work = any(t.baseline_work is not None or t.candidate_work is not None for t in result.tasks)
     columns = ["configuration", "task", "episodes", "successes", "drops/gains", "p (drop)"]
     columns += ["subtasks/chain (shorter/longer, p)"] if chains else []
     table = Table(
         *columns,
         "NFE/chunk",
-        "GFLOP/chunk",
+        *(["GFLOP/chunk"] if work else []),
         "tokens/s vs ref.",
         "verdict",
         title=title,
@@ -159,7 +161,7 @@ def render(result: GateResult, title: str) -> Table:
             f"{t.p_value:.3g}" + (" *" if t.success_regressed else ""),
             *([_length_cell(t)] if chains else []),
             nfe + (" (up)" if t.nfe_increased else ""),
-            _work_cell(t),
+            *([_work_cell(t)] if work else []),
             _speed_cell(t.task, t.pair, s, skipped, result.reference),
             "[red]FAIL " + ", ".join(bad) + "[/red]" if bad else "[green]ok[/green]",
             end_section=t.task == "ALL",
@@ -170,7 +172,7 @@ def render(result: GateResult, title: str) -> Table:
 
 def _work_cell(t: TaskDiff) -> str:
     if t.baseline_work is None or t.candidate_work is None:
-        return "not measured" if t.task == "ALL" else "-"
+        return "-"
     text = f"{t.baseline_work / 1e9:.3f} -> {t.candidate_work / 1e9:.3f}"
     return text + (" (up)" if t.work_increased else "")
 
