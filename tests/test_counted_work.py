@@ -272,3 +272,14 @@ def test_the_gate_cli_prints_the_work_column_and_takes_the_flag(cli, tmp_path):
     assert "counted work 0.1 -> 0.13 GFLOP/chunk (+30.00%)" in err
     code, out, _ = cli("gate", "--baseline", str(base), "--candidate", str(cand), "--allow-work-increase")
     assert code == 0 and "(up)" in out
+
+
+def test_leaderboard_and_show_print_gflop_per_chunk_and_not_measured_for_old_rows(cli, tmp_path):
+    measured = write_run(tmp_path / "new", table(2.5e8).assign(flops_per_chunk=2.5e8))
+    old = write_run(tmp_path / "old", table(None))
+    code, text, _ = cli("leaderboard", str(measured), "--format", "md")
+    assert code == 0 and "GFLOP/chunk" in text and "| 0.250 |" in text
+    code, text, _ = cli("leaderboard", str(old), "--format", "md")
+    assert code == 0 and "not measured" in text
+    code, text, _ = cli("show", str(measured))
+    assert code == 0 and "GFLOP/chunk" in text and "0.250" in text
