@@ -67,21 +67,22 @@ and per pass the query, key/value and cached key/value positions of its attentio
 are read from the shapes of the tensors a module is called with, never from anything the
 policy reports. Between passes, and during threaded passes, the process-wide pre-hook
 sees every counted module and counts it. A single-thread pass takes that hook off, so
-its module's counted modules (found once per module, cached like the pass decision) get
-their `forward` wrapped for the rest of the policy call: the wrapper counts while a
-single-thread pass is open and is removed with the other hooks when the call ends, so
-nothing runs wrapped outside counting. A wrapper, not a forward pre-hook: a pre-hook
-sends each call through torch's slow hook path (~5 us a call; 23 counted calls per MT10
-pass made the counter 4x dearer), a wrapper costs one Python call. A pass module that
-holds parameters in a kind whose products are not counted, or a compiled module (its
-modules run in a graph, unseen, and are left untouched), leaves the call's FLOPs not
-measured (`take_work()` gives None), never an under-count. Limitation: in a
-single-thread pass, a counted module outside the pass module's subtree (held in a
-closure, called from its forward) is not wrapped, so its work is not seen; the shipped
-models hold all their modules. Measured (benchmarks/counter_overhead.py, thread CPU time,
-MT10's shape, 8 passes a call, a 2-core EPYC at load ~9 where every figure is ~4x an idle
-machine's): the counter added 118 us per pass at width 8 (NFE alone, before counted work:
-50 us) and 180 us per ~1.26 ms pass at the shipped width 128 (NFE alone: 93 us).
+its module's counted modules (found once per policy call, so a layer swapped between
+calls is counted as what it is now) get their `forward` wrapped for the rest of the
+call: the wrapper counts while a single-thread pass is open and is removed with the
+other hooks when the call ends, so nothing runs wrapped outside counting. A wrapper,
+not a forward pre-hook: a pre-hook sends each call through torch's slow hook path
+(~5 us a call; 23 counted calls per MT10 pass made the counter 4x dearer), a wrapper
+costs one Python call. A pass module that holds parameters in a kind whose products
+are not counted, or a compiled module (its modules run in a graph, unseen, and are
+left untouched), leaves the call's FLOPs not measured (`take_work()` gives None), never
+an under-count. Limitation: in a single-thread pass, a counted module outside the pass
+module's subtree (held in a closure, called from its forward) is not wrapped, so its
+work is not seen; the shipped models hold all their modules. Measured
+(benchmarks/counter_overhead.py, thread CPU time, MT10's shape, 8 passes a call, on a
+2-core EPYC at load 8-12, where every figure is ~4x an idle machine's): the counter
+added 118-141 us per pass at width 8 (NFE alone, before counted work: 47-50 us) and
+150-180 us per 1.3-1.4 ms pass at the shipped width 128 (NFE alone: 85-93 us).
 
 Only one counter counts at a time (the runner interleaves policies one call at a time,
 so each counter sees only its own policy's calls); entering `counting()` while another
@@ -133,25 +134,16 @@ def starts_pass(module: Any) -> bool:
     return decision
 
 
-_plan_cache: weakref.WeakKeyDictionary[Any, tuple[bool, list[Any]]] = weakref.WeakKeyDictionary()
-
-
 def work_plan(module: Any) -> tuple[bool, list[Any]]:
     """For a pass-starting module: can its passes' FLOPs be measured (no module in its
     subtree holds parameters in a kind whose products are not counted), and its counted
-    modules, below itself, that a single-thread pass hooks (cached like `starts_pass`)."""
-    cached = _plan_cache.get(module)
-    if cached is None:
-        below = list(module.modules())[1:]
-        if any(_is_compiled(m) for m in (module, *below)):
-            cached = (False, [])  # its modules run in a compiled graph, unseen (and untouched)
-        else:
-            cached = (
-                not any(unseen_kind(m) for m in (module, *below)),
-                [m for m in below if cost_of(m) is not None],
-            )
-        _plan_cache[module] = cached
-    return cached
+    modules below itself, which a single-thread pass wraps. Made afresh in each policy
+    call (NFECounter keeps it for the call), so a layer swapped since the last call (a
+    linear prepacked after a first pass) is counted as what it is now."""
+    below = list(module.modules())[1:]
+    if any(_is_compiled(m) for m in (module, *below)):
+        return False, []  # its modules run in a compiled graph, unseen (and left untouched)
+    return not any(map(unseen_kind, (module, *below))), [m for m in below if cost_of(m) is not None]
 
 
 class _Counted:
@@ -219,6 +211,7 @@ class NFECounter:
         self._local: weakref.WeakKeyDictionary[Any, list[Any]] = weakref.WeakKeyDictionary()
         # Counted work (harness/work.py), cleared by take_work():
         self._leaf_hooks: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
+        self._plans: weakref.WeakKeyDictionary[Any, tuple[bool, list[Any]]] = weakref.WeakKeyDictionary()
         self._flops = 0
         self._flops_measured = True
         self._work_passes = 0  # passes since take_work()
@@ -270,6 +263,7 @@ class NFECounter:
             self._pre = self._post = self._hooks = None
             self._local.clear()
             self._leaf_hooks.clear()
+            self._plans.clear()
             for tid in list(self._open_tokens):  # no pass outlives the policy call
                 self._close_tokens(tid)
             self._pass_module = self._pass_args = self._pass_frame = None  # an exception leaves
@@ -321,7 +315,7 @@ class NFECounter:
                 return False
             post = module.register_forward_hook(self._returned, always_call=True)
             self._local[module] = [pre, post]
-            for leaf in work_plan(module)[1]:  # the pass's counted modules count their work
+            for leaf in self._plan(module)[1]:  # the pass's counted modules count their work
                 if leaf not in self._leaf_hooks:
                     self._leaf_hooks[leaf] = _Counted(self, leaf)
         for handle in (self._pre, self._post):
@@ -384,8 +378,14 @@ class NFECounter:
     def _pass_started(self, module: Any, tid: int) -> None:
         self._close_tokens(tid)  # this thread's previous pass has ended
         self._work_passes += 1
-        if not work_plan(module)[0]:
+        if not self._plan(module)[0]:
             self._flops_measured = False
+
+    def _plan(self, module: Any) -> tuple[bool, list[Any]]:
+        plan = self._plans.get(module)
+        if plan is None:
+            plan = self._plans[module] = work_plan(module)
+        return plan
 
     def _close_tokens(self, tid: int) -> None:
         largest = self._open_tokens.pop(tid, None)

@@ -191,9 +191,13 @@ def cost_of(module: Any) -> Callable[[Any, tuple], int | None] | None:
 
 def unseen_kind(module: Any) -> bool:
     """Does `module` hold parameters of its own in a kind whose products are not counted?"""
-    if cost_of(module) is not None:
-        return False
     cls = type(module)
-    if (cls.__module__, cls.__qualname__) in NO_PRODUCTS:
-        return False
-    return next(module.parameters(recurse=False), None) is not None
+    plain = _plain.get(cls)
+    if plain is None:
+        plain = _plain[cls] = (
+            cost_of(module) is None and (cls.__module__, cls.__qualname__) not in NO_PRODUCTS
+        )
+    return plain and any(p is not None for p in module._parameters.values())
+
+
+_plain: dict[type, bool] = {}  # per class: neither counted nor free of products

@@ -283,3 +283,14 @@ def test_leaderboard_and_show_print_gflop_per_chunk_and_not_measured_for_old_row
     assert code == 0 and "not measured" in text
     code, text, _ = cli("show", str(measured))
     assert code == 0 and "GFLOP/chunk" in text and "0.250" in text
+
+
+def test_prepacked_linears_count_as_the_linears_they_replace():
+    from policies.dvla.kernels import pack_linears
+
+    model = toy("block_causal")
+    plain = counted(decode_fast_dvla, model)[0]
+    if pack_linears(model, min_elements=0) == 0:
+        pytest.skip("oneDNN prepacking is unavailable here")
+    packed = counted(decode_fast_dvla, model)[0]
+    assert packed == plain
