@@ -34,7 +34,7 @@ Forward passes are counted with the runner's own hooks (harness/nfe.py) around e
 call and returned with it, with the policy's own time, so a remote row keeps honest NFE
 and splits time into policy and transport. Every reply that reports passes also reports
 their counted work under "dvla/work" (harness/work.py: "flops", "query_tokens",
-"kv_tokens", "kv_cached_tokens", integers or null for not measured); a calls batched
+"kv_tokens", "kv_cached_tokens", integers or null for not measured); a call batched
 across clients gives each request its rows' share of the work, as of the tokens. A bad message gets an error text back (the
 protocol's way: openpi clients raise it) and the connection stays open; nothing is
 unpickled; one policy call runs at a time (the NFE hooks count one call at a time).
