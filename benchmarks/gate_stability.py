@@ -150,9 +150,13 @@ def load(condition: str) -> Iterator[None]:
     """Start the condition's load in its own process group; always kill it on the way out."""
     procs: list[subprocess.Popen] = []
     if condition == "busy2":
-        procs = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP], start_new_session=True) for _ in range(2)]
+        procs = [
+            subprocess.Popen([sys.executable, "-c", BUSY_LOOP], start_new_session=True) for _ in range(2)
+        ]
     elif condition == "tests":
-        loop = f"while true; do {sys.executable} -m pytest -q -x -p no:cacheprovider tests >/dev/null 2>&1; done"
+        loop = (
+            f"while true; do {sys.executable} -m pytest -q -x -p no:cacheprovider tests >/dev/null 2>&1; done"
+        )
         procs = [subprocess.Popen(["bash", "-c", loop], cwd=ROOT, start_new_session=True)]
     elif condition != "idle":
         raise ValueError(f"unknown condition {condition!r}; valid: {', '.join(CONDITIONS)}")
@@ -266,9 +270,15 @@ def main(argv: list[str] | None = None) -> int:
         description="False-alarm and detection rates of the CI gate under load (docs/ci-gate.md)."
     )
     parser.add_argument("--n", type=int, default=10, help="trials per condition and candidate (default 10)")
-    parser.add_argument("--conditions", default="idle,busy2", help=f"comma-separated: {', '.join(CONDITIONS)}")
-    parser.add_argument("--candidates", default="unchanged,slow15,morework", help=f"comma-separated: {', '.join(CANDIDATES)}")
-    parser.add_argument("--slowdown", type=float, default=0.15, help="slow15's extra time per pass (default 0.15)")
+    parser.add_argument(
+        "--conditions", default="idle,busy2", help=f"comma-separated: {', '.join(CONDITIONS)}"
+    )
+    parser.add_argument(
+        "--candidates", default="unchanged,slow15,morework", help=f"comma-separated: {', '.join(CANDIDATES)}"
+    )
+    parser.add_argument(
+        "--slowdown", type=float, default=0.15, help="slow15's extra time per pass (default 0.15)"
+    )
     parser.add_argument("--time-box", type=float, default=600.0, help="seconds before one command is stopped")
     parser.add_argument("--json", default=str(ROOT / "benchmarks/results/gate_stability.json"))
     args = parser.parse_args(argv)
@@ -303,7 +313,9 @@ def main(argv: list[str] | None = None) -> int:
         "commands": [" ".join(("dvla-harness", *c)) for c in CI_COMMANDS],
         "slowdown": args.slowdown,
     }
-    out.write_text(json.dumps({"meta": meta, "summary": summary, "trials": results}, indent=1, allow_nan=False))
+    out.write_text(
+        json.dumps({"meta": meta, "summary": summary, "trials": results}, indent=1, allow_nan=False)
+    )
     print(f"wrote {out}")
     return 0
 

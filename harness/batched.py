@@ -18,6 +18,11 @@ What each episode is charged, so that its row means what an unbatched row means:
   time the loop ran, and episodes/s = rows / sum(wall_clock_s) as for unbatched rows.
 - Tokens: a call's action_tokens split equally among its slots (the shipped decoders
   decode the same number of tokens per row).
+- Counted work (FLOPs, query and KV positions; harness/work.py): a call's work split
+  equally among its slots, in integers adding up to it. A batched pass's rows have one
+  shape, so each episode is charged its own row's work: for a decoder with a fixed
+  number of passes the same as unbatched, whatever the batch size; an adaptive one is
+  also charged its row of the passes it waited for, as with NFE.
 
 Failures stay with their episode: an env that raises, or an action of one slot that is
 non-finite, absurd or (under `--out-of-space fail`) outside the action space, fails that slot's episode (its env is rebuilt for the next one).
@@ -49,6 +54,7 @@ from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
 from harness.episode import EpisodeOutcome, chain_fields, check_chunk, in_force, remote_policy
 from harness.errors import UsageError
 from harness.nfe import NFECounter
+from harness.work import Work
 from policies.base import EpisodeContext, can_batch
 
 clock = time.perf_counter
@@ -95,6 +101,7 @@ class _Slot:
     steps: int = 0
     chunks: int = 0
     nfe: int | None = 0  # None once a remote server did not report its passes
+    work: Work = field(default_factory=Work)
     tokens: int = 0
     policy_time: float = 0.0
     server_time: float = 0.0  # remote policies: the server's own share of policy_time
@@ -118,6 +125,7 @@ class _Slot:
             steps=self.steps,
             chunks=self.chunks,
             nfe_total=self.nfe,
+            work=self.work,
             action_tokens_total=self.tokens,
             policy_time_s=self.policy_time,
             env_time_s=self.env_time,
@@ -132,11 +140,13 @@ class _Slot:
             **chain_fields(self.info),
         )
 
-    def charge(self, passes: int | None, server_time: float, connect_wait: float = 0.0) -> None:
-        """Count a call's passes and server time; a remote policy's wait to connect again
-        (a server restart) moves from policy time to overhead, as in run_episode."""
+    def charge(self, passes: int | None, server_time: float, work: Work, connect_wait: float = 0.0) -> None:
+        """Count a call's passes, server time and counted work; a remote policy's wait to
+        connect again (a server restart) moves from policy time to overhead, as in
+        run_episode."""
         self.nfe = None if passes is None or self.nfe is None else self.nfe + passes
         self.server_time += server_time
+        self.work += work
         moved = min(connect_wait, self.policy_time)
         self.policy_time -= moved
         self.overhead += moved
@@ -158,16 +168,16 @@ class _Loop:
         self.finished: list[tuple[int, _Slot | EpisodeOutcome]] = []
         self.remote = remote_policy(policy)
 
-    def passes(self) -> tuple[int | None, float, float]:
+    def passes(self) -> tuple[int | None, float, Work, float]:
         """Forward passes since the last take, here and (remote policies) on the server,
-        with the server's own policy time and the client's wait to connect again; passes
-        None when the server reports none."""
-        local = self.nfe.take()
+        with the server's own policy time, the passes' counted work and the client's wait
+        to connect again (the order `charge` takes them in); passes None when the server reports none."""
+        local, work = self.nfe.take(), self.nfe.take_work()
         if self.remote is None:
-            return local, 0.0, 0.0
+            return local, 0.0, work, 0.0
         totals = self.remote.take_remote()
-        nfe = None if totals.nfe is None else local + totals.nfe
-        return nfe, totals.server_time_s, totals.connect_wait_s
+        passes = None if totals.nfe is None else local + totals.nfe
+        return passes, totals.server_time_s, work + totals.work, totals.connect_wait_s
 
     def close_env(self, i: int) -> None:
         env, self.envs[i] = self.envs[i], None
@@ -230,20 +240,21 @@ class _Loop:
         except KeyboardInterrupt:
             raise
         except BaseException as exc:
-            elapsed, (passes, server, wait) = clock() - t, self.passes()
-            for _, slot in slots:
+            elapsed, (passes, server, work, wait) = clock() - t, self.passes()
+            for (_, slot), share in zip(slots, work.split(len(slots)), strict=True):
                 slot.policy_time += elapsed / len(slots)
-                slot.charge(passes, server / len(slots), wait / len(slots))
+                slot.charge(passes, server / len(slots), share, wait / len(slots))
                 if len(slots) == 1:
                     slot.fail(exc)
             if len(slots) > 1:  # which episode raised? ask each alone (the failed call stays charged)
                 elapsed += sum(self.act([served]) for served in slots)
             return elapsed
-        elapsed, (passes, server, wait) = clock() - t, self.passes()
+        elapsed, (passes, server, work, wait) = clock() - t, self.passes()
         tokens = _shares(int(batch.action_tokens), len(slots))
+        works = work.split(len(slots))
         for row, (_, slot) in enumerate(slots):
             slot.policy_time += elapsed / len(slots)
-            slot.charge(passes, server / len(slots), wait / len(slots))
+            slot.charge(passes, server / len(slots), works[row], wait / len(slots))
             slot.tokens += tokens[row]
             slot.chunks += 1
             if slot.traces is not None and batch.trace:

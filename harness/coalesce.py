@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.work import NOT_MEASURED, Work
 from policies.base import EpisodeContext
 
 ACTIVE_S = 2.0  # a client that asked within this long is expected to ask again soon
@@ -60,6 +61,7 @@ class Request:
     policy_time_s: float = 0.0
     queue_time_s: float = 0.0
     action_tokens: int = 0
+    work: Work = field(default_factory=Work)  # its rows' share of the call's counted work
     call_rows: int = 0
     error: BaseException | None = None
 
@@ -123,7 +125,9 @@ class Coalescer:
             observations = [o for r in taken for o in r.observations]
             started = time.perf_counter()
             try:
-                batch, passes, seconds = self.call(lambda c=contexts, o=observations: self.act_batch(c, o))
+                batch, passes, seconds, *counted = self.call(
+                    lambda c=contexts, o=observations: self.act_batch(c, o)
+                )
                 actions = checked_actions(batch.actions, len(observations))
             except Exception as exc:  # every request of the call gets the error
                 for request in taken:
@@ -132,9 +136,11 @@ class Coalescer:
                 continue
             self.calls, self.rows = self.calls + 1, self.rows + len(observations)
             total = int(batch.action_tokens)
+            per_row = (counted[0] if counted else NOT_MEASURED).split(len(observations))
             row = 0
             for request in taken:
                 k = len(request.observations)
+                request.work = sum(per_row[row : row + k], Work())
                 request.actions = actions[row : row + k]
                 request.nfe, request.policy_time_s = passes, seconds
                 request.queue_time_s = max(0.0, started - request.submitted)

@@ -30,6 +30,7 @@ import numpy as np
 from adapters.base import EpisodeSpec
 from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
 from harness.nfe import NFECounter
+from harness.work import Work
 from policies.base import EpisodeContext, Policy
 
 
@@ -63,6 +64,8 @@ class EpisodeOutcome:
     # None: not checked (not a Box, or the episode never reached its env).
     actions_out_of_space: int | None = None
     max_action_excess: float | None = None
+    # Counted work of its passes (harness/work.py); a None field: not measured.
+    work: Work = dataclasses.field(default_factory=Work)
 
 
 def remote_policy(policy: Any) -> Any:
@@ -132,6 +135,7 @@ def run_episode(
     info: dict[str, Any] = {}
     space = ActionCheck.for_space(context.action_space, out_of_space)
     nfe.take()
+    nfe.take_work()
     remote = remote_policy(policy)
     if remote is not None:
         remote.take_remote()
@@ -187,6 +191,7 @@ def run_episode(
         success = False
     wall = clock() - start
     passes: int | None = nfe.take()
+    work = nfe.take_work()
     transport = None
     if remote is not None:  # the server's hooks counted its passes; None if it reports none
         totals = remote.take_remote()
@@ -194,12 +199,14 @@ def run_episode(
         # connecting again to a server that went away (a restart) is nobody's compute:
         # it stays in wall_clock_s, so it lands in overhead_s
         policy_time = max(0.0, policy_time - totals.connect_wait_s)
+        work += totals.work
         transport = max(0.0, policy_time - totals.server_time_s)
     return EpisodeOutcome(
         success=success,
         steps=steps,
         chunks=chunks,
         nfe_total=passes,
+        work=work,
         transport_time_s=transport,
         action_tokens_total=tokens,
         policy_time_s=policy_time,

@@ -59,6 +59,31 @@ process-wide hooks left on) cost 75-135 us per pass. With other Python threads a
 a pass keeps the process-wide hooks on and nests per thread, so no thread's module
 calls go unseen.
 
+Counted work (harness/work.py says what is counted and why). The same hooks count how
+big each pass was: FLOPs of the matrix products of the counted module kinds (nn.Linear,
+PackedLinear, nn.Conv*, and attention through the parameter-free `Attention` module of
+policies/dvla/model.py, the hook point that shows the hooks the query and key shapes),
+and per pass the query, key/value and cached key/value positions of its attention. All
+are read from the shapes of the tensors a module is called with, never from anything the
+policy reports. Between passes, and during threaded passes, the process-wide pre-hook
+sees every counted module and counts it. A single-thread pass takes that hook off, so
+its module's counted modules (found once per policy call, so a layer swapped between
+calls is counted as what it is now) get their `forward` wrapped for the rest of the
+call: the wrapper counts while a single-thread pass is open and is removed with the
+other hooks when the call ends, so nothing runs wrapped outside counting. A wrapper,
+not a forward pre-hook: a pre-hook sends each call through torch's slow hook path
+(~5 us a call; 23 counted calls per MT10 pass made the counter 4x dearer), a wrapper
+costs one Python call. A pass module that holds parameters in a kind whose products
+are not counted, or a compiled module (its modules run in a graph, unseen, and are
+left untouched), leaves the call's FLOPs not measured (`take_work()` gives None), never
+an under-count. Limitation: in a single-thread pass, a counted module outside the pass
+module's subtree (held in a closure, called from its forward) is not wrapped, so its
+work is not seen; the shipped models hold all their modules. Measured
+(benchmarks/counter_overhead.py, thread CPU time, MT10's shape, 8 passes a call, on a
+2-core EPYC at load 8-12, where every figure is ~4x an idle machine's): the counter
+added 118-141 us per pass at width 8 (NFE alone, before counted work: 47-50 us) and
+150-180 us per 1.3-1.4 ms pass at the shipped width 128 (NFE alone: 85-93 us).
+
 Only one counter counts at a time (the runner interleaves policies one call at a time,
 so each counter sees only its own policy's calls); entering `counting()` while another
 counter is counting raises RuntimeError. The hooks are removed when the call ends,
@@ -74,6 +99,8 @@ import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
+
+from harness.work import ATTENTION, LINEAR, Work, attention_work, cost_of, unseen_kind
 
 _starts_pass_cache: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
 _counting: NFECounter | None = None  # the counter inside counting(), if any
@@ -107,6 +134,60 @@ def starts_pass(module: Any) -> bool:
     return decision
 
 
+def work_plan(module: Any) -> tuple[bool, list[Any]]:
+    """For a pass-starting module: can its passes' FLOPs be measured (no module in its
+    subtree holds parameters in a kind whose products are not counted), and its counted
+    modules below itself, which a single-thread pass wraps. Made afresh in each policy
+    call (NFECounter keeps it for the call), so a layer swapped since the last call (a
+    linear prepacked after a first pass) is counted as what it is now."""
+    below = list(module.modules())[1:]
+    if any(_is_compiled(m) for m in (module, *below)):
+        return False, []  # its modules run in a compiled graph, unseen (and left untouched)
+    return not any(map(unseen_kind, (module, *below))), [m for m in below if cost_of(m) is not None]
+
+
+class _Counted:
+    """A counted module's `forward`, wrapped for one policy call: counts the call's work
+    while a single-thread pass is open (and the module is not that pass's own module,
+    which the process-wide hook counted), then runs the forward it replaced. A wrapper
+    costs a Python call; a forward pre-hook would send every call through torch's slow
+    hook path, ~5 us a call (4x the NFE counter's own cost on the shipped models)."""
+
+    def __init__(self, counter: NFECounter, module: Any):
+        self.module = weakref.ref(module)
+        self.own = module.__dict__.get("forward")  # an instance's own forward, kept as it was
+        inner, cost = module.forward, cost_of(module)
+        if cost is LINEAR:  # most counted calls: the count inlined, no call of its own
+            per_element = 2 * module.out_features
+
+            def forward(*args: Any, **kwargs: Any) -> Any:
+                opened = counter._pass_module
+                if opened is not None and opened is not module:
+                    if args:
+                        counter._flops += per_element * args[0].numel()
+                    else:  # the input passed by keyword: its shape is not in reach
+                        counter._flops_measured = False
+                return inner(*args, **kwargs)
+        else:
+
+            def forward(*args: Any, **kwargs: Any) -> Any:
+                opened = counter._pass_module
+                if opened is not None and opened is not module:
+                    counter._count(module, args, cost, counter._pass_tid)
+                return inner(*args, **kwargs)
+
+        module.__dict__["forward"] = forward
+
+    def remove(self) -> None:
+        module = self.module()
+        if module is None:
+            return
+        if self.own is None:
+            module.__dict__.pop("forward", None)
+        else:
+            module.__dict__["forward"] = self.own
+
+
 class NFECounter:
     """Counts forward passes made inside `counting()`; `take()` reads and clears them.
 
@@ -128,6 +209,16 @@ class NFECounter:
         self._pass_frame: Any = None  # and the frame of torch's _call_impl that runs its hooks
         self._pass_depth = 0  # entries of that module (a module may call itself)
         self._local: weakref.WeakKeyDictionary[Any, list[Any]] = weakref.WeakKeyDictionary()
+        # Counted work (harness/work.py), cleared by take_work():
+        self._leaf_hooks: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
+        self._plans: weakref.WeakKeyDictionary[Any, tuple[bool, list[Any]]] = weakref.WeakKeyDictionary()
+        self._flops = 0
+        self._flops_measured = True
+        self._work_passes = 0  # passes since take_work()
+        self._attended_passes = 0  # ... of which showed an attention call
+        self._tokens = [0, 0, 0]  # query, KV, cached KV positions of the closed passes
+        self._open_tokens: dict[int, list[int]] = {}  # per thread: its open pass's largest call
+        self._pass_tid = 0  # the thread of the open single-thread pass
 
     @property
     def active(self) -> bool:
@@ -165,11 +256,16 @@ class NFECounter:
         if self._nesting:
             return
         with _lock:
-            for handle in (self._pre, self._post, *(h for hs in self._local.values() for h in hs)):
+            hooks = (*(h for hs in self._local.values() for h in hs), *self._leaf_hooks.values())
+            for handle in (self._pre, self._post, *hooks):
                 if handle is not None:
                     handle.remove()
             self._pre = self._post = self._hooks = None
             self._local.clear()
+            self._leaf_hooks.clear()
+            self._plans.clear()
+            for tid in list(self._open_tokens):  # no pass outlives the policy call
+                self._close_tokens(tid)
             self._pass_module = self._pass_args = self._pass_frame = None  # an exception leaves
             self._pass_depth = 0  # no open pass and no depth behind
             self._depths.clear()
@@ -182,15 +278,26 @@ class NFECounter:
         depth = self._depths.get(tid, 0)
         if depth:
             self._depths[tid] = depth + 1
+            cost = cost_of(module)
+            if cost is not None:
+                self._count(module, args, cost, tid)
         elif starts_pass(module):
             self.count += 1
-            if threading.active_count() == 1 and self._open_pass(module, args, sys._getframe(1)):
+            self._pass_started(module, tid)
+            cost = cost_of(module)
+            if cost is not None:  # a lone nn.Linear is a pass of its own
+                self._count(module, args, cost, tid)
+            if threading.active_count() == 1 and self._open_pass(module, args, sys._getframe(1), tid):
                 return
             # other threads may call modules meanwhile (or `module` takes no hooks of its
             # own, a TorchScript module): keep the process-wide hooks on, nest per thread
             if self._post is None:
                 self._post = self._hooks.register_module_forward_hook(self._exit, always_call=True)
             self._depths[tid] = 1
+        else:
+            cost = cost_of(module)
+            if cost is not None:  # outside any pass (an attention or PackedLinear on its own)
+                self._count(module, args, cost, tid)
 
     def _exit(self, module: Any, args: Any, output: Any) -> None:
         tid = threading.get_ident()
@@ -198,7 +305,7 @@ class NFECounter:
         if depth:
             self._depths[tid] = depth - 1
 
-    def _open_pass(self, module: Any, args: Any, frame: Any) -> bool:
+    def _open_pass(self, module: Any, args: Any, frame: Any, tid: int) -> bool:
         """One thread: the process-wide hooks come off until `module` returns (False,
         and nothing changed, when `module` cannot take hooks of its own)."""
         if module not in self._local:  # kept for the rest of the policy call
@@ -208,12 +315,16 @@ class NFECounter:
                 return False
             post = module.register_forward_hook(self._returned, always_call=True)
             self._local[module] = [pre, post]
+            for leaf in self._plan(module)[1]:  # the pass's counted modules count their work
+                if leaf not in self._leaf_hooks:
+                    self._leaf_hooks[leaf] = _Counted(self, leaf)
         for handle in (self._pre, self._post):
             if handle is not None:
                 handle.remove()
         self._pre = self._post = None
         self._pass_module, self._pass_args, self._pass_frame = module, args, frame
         self._pass_depth = 1
+        self._pass_tid = tid
         return True
 
     def _reentered(self, module: Any, args: Any) -> None:
@@ -236,6 +347,65 @@ class NFECounter:
             self._pass_module = self._pass_args = self._pass_frame = None
             if self._nesting and self._pre is None:
                 self._pre = self._hooks.register_module_forward_pre_hook(self._enter)
+
+    # ---- counted work ------------------------------------------------------------------
+
+    def _leaf(self, module: Any, args: Any) -> None:
+        """Pre-hook on a counted module below a pass's module: counts only while a
+        single-thread pass has the process-wide hooks off (they count it otherwise)."""
+        if self._pass_module is not None and module is not self._pass_module:
+            self._count(module, args, cost_of(module), self._pass_tid)
+
+    def _count(self, module: Any, args: Any, cost: Any, tid: int) -> None:
+        if cost is not ATTENTION:
+            flops = cost(module, args)
+            if flops is None:
+                self._flops_measured = False
+            else:
+                self._flops += flops
+            return
+        work = attention_work(args)
+        if work is None:
+            self._flops_measured = False
+            return
+        self._flops += work[0]
+        largest = self._open_tokens.get(tid)
+        if largest is None:
+            self._open_tokens[tid] = list(work[1:])
+        elif work[2] > largest[1] or work[1] > largest[0]:
+            largest[:] = map(max, largest, work[1:])
+
+    def _pass_started(self, module: Any, tid: int) -> None:
+        self._close_tokens(tid)  # this thread's previous pass has ended
+        self._work_passes += 1
+        if not self._plan(module)[0]:
+            self._flops_measured = False
+
+    def _plan(self, module: Any) -> tuple[bool, list[Any]]:
+        plan = self._plans.get(module)
+        if plan is None:
+            plan = self._plans[module] = work_plan(module)
+        return plan
+
+    def _close_tokens(self, tid: int) -> None:
+        largest = self._open_tokens.pop(tid, None)
+        if largest is not None:
+            self._attended_passes += 1
+            self._tokens = [a + b for a, b in zip(self._tokens, largest, strict=True)]
+
+    def take_work(self) -> Work:
+        """Counted work since the last call, cleared (harness/work.py says what is counted;
+        a None field is not measured)."""
+        for tid in list(self._open_tokens):
+            self._close_tokens(tid)
+        if self._work_passes and not self._attended_passes:
+            tokens: tuple[int | None, ...] = (None, None, None)
+        else:
+            tokens = tuple(self._tokens)
+        work = Work(self._flops if self._flops_measured else None, *tokens)
+        self._flops, self._flops_measured, self._tokens = 0, True, [0, 0, 0]
+        self._work_passes = self._attended_passes = 0
+        return work
 
     def take(self) -> int:
         """Forward passes since the last call, cleared."""

@@ -170,6 +170,11 @@ def make_row(
         "chunks": out.chunks,
         "nfe_total": out.nfe_total,
         "nfe_per_chunk": out.nfe_total / out.chunks if out.chunks and out.nfe_total is not None else None,
+        "flops_total": out.work.flops,
+        "flops_per_chunk": out.work.flops / out.chunks if out.chunks and out.work.flops is not None else None,
+        "query_tokens_total": out.work.query_tokens,
+        "kv_tokens_total": out.work.kv_tokens,
+        "kv_cached_tokens_total": out.work.kv_cached_tokens,
         "action_tokens_total": out.action_tokens_total,
         "tokens_per_s": (
             out.action_tokens_total / out.policy_time_s

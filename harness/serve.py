@@ -6,8 +6,8 @@ client is one call and gets one reply, as openpi's `WebsocketPolicyServer` does,
 decoders, and our `remote` policy can evaluate openpi-served models. The messages:
 
     observation map          -> {"actions": (chunk, action_dim) float32, "dvla/nfe": int,
-                                 "dvla/policy_time_s": float, "dvla/action_tokens": int,
-                                 "server_timing": {"infer_ms": float}}
+                                 "dvla/work": {...}, "dvla/policy_time_s": float,
+                                 "dvla/action_tokens": int, "server_timing": {"infer_ms": float}}
     {"dvla/reset": context}  -> {"dvla/ok": True, "dvla/nfe": ..., "dvla/policy_time_s": ...}
     {"dvla/batch": {"episodes": [context, ...], "observations": [observation map, ...]}}
                              -> {"actions": (K, chunk, action_dim) float32, "dvla/nfe": int,
@@ -32,7 +32,10 @@ add the queue wait ("dvla/queue_time_s") and the decode's size ("dvla/batch_size
 
 Forward passes are counted with the runner's own hooks (harness/nfe.py) around each
 call and returned with it, with the policy's own time, so a remote row keeps honest NFE
-and splits time into policy and transport. A bad message gets an error text back (the
+and splits time into policy and transport. Every reply that reports passes also reports
+their counted work under "dvla/work" (harness/work.py: "flops", "query_tokens",
+"kv_tokens", "kv_cached_tokens", integers or null for not measured); a call batched
+across clients gives each request its rows' share of the work, as of the tokens. A bad message gets an error text back (the
 protocol's way: openpi clients raise it) and the connection stays open; nothing is
 unpickled; one policy call runs at a time (the NFE hooks count one call at a time).
 """
@@ -55,6 +58,7 @@ import numpy as np
 
 from harness.coalesce import Coalescer, checked_actions
 from harness.nfe import NFECounter
+from harness.work import WIRE_KEY, Work
 from policies.base import EpisodeContext, Policy, can_batch
 from policies.wire import MAX_MESSAGE_BYTES, WireError, pack, unpack
 
@@ -169,13 +173,15 @@ class Served:
             out[key] = image.astype(np.uint8)
         return out
 
-    def call(self, fn: Callable[[], Any]) -> tuple[Any, int, float]:
-        """Run one policy call under the NFE hooks: (result, passes, seconds)."""
+    def call(self, fn: Callable[[], Any]) -> tuple[Any, int, float, Work]:
+        """Run one policy call under the NFE hooks: (result, passes, seconds, work)."""
         with self.lock:
             start = time.perf_counter()
+            self.counter.take_work()
             with self.counter.counting():
                 result = fn()
-            return result, self.counter.take(), time.perf_counter() - start
+            seconds = time.perf_counter() - start
+            return result, self.counter.take(), seconds, self.counter.take_work()
 
 
 class Session:
@@ -187,9 +193,9 @@ class Session:
 
     def reset(self, values: dict[str, Any]) -> dict[str, Any]:
         context = self.served.context(values)
-        _, nfe, seconds = self.served.call(lambda: self.served.policy.reset([context]))
+        _, nfe, seconds, work = self.served.call(lambda: self.served.policy.reset([context]))
         self.context = context
-        return {"dvla/ok": True, "dvla/nfe": nfe, "dvla/policy_time_s": seconds}
+        return {"dvla/ok": True, "dvla/nfe": nfe, WIRE_KEY: work.to_wire(), "dvla/policy_time_s": seconds}
 
     def decode(self, contexts: list[EpisodeContext], observations: list[Any], single: bool) -> dict[str, Any]:
         """Chunks for the rows: through the coalescer when the server batches clients
@@ -198,24 +204,26 @@ class Session:
         extra: dict[str, Any] = {}
         if served.coalescer is not None:
             request = served.coalescer.submit(contexts, observations, client=id(self))
-            actions, nfe, seconds, tokens = (
+            actions, nfe, seconds, tokens, work = (
                 request.actions,
                 request.nfe,
                 request.policy_time_s,
                 request.action_tokens,
+                request.work,
             )
             extra = {"dvla/queue_time_s": request.queue_time_s, "dvla/batch_size": request.call_rows}
         else:
             if single:
-                batch, nfe, seconds = served.call(lambda: served.policy.act(observations))
+                batch, nfe, seconds, work = served.call(lambda: served.policy.act(observations))
             else:
                 act_batch = served.policy.act_batch  # type: ignore[attr-defined]
-                batch, nfe, seconds = served.call(lambda: act_batch(contexts, observations))
+                batch, nfe, seconds, work = served.call(lambda: act_batch(contexts, observations))
                 extra = {"dvla/batch_size": len(observations)}
             actions, tokens = checked_actions(batch.actions, len(observations)), int(batch.action_tokens)
         return {
             "actions": actions[0] if single else actions,
             "dvla/nfe": nfe,
+            WIRE_KEY: work.to_wire(),
             "dvla/policy_time_s": seconds,
             "dvla/action_tokens": tokens,
             "server_timing": {"infer_ms": 1000 * seconds},
@@ -260,7 +268,9 @@ class Session:
         observation = self.served.observation(message)
         assert self.context is not None
         reply = self.decode([self.context], [observation], single=True)
-        return reply | ({"dvla/reset_nfe": started["dvla/nfe"]} if started else {})
+        if not started:
+            return reply
+        return reply | {"dvla/reset_nfe": started["dvla/nfe"], "dvla/reset_work": started[WIRE_KEY]}
 
 
 def _authorised(served: Served, request: Any) -> bool:

@@ -11,7 +11,9 @@ What is counted, and by whom: forward passes happen on the server, so the harnes
 hooks there count them (a dvla-harness server returns them with every reply, and the
 policy's own time); the runner keeps that NFE and splits each call's time into the
 server's policy time and transport (`transport_time_s`). A server that reports no NFE
-(openpi's) gives NFE as null, never 0.
+(openpi's) gives NFE as null, never 0. The passes' counted work (FLOPs, positions
+attended; harness/work.py) comes the same way, under "dvla/work"; a reply without it
+leaves the episode's work null, not measured.
 
 Reliability: every receive has a timeout (`timeout_s`), so a server that stops answering
 fails that episode instead of hanging the run. Before anything runs, `check_spaces`
@@ -44,7 +46,7 @@ import importlib.util
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -53,6 +55,8 @@ import gymnasium as gym
 import numpy as np
 
 from harness.plugins import install_hint
+from harness.work import WIRE_KEY as WORK_KEY
+from harness.work import Work
 from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.registry import PolicySpec, param
 
@@ -136,6 +140,7 @@ class RemoteTotals:
     nfe: int | None = 0
     server_time_s: float = 0.0
     connect_wait_s: float = 0.0  # connecting again within an episode: neither policy nor env time
+    work: Work = field(default_factory=Work)  # their counted work; None fields: not reported
 
 
 class ConnectionLost(ConnectionError):
@@ -243,6 +248,7 @@ class RemotePolicy:
             raise WireError(f"the server replied with {type(reply).__name__}, not a map")
         nfe = reply.get("dvla/nfe")
         self._totals.nfe = None if nfe is None or self._totals.nfe is None else self._totals.nfe + int(nfe)
+        self._totals.work += Work.from_wire(reply.get(WORK_KEY))  # none reported: not measured
         # a batching server's queue wait is the server's time too: transport stays transport
         self._totals.server_time_s += float(reply.get("dvla/policy_time_s", 0.0))
         self._totals.server_time_s += float(reply.get("dvla/queue_time_s", 0.0))

@@ -24,6 +24,10 @@ docs/ci-gate.md explains the rules; in short:
   (Bonferroni), so a chain suite is no likelier to raise a false alarm than another.
 * NFE per chunk (total passes / total chunks) is deterministic for deterministic
   decoders: any increase fails.
+* Counted work per chunk (total FLOPs / total chunks, harness/work.py) is as exact as
+  NFE and checked the same way: any increase fails (a wider cached range, a bigger
+  pass). Not measured on either side (null in any of the rows) means not compared,
+  said in a note.
 * tokens/s is compared only as a paired ratio: each configuration's tokens/s over a
   reference decoder's (default `bidirectional`) measured interleaved, episode by
   episode, in the same run, against the same ratio in the other run. A machine that is
@@ -77,6 +81,9 @@ class TaskDiff:
     baseline_nfe: float | None  # passes per chunk
     candidate_nfe: float | None
     nfe_gated: bool = True
+    baseline_work: float | None = None  # counted FLOPs per chunk; None: not measured
+    candidate_work: float | None = None
+    work_gated: bool = True
     # Instruction chains only (None otherwise): subtasks completed per chain, paired.
     baseline_length: float | None = None  # mean over the chains
     candidate_length: float | None = None
@@ -97,6 +104,12 @@ class TaskDiff:
         if self.baseline_nfe is None or self.candidate_nfe is None:
             return False
         return self.candidate_nfe > self.baseline_nfe * (1 + 1e-9) + 1e-12
+
+    @property
+    def work_increased(self) -> bool:
+        if self.baseline_work is None or self.candidate_work is None:
+            return False
+        return self.candidate_work > self.baseline_work * (1 + 1e-9) + 1e-12
 
 
 @dataclass(frozen=True)
@@ -165,6 +178,11 @@ class GateResult:
                 )
             if t.nfe_increased and t.nfe_gated:
                 out.append(f"{t.pair} / {t.task}: NFE/chunk {t.baseline_nfe:.3f} -> {t.candidate_nfe:.3f}")
+            if t.work_increased and t.work_gated:
+                out.append(
+                    f"{t.pair} / {t.task}: counted work {t.baseline_work / 1e9:.6g} -> "
+                    f"{t.candidate_work / 1e9:.6g} GFLOP/chunk ({t.candidate_work / t.baseline_work - 1:+.2%})"
+                )
         by_replay = {r.pair for r in self.replay}
         for r in self.replay:
             if r.verdict == "fail":
@@ -189,6 +207,7 @@ class GateResult:
 _MEASURES = (
     "success",
     "nfe_total",
+    "flops_total",
     "chunks",
     "action_tokens_total",
     "policy_time_s",
@@ -207,6 +226,15 @@ def _nfe(df: pd.DataFrame) -> float | None:
         return None
     chunks = int(df["chunks"].sum())
     return float(df["nfe_total"].sum()) / chunks if chunks else None
+
+
+def _work(df: pd.DataFrame) -> float | None:
+    """Counted FLOPs per chunk; None unless every row measured them (a sum with holes
+    would read as a drop)."""
+    if df.empty or df["flops_total"].isna().any():
+        return None
+    chunks = int(df["chunks"].sum())
+    return float(df["flops_total"].astype(float).sum()) / chunks if chunks else None
 
 
 def _tokens_per_s(df: pd.DataFrame) -> float | None:
@@ -232,7 +260,9 @@ def _chain_lengths(b: pd.DataFrame, c: pd.DataFrame) -> dict[str, Any]:
     }
 
 
-def _task_diff(pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nfe: bool) -> TaskDiff:
+def _task_diff(
+    pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nfe: bool, gate_work: bool = True
+) -> TaskDiff:
     b, c = _side(merged, "b"), _side(merged, "c")
     base, cand = b["success"].astype(bool), c["success"].astype(bool)
     drops, gains = int((base & ~cand).sum()), int((~base & cand).sum())
@@ -252,6 +282,9 @@ def _task_diff(pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nf
         baseline_nfe=_nfe(b),
         candidate_nfe=_nfe(c),
         nfe_gated=gate_nfe,
+        baseline_work=_work(b),
+        candidate_work=_work(c),
+        work_gated=gate_work,
         **lengths,
     )
 
@@ -307,6 +340,7 @@ def _merged(baseline: pd.DataFrame, candidate: pd.DataFrame, pair: ConfigPair) -
     b = episode_keys(baseline[baseline["policy_config_id"] == pair.baseline_id])
     c = episode_keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
     b, c = (df if "subtasks_completed" in df else df.assign(subtasks_completed=None) for df in (b, c))
+    b, c = (df if "flops_total" in df else df.assign(flops_total=None) for df in (b, c))
     cols = [*PAIR_KEY, *_MEASURES]
     return b[cols].merge(c[cols], on=list(PAIR_KEY), suffixes=("_b", "_c"))
 
@@ -335,6 +369,7 @@ def gate(
     alpha: float = 0.05,
     max_slowdown: float = 0.10,
     allow_nfe_increase: bool = False,
+    allow_work_increase: bool = False,
     reference: str | None = DEFAULT_REFERENCE,
     speed_skipped: str = "",
 ) -> GateResult:
@@ -380,10 +415,13 @@ def gate(
         c = episode_keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
         merged = _merged(baseline, candidate, pair)
         order = list(dict.fromkeys(merged.sort_values("task_index_b", kind="stable")["task"]))
+        gated = (not allow_nfe_increase, not allow_work_increase)
         for task in order:
             rows = merged[merged["task"] == task]
-            tasks.append(_task_diff(pair.label, task, rows, alpha / len(order), not allow_nfe_increase))
-        tasks.append(_task_diff(pair.label, "ALL", merged, alpha, not allow_nfe_increase))
+            tasks.append(_task_diff(pair.label, task, rows, alpha / len(order), *gated))
+        tasks.append(_task_diff(pair.label, "ALL", merged, alpha, *gated))
+        if (unmeasured := _work_unmeasured(merged)) is not None:
+            notes.append(f"{pair.label}: counted work not compared (not measured in the {unmeasured})")
         raised = {
             side: int(rows["failure_reason"].notna().sum())
             for side, rows in (("baseline", b), ("candidate", c))
@@ -422,6 +460,8 @@ def gate(
         )
     if allow_nfe_increase:
         notes.append("NFE increases reported but allowed (--allow-nfe-increase)")
+    if allow_work_increase:
+        notes.append("counted work increases reported but allowed (--allow-work-increase)")
     return GateResult(
         tuple(pairs),
         tuple(tasks),
@@ -533,6 +573,13 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
         notes = (suspect, *notes)
     result = dataclasses.replace(result, notes=notes, warnings=warnings, simulator_suspect=suspect)
     return _with_replay(result, baseline, candidate, options.get("max_slowdown", 0.10))
+
+
+def _work_unmeasured(merged: pd.DataFrame) -> str | None:
+    """Which side left a pair's counted work unmeasured ('baseline', 'candidate', 'baseline
+    and candidate'), or None when both measured it."""
+    sides = [name for name, s in (("baseline", "b"), ("candidate", "c")) if _work(_side(merged, s)) is None]
+    return " and ".join(sides) or None
 
 
 def _moves(tasks: list[TaskDiff]) -> str:

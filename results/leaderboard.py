@@ -70,6 +70,9 @@ class Entry:
     variants: VariantStats | None = None
     # False when no row has an NFE count (a remote server that reports none): "not measured".
     nfe_measured: bool = True
+    # Counted work per chunk (harness/work.py), a mean over the rows that measured it;
+    # None when none did: "not measured".
+    flops_per_chunk: float | None = None
 
 
 @dataclass(frozen=True)
@@ -126,6 +129,7 @@ class Leaderboard:
             row |= {
                 "errors": e.errors,
                 "nfe_per_chunk": e.nfe_per_chunk,
+                "flops_per_chunk": e.flops_per_chunk,
                 "tokens_per_s": e.tokens_per_s,
                 "control_hz": e.control_hz,
                 "wall_clock_s": e.wall_clock_s,
@@ -157,7 +161,7 @@ class Leaderboard:
             ]
         else:
             headers += [*self.groups, "success (Wilson 95%)"]
-        headers += ["NFE/chunk", "tokens/s", "control Hz", "wall s/episode"]
+        headers += ["NFE/chunk", "GFLOP/chunk", "tokens/s", "control Hz", "wall s/episode"]
         headers += ["errors", f"speedup vs {self.baseline}"]
         rows = []
         for e in self.entries:
@@ -173,6 +177,9 @@ class Leaderboard:
                 row.append(Cell(e.overall.text(), finite_or_none(e.overall.rate)))
             row += [
                 number_cell(e.nfe_per_chunk, ".1f") if e.nfe_measured else Cell("not measured", None),
+                Cell("not measured", None)
+                if e.flops_per_chunk is None
+                else number_cell(e.flops_per_chunk / 1e9, ".3f"),
                 number_cell(e.tokens_per_s, ".0f"),
                 number_cell(e.control_hz, ".0f"),
                 number_cell(e.wall_clock_s, ".2f"),
@@ -296,6 +303,7 @@ def leaderboard(
                 chain_groups=chain_groups,
                 variants=variant_stats(rows) if variants else None,
                 nfe_measured=bool(rows["nfe_total"].notna().any()),
+                flops_per_chunk=_flops_per_chunk(rows),
             )
         )
     timed = [Timed(e.policy, e.policy_config_id, e.label, e.machine, e.runs, e.tokens_per_s) for e in drafts]
@@ -313,6 +321,11 @@ def leaderboard(
     if variants:
         ranking = ranking_stability({f"{e.label}@{e.machine}": e.variants for e in entries if e.variants})
     return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings), ranking)
+
+
+def _flops_per_chunk(rows: pd.DataFrame) -> float | None:
+    measured = rows["flops_per_chunk"].dropna() if "flops_per_chunk" in rows else rows.iloc[:0]
+    return float(measured.mean()) if len(measured) else None
 
 
 def leaderboards(

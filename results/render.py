@@ -43,7 +43,8 @@ MIN_EPISODES_FOR_TASK_SPEEDUP = 10
 NO_BASELINE = "n/a: no bidirectional row"  # as results.leaderboard.speedups says it
 CAPTION = (
     "control Hz: env steps per second of policy time (the policy alone); loop Hz: env steps per "
-    "second of wall-clock (policy + simulator + harness); speedup: tokens/s over bidirectional's "
+    "second of wall-clock (policy + simulator + harness); GFLOP/chunk: counted work of the passes "
+    "behind one chunk (harness/work.py; - not measured); speedup: tokens/s over bidirectional's "
     f"in this run (per task only with >= {MIN_EPISODES_FOR_TASK_SPEEDUP} episodes each)"
 )
 
@@ -57,6 +58,7 @@ def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str]
         ("task", "left"),
         ("success (Wilson 95%)", "right"),
         ("NFE/chunk", "right"),
+        ("GFLOP/chunk", "right"),
         ("tokens/s", "right"),
         ("control Hz", "right"),
         ("loop Hz", "right"),
@@ -84,6 +86,7 @@ def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str]
             "[b]ALL[/b]" if is_all else row["task"],
             success_cell(row),
             _num(row["nfe_per_chunk"], ".1f"),
+            _num(row.get("flops_per_chunk", math.nan) / 1e9, ".3f"),
             _num(row["tokens_per_s"], ".0f"),
             _num(row["control_hz"], ".0f"),
             _num(row.get("loop_hz", math.nan), ".0f"),

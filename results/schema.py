@@ -14,9 +14,10 @@ import pyarrow as pa
 SCHEMA_VERSION = "4"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
 # columns as nulls, a version-2 table (before variants) a null `variant`, which is what
-# they mean for its suites; a version-3 table (before the action-space check and
-# configuration labels) gets null out-of-space columns (its actions were not checked)
-# and `config_label` filled in on read (results.labels.with_config_labels).
+# they mean for its suites; a version-3 table (before the action-space check, counted
+# work and configuration labels) gets null out-of-space and work columns (its actions
+# were not checked, its work not measured) and `config_label` filled in on read
+# (results.labels.with_config_labels).
 READABLE_VERSIONS = ("1", "2", "3", "4")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
@@ -115,6 +116,45 @@ COLUMNS: tuple[Column, ...] = (
         nullable=True,
     ),
     Column("nfe_per_chunk", pa.float64(), "passes", "nfe_total / chunks.", nullable=True),
+    Column(
+        "flops_total",
+        pa.int64(),
+        "FLOP",
+        "Counted work: floating-point operations of the matrix products (linear layers, "
+        "convolutions, attention; 2 per multiply-accumulate) of every forward pass, counted by "
+        "the NFE hooks from the tensors' shapes (harness/work.py; for a remote policy, by the "
+        "serving dvla-harness's hooks). Identical on every machine and load. A batched call's "
+        "work is split equally among the episodes it served (each one's row). Null when not "
+        "measured: a remote server that reports none, a model holding a layer of a kind whose "
+        "products are not counted, rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column("flops_per_chunk", pa.float64(), "FLOP", "flops_total / chunks.", nullable=True),
+    Column(
+        "query_tokens_total",
+        pa.int64(),
+        "positions",
+        "Counted work: positions the forward passes computed (queries of their attention), "
+        "summed over passes. Null when not measured (no attention call was seen, a remote "
+        "server that reports none).",
+        nullable=True,
+    ),
+    Column(
+        "kv_tokens_total",
+        pa.int64(),
+        "positions",
+        "Counted work: key/value positions the passes' queries attended, cached or not, summed "
+        "over passes. Null when not measured.",
+        nullable=True,
+    ),
+    Column(
+        "kv_cached_tokens_total",
+        pa.int64(),
+        "positions",
+        "Of kv_tokens_total, the positions read from a KV cache (attended but not computed by "
+        "the pass): what a cache saves shows here. Null when not measured.",
+        nullable=True,
+    ),
     Column(
         "action_tokens_total",
         pa.int64(),

@@ -24,6 +24,7 @@ SUMMARY_COLUMNS = (
     "success_high",
     "failures",
     "nfe_per_chunk",
+    "flops_per_chunk",
     "tokens_per_s",
     "control_hz",
     "loop_hz",
@@ -78,6 +79,8 @@ def _summarise(group: pd.DataFrame) -> dict[str, float]:
         "success_high": high,
         "failures": int(group["failure_reason"].notna().sum()),
         "nfe_per_chunk": group["nfe_per_chunk"].mean(),
+        # counted work (harness/work.py); NaN when no row measured it
+        "flops_per_chunk": group["flops_per_chunk"].mean() if "flops_per_chunk" in group else math.nan,
         "tokens_per_s": group["tokens_per_s"].mean(),
         "control_hz": group["control_hz"].mean(),
         "loop_hz": group["loop_hz"].mean() if "loop_hz" in group else math.nan,

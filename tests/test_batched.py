@@ -291,11 +291,13 @@ def test_shipped_bidirectional_decodes_the_same_episodes_batched(tmp_path):
     one = run(resolved, tmp_path / "one").run_dir.read_episodes()
     four = run(resolved, tmp_path / "four", execution=Execution(batch_envs=4)).run_dir.read_episodes()
     columns = ["success", "steps", "chunks", "action_tokens_total", "nfe_total", "failure_reason"]
+    columns += ["flops_total", "query_tokens_total", "kv_tokens_total", "kv_cached_tokens_total"]
     a = one.sort_values("episode_index").reset_index(drop=True)
     b = four.sort_values("episode_index").reset_index(drop=True)
     assert a[columns].equals(b[columns])
     assert set(a["batch_envs"]) == {1} and set(b["batch_envs"]) == {4}
     assert (b["nfe_total"] == 12 * b["chunks"]).all()  # 12 passes per chunk, each charged to every row
+    assert (b["flops_total"] > 0).all()  # and each row its own row's counted work, as unbatched
 
 
 def test_a_config_files_batch_envs_is_used_unless_the_flag_says_otherwise(tmp_path):

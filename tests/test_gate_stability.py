@@ -43,7 +43,10 @@ def test_verdicts_are_read_from_the_gate_exit_and_its_warning():
     assert bench.verdict(0, "warning: fast_dvla: replay speed inconclusive") == "inconclusive"
     assert bench.verdict(1, "gate failed:\n  fast_dvla: ...") == "fail"
     assert bench.verdict(2, "error: ...") == "error (exit 2)"
-    assert bench.failing_lines("table\ngate failed:\n  fast_dvla: NFE up") == ["gate failed:", "fast_dvla: NFE up"]
+    assert bench.failing_lines("table\ngate failed:\n  fast_dvla: NFE up") == [
+        "gate failed:",
+        "fast_dvla: NFE up",
+    ]
 
 
 def test_unknown_conditions_and_candidates_are_refused():
@@ -78,7 +81,9 @@ def test_the_test_policies_keep_actions_and_passes(tmp_path, one_thread):
     spec = get_policy("fast_dvla")
     space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
     contexts = [
-        EpisodeContext("metaworld/mt10", "reach-v3", "reach the goal", space, gym.spaces.Box(-9, 9, (39,)), 50, 0)
+        EpisodeContext(
+            "metaworld/mt10", "reach-v3", "reach the goal", space, gym.spaces.Box(-9, 9, (39,)), 50, 0
+        )
     ]
     observations = [np.random.default_rng(0).uniform(-1, 1, 39).astype(np.float32)]
     params = parse_params(spec, {"checkpoint": str(ckpt)})

@@ -338,3 +338,4 @@ def test_scripted_and_compiled_models_count_once_per_call():
         policy.compiled = torch.compile(TinyModel(), backend="eager")  # its modules run unseen
         out = _episode(policy)
     assert out.failure_reason is None and out.nfe_total == 2 * 2 * 2
+    assert out.work.flops is None  # what runs unseen has no counted work: not measured, not 0

@@ -30,6 +30,8 @@ from websockets.sync.server import serve
 from policies.wire import pack, unpack
 
 SUITE = "metaworld/mt1/reach-v3"
+# counted work (harness/work.py): the server's hooks count it and report it with each reply
+WORK = ("flops_total", "query_tokens_total", "kv_tokens_total", "kv_cached_tokens_total")
 
 
 @pytest.fixture
@@ -113,7 +115,7 @@ def test_remote_equals_local_through_dvla_harness_serve(cli, tmp_path, serve_pro
     assert code == 0, err
     rows = pd.read_parquet(out / "episodes.parquet").set_index(["policy", "episode_index"])
     remote, local = rows.loc["remote"], rows.loc["fast_dvla"]
-    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total"):
+    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total", *WORK):
         assert list(remote[column]) == list(local[column]), column
     assert (remote["transport_time_s"] >= 0).all() and local["transport_time_s"].isna().all()
     assert (remote["transport_time_s"] < remote["policy_time_s"]).all()
@@ -134,7 +136,7 @@ def test_batched_remote_equals_batched_local_and_charges_each_episode_the_server
     rows = pd.read_parquet(out / "episodes.parquet").set_index(["policy", "episode_index"])
     remote, local = rows.loc["remote"], rows.loc["fast_dvla"]
     assert (remote["batch_envs"] == 2).all() and (local["batch_envs"] == 2).all()
-    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total"):
+    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total", *WORK):
         assert list(remote[column]) == list(local[column]), column
     assert (remote["nfe_total"] > 0).all()
     assert (remote["transport_time_s"] >= 0).all() and local["transport_time_s"].isna().all()
@@ -161,7 +163,7 @@ def test_a_shared_server_batches_two_workers_calls_and_their_rows_equal_local_on
     remote = pd.read_parquet(remote_out / "episodes.parquet").set_index(key).sort_index()
     local = pd.read_parquet(local_out / "episodes.parquet").set_index(key).sort_index()
     assert remote["worker_id"].nunique() == 2
-    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total"):
+    for column in ("success", "steps", "chunks", "nfe_total", "action_tokens_total", *WORK):
         assert list(remote[column]) == list(local[column]), column
     assert (remote["transport_time_s"] >= 0).all()
     server = serve_process.procs[0]
@@ -231,6 +233,7 @@ def test_a_server_that_reports_no_nfe_leaves_it_null_and_the_leaderboard_says_so
     assert code == 0, err
     rows = pd.read_parquet(out / "episodes.parquet")
     assert rows["nfe_total"].isna().all() and rows["nfe_per_chunk"].isna().all()
+    assert rows[["flops_total", "flops_per_chunk", *WORK]].isna().all().all()  # not measured, never 0
     code, text, _ = cli("leaderboard", str(out), "--format", "md")
     assert code == 0 and "not measured" in text
 

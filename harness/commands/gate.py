@@ -31,6 +31,11 @@ What fails the gate:
             its 5/5 chains hold.
   NFE       any increase of NFE per chunk (forward passes are counted, not timed,
             so they are exact for deterministic decoders), unless --allow-nfe-increase.
+  work      any increase of counted work per chunk (FLOPs of the passes' matrix
+            products, read from tensor shapes by the same hooks: exact on any machine
+            under any load), unless --allow-work-increase. Not measured on either side
+            (a remote server that reports none, rows from before it was recorded):
+            not compared, said in a note.
   tokens/s  a slowdown beyond --max-slowdown of each configuration's tokens/s relative
             to a reference decoder's (--reference, default bidirectional) timed in the
             same run, episode by episode, against the same ratio in the baseline run:
@@ -106,6 +111,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--allow-nfe-increase", action="store_true", help="report NFE/chunk increases but do not fail"
     )
+    p.add_argument(
+        "--allow-work-increase",
+        action="store_true",
+        help="report counted work (GFLOP/chunk) increases but do not fail",
+    )
     p.set_defaults(func=cmd_gate)
 
 
@@ -115,18 +125,22 @@ def _fmt(value: float | None, digits: int = 2) -> str:
 
 def render(result: GateResult, title: str) -> Table:
     chains = any(t.length_p is not None for t in result.tasks)
+    # counted work: a column when either run measured it (a note says when it is not compared)
+    work = any(t.baseline_work is not None or t.candidate_work is not None for t in result.tasks)
     columns = ["configuration", "task", "episodes", "successes", "drops/gains", "p (drop)"]
     columns += ["subtasks/chain (shorter/longer, p)"] if chains else []
     replay = {r.pair: r for r in result.replay}
     table = Table(
         *columns,
         "NFE/chunk",
+        *(["GFLOP/chunk"] if work else []),
         "tokens/s vs ref.",
         *(["replay vs ref. [95%]"] if replay else []),
         "verdict",
         title=title,
         caption=(
-            "successes and NFE/chunk: baseline -> candidate; * = significant drop; tokens/s vs ref.: "
+            "successes, NFE/chunk and GFLOP/chunk (counted work): baseline -> candidate; "
+            "* = significant drop; tokens/s vs ref.: "
             "change of tokens/s over the reference decoder's in the same run"
             + ("; subtasks/chain: mean subtasks completed, chains paired" if chains else "")
             + (
@@ -150,6 +164,7 @@ def render(result: GateResult, title: str) -> Table:
                 ("success", t.success_regressed),
                 ("chain length", t.length_regressed),
                 ("NFE", t.nfe_increased and t.nfe_gated),
+                ("work", t.work_increased and t.work_gated),
                 ("speed", r.verdict == "fail" if r is not None else s is not None and s.regressed),
             )
             if hit
@@ -164,6 +179,7 @@ def render(result: GateResult, title: str) -> Table:
             f"{t.p_value:.3g}" + (" *" if t.success_regressed else ""),
             *([_length_cell(t)] if chains else []),
             nfe + (" (up)" if t.nfe_increased else ""),
+            *([_work_cell(t)] if work else []),
             _speed_cell(t.task, t.pair, s, skipped, result.reference),
             *([_replay_cell(r, t.task == "ALL" and t.pair == result.reference)] if replay else []),
             "[red]FAIL " + ", ".join(bad) + "[/red]" if bad else "[green]ok[/green]",
@@ -171,6 +187,13 @@ def render(result: GateResult, title: str) -> Table:
         )
         previous = t.pair
     return table
+
+
+def _work_cell(t: TaskDiff) -> str:
+    if t.baseline_work is None or t.candidate_work is None:
+        return "-"
+    text = f"{t.baseline_work / 1e9:.3f} -> {t.candidate_work / 1e9:.3f}"
+    return text + (" (up)" if t.work_increased else "")
 
 
 def _length_cell(t: TaskDiff) -> str:
@@ -223,6 +246,7 @@ def cmd_gate(args: argparse.Namespace) -> int:
             alpha=args.alpha,
             max_slowdown=args.max_slowdown,
             allow_nfe_increase=args.allow_nfe_increase,
+            allow_work_increase=args.allow_work_increase,
             reference=args.reference,
         )
     except GateInputError as exc:
@@ -241,7 +265,10 @@ def cmd_gate(args: argparse.Namespace) -> int:
     if result.passed:
         unsure = [r.pair for r in result.replay if r.verdict == "inconclusive"]
         speed = f"speed inconclusive for {', '.join(unsure)} (warning above)" if unsure else "no slowdown"
-        console.print(f"[green]gate passed[/green]: no significant success drop, no NFE increase, {speed}")
+        console.print(
+            "[green]gate passed[/green]: no significant success drop, no NFE or counted work increase, "
+            f"{speed}"
+        )
         return 0
     err_console.print("[red]gate failed[/red]:\n  " + "\n  ".join(result.failures))
     return 1

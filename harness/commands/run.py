@@ -98,7 +98,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     from harness.action_space import OUT_OF_SPACE_RULES, RULES_HELP
 
     p.add_argument("--out-of-space", choices=OUT_OF_SPACE_RULES, metavar="RULE", help=RULES_HELP)
-    p.add_argument("--out", metavar="DIR", help="run folder (default: runs/<UTC date and time>, printed with the table)")
+    p.add_argument(
+        "--out", metavar="DIR", help="run folder (default: runs/<UTC date and time>, printed with the table)"
+    )
     mode = p.add_mutually_exclusive_group()
     mode.add_argument(
         "--resume",

@@ -201,10 +201,21 @@ class StepOutput:
     kv: KVCache  # keys/values of the positions this call computed (prefix first)
 
 
+class Attention(nn.Module):
+    """`F.scaled_dot_product_attention` as a module without parameters: the harness's
+    hooks see each call's query, key and value shapes and count its work (harness/work.py:
+    FLOPs, and the positions attended, cached or not). Queries (B, heads, L, E) attend
+    keys/values (B, heads, S, E) that end with the call's own L positions."""
+
+    def forward(self, q: Tensor, keys: Tensor, values: Tensor, allowed: Tensor | None) -> Tensor:
+        return F.scaled_dot_product_attention(q, keys, values, attn_mask=allowed)
+
+
 class Block(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.heads = cfg.heads
+        self.attention = Attention()
         self.norm1 = nn.LayerNorm(cfg.width)
         self.qkv = nn.Linear(cfg.width, 3 * cfg.width)
         self.proj = nn.Linear(cfg.width, cfg.width)
@@ -217,7 +228,7 @@ class Block(nn.Module):
         b, n, d = x.shape
         q, k, v = self.qkv(self.norm1(x)).view(b, n, 3, self.heads, d // self.heads).permute(2, 0, 3, 1, 4)
         keys, values = (k, v) if cache is None else cache.joined(layer, k, v)
-        attn = F.scaled_dot_product_attention(q, keys, values, attn_mask=allowed)
+        attn = self.attention(q, keys, values, allowed)
         x = x + self.proj(attn.transpose(1, 2).reshape(b, n, d))
         x = x + self.ffn(self.norm2(x))
         return x, k, v
