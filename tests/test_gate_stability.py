@@ -70,7 +70,7 @@ def _decode(policy, observations, contexts):
     policy.reset(contexts)
     with counter.counting():
         batch = policy.act(observations)
-    return batch, counter.take()
+    return batch, counter.take(), counter.take_work()
 
 
 def test_the_test_policies_keep_actions_and_passes(tmp_path, one_thread):
@@ -87,14 +87,18 @@ def test_the_test_policies_keep_actions_and_passes(tmp_path, one_thread):
     ]
     observations = [np.random.default_rng(0).uniform(-1, 1, 39).astype(np.float32)]
     params = parse_params(spec, {"checkpoint": str(ckpt)})
-    plain, plain_nfe = _decode(spec.build(params), observations, contexts)
+    plain, plain_nfe, plain_work = _decode(spec.build(params), observations, contexts)
 
     slowed = spec.build(params)
     bench.spin_after_each_pass(slowed.model, 0.15)
-    slow, slow_nfe = _decode(slowed, observations, contexts)
-    doubled, doubled_nfe = _decode(bench.DoubledBatch(spec.build(params)), observations, contexts)
+    slow, slow_nfe, slow_work = _decode(slowed, observations, contexts)
+    doubled, doubled_nfe, doubled_work = _decode(
+        bench.DoubledBatch(spec.build(params)), observations, contexts
+    )
 
     for batch, nfe in ((slow, slow_nfe), (doubled, doubled_nfe)):
         np.testing.assert_array_equal(batch.actions, plain.actions)
         assert batch.action_tokens == plain.action_tokens
         assert nfe == plain_nfe > 0
+    assert slow_work == plain_work and plain_work.flops > 0
+    assert doubled_work.flops == 2 * plain_work.flops  # the work the gate must catch
