@@ -141,3 +141,37 @@ def test_on_liberos_live_state_a_later_subtask_already_in_place_fails_the_chain(
         assert ketchup["outcome"] == cc.GOAL_HELD_AT_START and ketchup["goal_held_at_start"]
     finally:
         env.close()
+
+
+def test_where_chains_fail_is_read_from_the_rows():
+    import pandas as pd
+
+    from results.chain_table import subtask_failures
+
+    state, chain = HandMadeState(), tray_chain()
+    knocked = cc.ChainCredit.begin(chain, state)  # butter completed, ketchup already in place
+    state.true |= {in_tray("butter"), in_tray("ketchup")}
+    knocked.after_step(state)
+    timed_out = cc.ChainCredit.begin(chain, HandMadeState())
+    while not timed_out.after_step(HandMadeState()):
+        pass
+    old = [  # a row from before outcomes were recorded: butter done in 40 steps, ketchup out of steps
+        {"id": "butter_in_tray", "instruction": "", "success": True, "steps": 40, "outcome": None},
+        {"id": "ketchup_in_tray", "instruction": "", "success": False, "steps": 360, "outcome": None},
+        {"id": "alphabet_soup_in_tray", "instruction": "", "success": False, "steps": 0, "outcome": None},
+    ]
+    episodes = pd.DataFrame(
+        {
+            "policy_config_id": ["a", "a", "b"],
+            "subtasks": [knocked.records, timed_out.records, old],
+        }
+    )
+    table = subtask_failures(episodes).set_index(["policy_config_id", "subtask"])
+    butter, ketchup = table.loc[("a", "butter_in_tray")], table.loc[("a", "ketchup_in_tray")]
+    assert (butter["attempts"], butter["completed"], butter["out_of_steps"]) == (2, 1, 1)
+    assert butter["median_steps_completed"] == 1
+    assert (ketchup["attempts"], ketchup["goal_held_at_start"], ketchup["completed"]) == (1, 1, 0)
+    assert ("a", "alphabet_soup_in_tray") not in table.index  # never reached
+    assert table.loc[("b", "butter_in_tray"), "completed"] == 1
+    assert table.loc[("b", "ketchup_in_tray"), "unrecorded"] == 1
+    assert ("b", "alphabet_soup_in_tray") not in table.index
