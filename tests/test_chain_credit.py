@@ -175,3 +175,30 @@ def test_where_chains_fail_is_read_from_the_rows():
     assert table.loc[("b", "butter_in_tray"), "completed"] == 1
     assert table.loc[("b", "ketchup_in_tray"), "unrecorded"] == 1
     assert ("b", "alphabet_soup_in_tray") not in table.index
+
+
+def test_the_start_check_names_later_subtasks_whose_goal_already_holds():
+    from adapters.chain_starts import later_goals_holding
+
+    scene, state = cs.load_scene(SCENE), HandMadeState()
+    chain = tuple(f"{g}_in_tray" for g in GROCERIES)
+    assert later_goals_holding(scene, chain, state) == []
+    state.true |= {in_tray("butter"), in_tray("cream_cheese")}  # the first's goal is not "later"
+    assert later_goals_holding(scene, chain, state) == [(3, "cream_cheese_in_tray")]
+
+
+@needs_libero
+def test_the_start_check_runs_on_the_stored_chains(capsys):
+    from adapters.chain_starts import _main
+
+    assert _main(["kitchen_scene1", "--chains", "2"]) == 0
+    assert (
+        capsys.readouterr()
+        .out.strip()
+        .endswith(
+            "kitchen_scene1: 2 chains; a goal holds at the start of 0; a later subtask's goal holds at the start of 0"
+        )
+    )
+    with pytest.raises(SystemExit) as exc:
+        _main(["no_such_scene"])
+    assert exc.value.code == 2
