@@ -27,9 +27,12 @@ import numpy as np
 from adapters import chain_scenes as cs
 from adapters import libero
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.chain_credit import ChainCredit
 from adapters.registry import SuiteProvider, UnknownSuiteError
 
-SUITE_VERSION = "1"
+# 2: CALVIN's credit rule (adapters/chain_credit.py): a subtask whose goal holds at its
+# start fails the chain; version 1 credited it after one step.
+SUITE_VERSION = "2"
 PREFIX = "chains/"
 ALL = "all"
 # A chain-only suite option (the rest are LIBERO's): `goal_positions=on` appends the
@@ -103,17 +106,16 @@ def goal_positions(state: np.ndarray, slices: dict[str, tuple[int, int]], subtas
     return np.concatenate([state[slices[a][0] : slices[a][0] + 3] for a in goal_arguments(subtask)])
 
 
-def subtask_record(subtask: cs.Subtask) -> dict[str, Any]:
-    return {"id": subtask.id, "instruction": subtask.instruction, "success": False, "steps": 0}
-
-
 class ChainEpisodeEnv(gym.Env):
-    """A LIBERO scene that runs a chain: switches the subtask when its goal holds, ends the
-    episode when all 5 hold or when one ran out of its 360 steps.
+    """A LIBERO scene that runs a chain under CALVIN's credit rule (adapters/chain_credit.py):
+    switches the subtask when its goal becomes true, ends the episode when all 5 are
+    completed, when one ran out of its 360 steps, or when the next one's goal already
+    holds as it takes over.
 
     info on every step: `success` (all 5 completed), `subtasks_completed`, `instruction`
     and `subtask_index` (the subtask in force, the next one once a goal holds), and
-    `subtasks` (one record per planned subtask: id, instruction, success, steps).
+    `subtasks` (one record per planned subtask: id, instruction, success, steps,
+    start_step, end_step, goal_held_at_start, outcome).
     LIBERO's own done flag (the scene task's goal) is ignored: only the chain's goals count.
     """
 
@@ -147,16 +149,14 @@ class ChainEpisodeEnv(gym.Env):
                 gym.spaces.Dict({**space.spaces, "state": box}) if isinstance(space, gym.spaces.Dict) else box
             )
         self._chain: tuple[cs.Subtask, ...] = ()
-        self._records: list[dict[str, Any]] = []
-        self._k = 0
-        self._steps = 0
+        self._credit = ChainCredit(())
 
     def _observe(self, obs: Any) -> Any:
         """The inner env's observation, with the goal positions of the subtask in force
         appended to its state when asked (the next subtask's once a goal holds)."""
         if not self.with_goal_positions:
             return obs
-        current = self._chain[min(self._k, len(self._chain) - 1)]
+        current = self._chain[self._credit.in_force]
         state = obs["state"] if isinstance(obs, dict) else obs
         state = np.concatenate([state, goal_positions(state, self._slices, current)]).astype(np.float32)
         return {**obs, "state": state} if isinstance(obs, dict) else state
@@ -166,14 +166,13 @@ class ChainEpisodeEnv(gym.Env):
         return bool(self.inner.libero.env._eval_predicate(list(predicate)))
 
     def _info(self) -> dict[str, Any]:
-        done = sum(r["success"] for r in self._records)
-        current = self._chain[min(self._k, len(self._chain) - 1)]
+        credit = self._credit
         return {
-            "success": done == len(self._chain),
-            "subtasks_completed": done,
-            "instruction": current.instruction,
-            "subtask_index": min(self._k, len(self._chain) - 1),
-            "subtasks": self._records,  # live records: a reader keeps a copy (chain_fields)
+            "success": credit.completed == len(self._chain),
+            "subtasks_completed": credit.completed,
+            "instruction": self._chain[credit.in_force].instruction,
+            "subtask_index": credit.in_force,
+            "subtasks": credit.records,  # live records: a reader keeps a copy (chain_fields)
         }
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -181,13 +180,12 @@ class ChainEpisodeEnv(gym.Env):
         if spec is None or not spec.chain:
             raise ValueError("a chain episode's reset needs options={'episode': EpisodeSpec(chain=...)}")
         self._chain = tuple(self.scene.subtask(i) for i in spec.chain)
-        self._records = [subtask_record(s) for s in self._chain]
-        self._k = self._steps = 0
         obs, _ = self.inner.reset(seed=seed, options=options)
+        self._credit = ChainCredit.begin(self._chain, self.holds)
         first = self._chain[0]
         unmet = [list(p) for p in first.pre if not self.holds(p)]
         unmet += [["not", *p] for p in first.unless if self.holds(p)]
-        if all(self.holds(p) for p in first.goal):
+        if self._credit.over:  # the first subtask's goal holds: the chain is not valid here
             unmet.append(["its goal already holds"])
         if unmet:
             raise RuntimeError(
@@ -198,17 +196,7 @@ class ChainEpisodeEnv(gym.Env):
 
     def step(self, action):
         obs, reward, _, truncated, _ = self.inner.step(action)
-        self._steps += 1
-        record = self._records[self._k]
-        record["steps"] = self._steps
-        terminated = False
-        if all(self.holds(p) for p in self._chain[self._k].goal):
-            record["success"] = True
-            self._k += 1
-            self._steps = 0
-            terminated = self._k == len(self._chain)
-        elif self._steps >= cs.STEPS_PER_SUBTASK:
-            terminated = True  # the chain stops at its first failed subtask
+        terminated = self._credit.after_step(self.holds)
         return self._observe(obs), float(reward), terminated, truncated, self._info()
 
     def close(self) -> None:

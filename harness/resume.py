@@ -130,6 +130,13 @@ def config_changes(
             else ""
         )
         changes.append(f"suite: {_shown(recorded_suite)} -> {_shown(resolved.suite.name)}{hint}")
+    recorded_version = (manifest.get("suite") or {}).get("version")
+    if recorded_version is not None and recorded_version != resolved.suite.version:
+        changes.append(
+            f"suite version: {_shown(recorded_version)} -> {_shown(resolved.suite.version)} (the "
+            "suite's episodes or scoring changed since the run began, e.g. the chain suites' credit "
+            "rule: its rows would not compare; start a new run)"
+        )
     recorded_tasks = (manifest.get("suite") or {}).get("tasks")
     tasks = [t.name for t in resolved.tasks]
     if recorded_tasks is None:  # a manifest without the resolved names: the config's

@@ -210,3 +210,45 @@ def chain_columns(chain: ChainStats | None, groups_stats: dict[str, ChainStats])
     for group, stats in groups_stats.items():
         out[f"avg_len[{group}]"] = stats.avg_len
     return out
+
+
+# --- where chains fail, from the per-subtask records --------------------------------------
+
+
+def subtask_failures(episodes: pd.DataFrame) -> pd.DataFrame:
+    """Per policy configuration and subtask id: how often the subtask was attempted, how
+    each attempt ended (the records' `outcome`: completed, out_of_steps,
+    goal_held_at_start, in_progress), and the median steps of the completed ones. Read
+    from the rows' `subtasks` records alone, so the breakdown of a run is reproducible
+    without re-running it. A failed record written before outcomes were recorded (null)
+    counts as `unrecorded`."""
+    rows = []
+    chains = episodes[episodes["subtasks"].notna()] if "subtasks" in episodes else episodes.iloc[:0]
+    for config_id, records in zip(chains["policy_config_id"], chains["subtasks"], strict=True):
+        for r in records:
+            outcome = r.get("outcome")
+            if outcome is None:  # a row from before the credit rule: steps 0 = never reached
+                if not r["steps"]:
+                    continue
+                outcome = "completed" if r["success"] else "unrecorded"
+            if outcome == "not_reached":
+                continue
+            rows.append(
+                {
+                    "policy_config_id": config_id,
+                    "subtask": r["id"],
+                    "outcome": outcome,
+                    "steps": r["steps"] if outcome == "completed" else math.nan,
+                }
+            )
+    columns = ["policy_config_id", "subtask", "attempts", "completed", "out_of_steps"]
+    columns += ["goal_held_at_start", "in_progress", "unrecorded", "median_steps_completed"]
+    if not rows:
+        return pd.DataFrame(columns=columns)
+    frame = pd.DataFrame(rows)
+    counts = pd.crosstab([frame["policy_config_id"], frame["subtask"]], frame["outcome"])
+    counts = counts.reindex(columns=columns[3:-1], fill_value=0)
+    counts.columns.name = None
+    counts.insert(0, "attempts", counts.sum(axis=1))
+    median = frame.groupby(["policy_config_id", "subtask"])["steps"].median()
+    return counts.assign(median_steps_completed=median).reset_index()[columns]

@@ -38,6 +38,11 @@ SUBTASK = pa.struct(
         pa.field("instruction", pa.string()),
         pa.field("success", pa.bool_()),
         pa.field("steps", pa.int64()),
+        # CALVIN's credit rule (adapters/chain_credit.py); null in rows written before it.
+        pa.field("start_step", pa.int64()),
+        pa.field("end_step", pa.int64()),
+        pa.field("goal_held_at_start", pa.bool_()),
+        pa.field("outcome", pa.string()),
     ]
 )
 
@@ -296,8 +301,13 @@ COLUMNS: tuple[Column, ...] = (
         pa.list_(SUBTASK),
         "",
         "Instruction chains: one record per planned subtask, in order: id, instruction, "
-        "success, steps (a subtask never reached: false, 0). A nested column rather than a "
-        "second table, so one episode stays one appended row. Null for other suites.",
+        "success, steps, start_step and end_step (the chain's steps when it took over and when "
+        "it ended, settle steps excluded; steps = end_step - start_step), goal_held_at_start "
+        "(its goal held when it took over, so it was never credited: CALVIN's rule) and outcome "
+        "(`completed`, `out_of_steps`, `goal_held_at_start`, `in_progress` when the episode "
+        "ended otherwise, `not_reached`). A subtask never reached: false, 0 and null steps. "
+        "Rows written before the credit rule have the last four null. A nested column rather "
+        "than a second table, so one episode stays one appended row. Null for other suites.",
         nullable=True,
     ),
 )

@@ -191,6 +191,19 @@ def rows_to_table(rows: Iterable[Mapping[str, Any]]) -> pa.Table:
     return pa.Table.from_pylist([dict(r) for r in rows], schema=arrow_schema())
 
 
+def _widen(path: Path, table: pa.Table, field: pa.Field) -> pa.Table:
+    """A column of an older table in its current type: a struct that has gained fields
+    since (the chain `subtasks` records) reads with them null, so old and new rows concat."""
+    try:
+        column = table.column(field.name).cast(field.type)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+        raise ResultsFileError(
+            f"{path}: column {field.name!r} is {table.schema.field(field.name).type}, which this "
+            f"dvla-harness cannot read as {field.type} ({exc})"
+        ) from None
+    return table.set_column(table.column_names.index(field.name), field, column)
+
+
 def read_table(path: Path) -> pa.Table:
     """Read one episode Parquet file, refusing files of another schema or version."""
     try:
@@ -209,6 +222,8 @@ def read_table(path: Path) -> pa.Table:
     for field in arrow_schema():  # nullable columns added since the file was written: null
         if field.nullable and field.name not in table.column_names:
             table = table.append_column(field, pa.nulls(len(table), field.type))
+        elif field.name in table.column_names and table.schema.field(field.name).type != field.type:
+            table = _widen(path, table, field)
     return table.select([n for n in COLUMN_NAMES if n in table.column_names])
 
 

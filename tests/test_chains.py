@@ -228,7 +228,8 @@ def test_chain_columns_round_trip_and_version_1_tables_still_read(tmp_path):
     path = tmp_path / "v2.parquet"
     pq.write_table(rows_to_table([row]), path)
     back = read_table(path).to_pylist()[0]
-    assert back["subtasks"] == records and back["subtasks_completed"] == 1
+    assert [{k: r[k] for k in records[0]} for r in back["subtasks"]] == records
+    assert back["subtasks"][0]["outcome"] is None and back["subtasks_completed"] == 1  # not given: null
     # A version-1 file (no chain columns) reads with them null.
     old = rows_to_table([a_row()]).drop_columns(["chain_id", "subtasks_completed", "subtasks"])
     old = old.replace_schema_metadata({schema.SCHEMA_VERSION_KEY: b"1"})

@@ -251,3 +251,21 @@ def test_a_suite_default_that_changed_is_named_and_naming_the_recorded_protocol_
         resolving_to("fake/countdown:seeding=old", "fake/countdown:seeding=old", 3), out, resume=True
     )
     assert (report.skipped, report.executed) == (2, 1)
+
+
+def test_a_suite_whose_version_changed_is_not_resumed(tmp_path):
+    """A suite's version says its episodes or scoring changed (the chain suites' credit
+    rule): rows of two versions in one folder would not compare, so the resume is refused."""
+
+    def versioned(version: str, episodes: int):
+        resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=episodes)
+        resolved.suite = dataclasses.replace(resolved.suite, version=version)
+        return resolved
+
+    out = tmp_path / "run"
+    run(versioned("1", 2), out)
+    with pytest.raises(
+        UsageError, match=r'suite version: "1" -> "2" \(the suite\'s episodes or scoring changed'
+    ):
+        run(versioned("2", 3), out, resume=True)
+    assert run(versioned("1", 3), out, resume=True).executed == 1

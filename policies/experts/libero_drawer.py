@@ -91,6 +91,9 @@ OVER = 0.15
 # OUT (joint position, m) is pushed by its handle until it is past SHUT_TO.
 OUT = -0.03
 SHUT_TO = -0.01
+# A chain's "close the ... drawer" subtask needs LIBERO's `Close`, which for the wooden
+# cabinet is the joint past 0.0 (its rest is 0.0, its stop +0.01): pushed past CLOSED_PAST.
+CLOSED_PAST = 0.002
 PUSH_FRONT = 0.05  # come down this far in front of the handle before pushing (m)
 PUSH_LOW = 0.01  # fingertips this far below the handle's centre: the fingers cover the bar (m)
 LEAN = 0.5  # the pushing hand leans out this far (rad), fingers toward the cabinet
@@ -305,8 +308,9 @@ class ShutExpert(_DrawerHand):
     front (its 21 cm side across the pull would reach the handles above and below), comes
     down in front of the handle, pushes it in past SHUT_TO, backs off and rises."""
 
-    def __init__(self, plan: Drawer, params: LiberoScriptedParams, near=None):
+    def __init__(self, plan: Drawer, params: LiberoScriptedParams, near=None, shut_to: float = SHUT_TO):
         self.plan, self.params = plan, params
+        self.shut_to = shut_to  # CLOSED_PAST when closing the drawer is the goal itself
         # where the next expert's hand will work, (x, y, hand height) points from the
         # state; None: wherever, so any drawer out is in the way. Pick-and-place plans
         # its way in low from the start pose, so with `near` the hand goes back there.
@@ -343,7 +347,7 @@ class ShutExpert(_DrawerHand):
             target = handle - pull * 0.05 + np.array([0.0, 0.0, -PUSH_LOW])
             self.trail.append(q)
             stalled = len(self.trail) > STALL_STEPS and q - self.trail[-STALL_STEPS - 1] < STALL_MOVE
-            if q > SHUT_TO or stalled or self.count > 80:
+            if q > self.shut_to or stalled or self.count > 80:
                 self._next("back_off")
         elif self.phase == "back_off":
             target = handle + pull * PUSH_FRONT + np.array([0.0, 0.0, RISE])

@@ -47,13 +47,21 @@ def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
 
 
 def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
-    """The expert for a task's goal: a drawer pull for `Open` a drawer, and before
+    """The expert for a task's goal: a drawer pull for `Open` a drawer, a push past
+    LIBERO's `Close` threshold for `Close` one, and before
     putting something `In` one (policies/experts/libero_drawer.py), a drag for an object too wide
     to grip going to a table region (policies/experts/libero_push.py), a wrist turn for a stove's
     knob (policies/experts/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
     pick-and-place, the experts whose demonstrations are trained on so far."""
     from adapters import libero
-    from policies.experts.libero_drawer import AJAR, DrawerExpert, OpenThenExpert, drawer_plan
+    from policies.experts.libero_drawer import (
+        AJAR,
+        CLOSED_PAST,
+        DrawerExpert,
+        OpenThenExpert,
+        ShutExpert,
+        drawer_plan,
+    )
     from policies.experts.libero_knob import KNOBS, Knob, KnobExpert
     from policies.experts.libero_push import PUSHED, PushExpert, push_plan
 
@@ -63,6 +71,8 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
     entities = libero.entity_names(problem)
     drawer = drawer_plan(slices, entities, goals[0][-1]) if len(goals) == 1 else None
     standing = _standing(problem, slices)
+    if drawer is not None and goals[0][0] == "close":  # a chain's authored close
+        return ShutExpert(drawer, params, shut_to=CLOSED_PAST)
     if drawer is not None and goals[0][0] == "open":
         expert = DrawerExpert(drawer, params, obstacles=standing)
         return _shut_first(expert, slices, entities, params, but=drawer)

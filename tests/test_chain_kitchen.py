@@ -1,0 +1,121 @@
+"""The kitchen scene with opposites (adapters/chain_data/kitchen_scene1.toml): its
+authored complements in the precondition model, its stored chains, and (with the libero
+extra) an authored close undoing its open on the live state, done by the scripted expert."""
+
+from __future__ import annotations
+
+import pytest
+
+from adapters import chain_scenes as cs
+from adapters import libero as lb
+
+needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+SCENE = "kitchen_scene1"
+DRAWERS = ("top", "middle", "bottom")
+
+
+@pytest.fixture(autouse=True)
+def _fresh_caches():
+    yield
+    cs.load_scene.cache_clear()
+    cs.load_chains.cache_clear()
+
+
+def start_state() -> frozenset[cs.Predicate]:
+    """The BDDL's :init of KITCHEN_SCENE1 (what adapters.chains.scene_problem reads)."""
+    return frozenset(
+        {
+            ("on", "akita_black_bowl_1", "kitchen_table_akita_black_bowl_init_region"),
+            ("on", "plate_1", "kitchen_table_plate_init_region"),
+            ("on", "wooden_cabinet_1", "kitchen_table_wooden_cabinet_init_region"),
+        }
+    )
+
+
+def test_every_authored_close_undoes_its_open_in_the_model():
+    scene = cs.load_scene(SCENE)
+    authored = [s for s in scene.subtasks if s.source == "authored"]
+    assert {s.id for s in authored} == {
+        "close_top_drawer",
+        "close_middle_drawer",
+        "close_bottom_drawer",
+        "open_middle_drawer",
+    }
+    for drawer in DRAWERS:
+        opened, closed = scene.subtask(f"open_{drawer}_drawer"), scene.subtask(f"close_{drawer}_drawer")
+        state = cs.apply(opened, start_state())
+        assert closed in cs.eligible(scene, state) and opened not in cs.eligible(scene, state)
+        state = cs.apply(closed, state)
+        assert set(opened.goal).isdisjoint(state) and set(closed.goal) <= state
+        assert opened in cs.eligible(scene, state)  # and it can be opened again
+        assert closed not in cs.eligible(scene, start_state())  # nothing to close at the start
+    # one drawer out at a time: with the top one open, no other opens
+    state = cs.apply(scene.subtask("open_top_drawer"), start_state())
+    assert {s.id for s in cs.eligible(scene, state) if s.id.startswith("open_")} == set()
+
+
+def test_the_stored_chains_are_valid_and_undo_what_they_did():
+    scene, stored = cs.load_scene(SCENE), cs.load_chains(SCENE)
+    assert len(stored.chains) == cs.CHAINS_PER_SCENE and stored.scene == SCENE
+    for j, chain in enumerate(stored.chains):
+        cs.check_chain(scene, chain, start_state(), f"chain {j}")
+    assert cs.sample_chains(scene, start_state(), len(stored.chains), stored.seed) == list(stored.chains)
+    undoing = [c for c in stored.chains if any(s.startswith("close_") for s in c)]
+    assert len(undoing) >= 10  # the point of the scene: chains that undo an earlier subtask
+
+
+@needs_libero
+def test_the_suite_loads_and_re_checks_the_chains_from_the_bddl():
+    from adapters import chains
+
+    suite = chains.load_suite(f"chains/{SCENE}")
+    (task,) = suite.tasks
+    assert [e.chain for e in task.episodes] == list(cs.load_chains(SCENE).chains)
+    assert cs.initial_state(chains.scene_problem(cs.load_scene(SCENE))) == start_state()
+    assert suite.name == f"chains/{SCENE}:seeding=openvla"
+
+
+@needs_libero
+def test_the_expert_closes_what_it_opened_on_the_live_state():
+    """The scripted expert opens the top drawer (LIBERO-90's task), then closes it (the
+    authored complement): LIBERO's predicates on the live state say the close undid the
+    open, as the model's `removes` says, and both subtasks are credited."""
+    from adapters import chains
+    from adapters.base import EpisodeSpec
+    from policies.base import EpisodeContext
+    from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams
+
+    suite = chains.load_suite(f"chains/{SCENE}")
+    task = suite.tasks[0]
+    env = suite.make_env(task)
+    chain = ("open_top_drawer", "close_top_drawer", "bowl_on_plate", "bowl_on_cabinet", "bowl_on_plate")
+    opened, closed = ("open", "wooden_cabinet_1_top_region"), ("close", "wooden_cabinet_1_top_region")
+    try:
+        obs, info = env.reset(options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=0, chain=chain)})
+        assert not env.holds(opened)
+        expert = LiberoScripted(LiberoScriptedParams())
+
+        def follow(info):
+            k = info["subtask_index"]
+            ctx = EpisodeContext(
+                suite.name, task.name, info["instruction"], env.action_space, env.observation_space, 360, k
+            )
+            expert.reset([ctx])
+
+        follow(info)
+        seen = []
+        for _ in range(2 * cs.STEPS_PER_SUBTASK):
+            k = info["subtask_index"]
+            obs, _, terminated, _, info = env.step(expert.act([obs]).actions[0, 0])
+            if info["subtask_index"] != k:
+                seen.append((env.holds(opened), env.holds(closed)))
+                if info["subtask_index"] == 2:
+                    break
+                follow(info)
+            assert not terminated, info["subtasks"][:2]
+        assert seen == [(True, False), (False, True)]  # opened, then closed: undone
+        first, second = info["subtasks"][:2]
+        assert first["outcome"] == second["outcome"] == "completed"
+        assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]
+    finally:
+        env.close()
