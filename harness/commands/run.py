@@ -62,7 +62,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "--config",
         metavar="FILE",
         help="TOML file with keys: suite, tasks, episodes_per_task, replan_every, batch_envs, "
-        "out_of_space, [[policy]] name/params",
+        "out_of_space, inference_latency, execution, [[policy]] name/params",
     )
     p.add_argument("--suite", help="suite name (see `dvla-harness list suites`)")
     p.add_argument(
@@ -98,6 +98,18 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     from harness.action_space import OUT_OF_SPACE_RULES, RULES_HELP
 
     p.add_argument("--out-of-space", choices=OUT_OF_SPACE_RULES, metavar="RULE", help=RULES_HELP)
+    p.add_argument(
+        "--inference-latency",
+        metavar="MODE",
+        help="simulated decoding time per chunk: none (default; the world waits), passes:MS[+FIXED_MS], "
+        "profile:NAME (`dvla-harness list latency-profiles`) or measured (docs/latency.md)",
+    )
+    p.add_argument(
+        "--execution",
+        choices=("sync", "async"),
+        help="under an inference latency: sync (the robot holds still while a chunk decodes; "
+        "default) or async (it keeps executing the current chunk)",
+    )
     p.add_argument("--out", metavar="DIR", help="run folder (default: runs/<run id>)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument(
@@ -186,6 +198,10 @@ def config_from_args(args: argparse.Namespace):
         data["replan_every"] = args.replan_every
     if getattr(args, "out_of_space", None) is not None:
         data["out_of_space"] = args.out_of_space
+    if getattr(args, "inference_latency", None) is not None:
+        data["inference_latency"] = args.inference_latency
+    if getattr(args, "execution", None) is not None:
+        data["execution"] = args.execution
     return build_config(data)
 
 
@@ -254,7 +270,10 @@ def execute_run(
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     from harness.batched import check_batching
+    from harness.latency import check_run, parse_latency
 
+    names = [p.spec.name for p in resolved.policies]
+    check_run(parse_latency(resolved.config.inference_latency), resolved.suite, names, execution.batch_envs)
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
     out = Path(args.out) if args.out else None
     if out is None:
