@@ -240,6 +240,14 @@ def print_out_of_space(episodes: pd.DataFrame, labels: dict[str, str] | None = N
         err_console.print(f"[yellow]warning:[/yellow] {line}", markup=True, highlight=False, soft_wrap=True)
 
 
+def print_latency_table(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
+    """Delays, late chunks and hold steps beside success, for runs at an inference latency."""
+    from results.latency_table import has_latency, latency_summary, latency_table
+
+    if has_latency(episodes):
+        console.print(latency_table(latency_summary(episodes), labels))
+
+
 def print_chain_table(episodes: pd.DataFrame) -> None:
     """CALVIN's table beneath the summary, for instruction-chain runs (docs/chains.md)."""
     from results.chain_table import chain_summary, chain_table, is_chain_run
@@ -306,6 +314,7 @@ def execute_run(
             )
         )
         print_chain_table(episodes)
+        print_latency_table(episodes, config_labels(episodes))
         print_out_of_space(episodes, config_labels(episodes))
     console.print(
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
