@@ -276,3 +276,25 @@ def test_list_latency_profiles_shows_each_with_its_source(cli):
         and "fast_dvla 139.1 ms" in text
         and "arXiv 2603.25661" in text
     )
+
+
+def test_measured_turns_the_calls_wall_clock_into_steps():
+    from tests.fakes import ChunkPolicy
+
+    policy = ChunkPolicy(chunk=4, delay=0.15)  # at 10 Hz: at least 2 steps a call
+    env = CountdownEnv(None)
+    plan = LatencyPlan(parse_latency("measured"), "sync", HZ, "fake")
+    out = run_episode(env, policy, NFECounter(policy), context(8), EpisodeSpec(0, 1), latency=plan)
+    assert out.delay_steps_max >= 2 and out.hold_steps >= 2
+    assert not env.actions[0].any()  # the first steps hold while the first chunk decodes
+
+
+def test_the_manifest_records_the_mode_and_show_prints_the_latency_table_only_at_a_latency(tmp_path, cli):
+    at = run(LatencyBuild("passes:100", "async")(), tmp_path / "at")
+    assert at.run_dir.read_manifest()["config"]["inference_latency"] == "passes:100"
+    assert at.run_dir.read_manifest()["config"]["execution"] == "async"
+    code, out, _ = cli("show", str(tmp_path / "at"))
+    assert code == 0 and "inference latency" in out and "passes:100 async" in out
+    run(LatencyBuild("none")(), tmp_path / "none")
+    code, out, _ = cli("show", str(tmp_path / "none"))
+    assert code == 0 and "inference latency" not in out
