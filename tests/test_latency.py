@@ -298,3 +298,15 @@ def test_the_manifest_records_the_mode_and_show_prints_the_latency_table_only_at
     run(LatencyBuild("none")(), tmp_path / "none")
     code, out, _ = cli("show", str(tmp_path / "none"))
     assert code == 0 and "inference latency" not in out
+
+
+def test_runs_at_two_latencies_read_together_keep_both_measurements(tmp_path):
+    from results.runs import combined_episodes, load_runs
+
+    run(LatencyBuild("none")(), tmp_path / "a")
+    run(LatencyBuild("passes:100", "async")(), tmp_path / "b")
+    run(LatencyBuild("passes:100", "sync")(), tmp_path / "c")
+    df = combined_episodes(load_runs([tmp_path / "a", tmp_path / "b", tmp_path / "c"]))
+    assert len(df) == 18 and df.attrs["duplicates"] == 0
+    again = combined_episodes(load_runs([tmp_path / "b", tmp_path / "b"]))
+    assert len(again) == 6  # the same folder twice still counts once
