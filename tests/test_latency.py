@@ -310,3 +310,24 @@ def test_runs_at_two_latencies_read_together_keep_both_measurements(tmp_path):
     assert len(df) == 18 and df.attrs["duplicates"] == 0
     again = combined_episodes(load_runs([tmp_path / "b", tmp_path / "b"]))
     assert len(again) == 6  # the same folder twice still counts once
+
+
+def test_plot_latency_draws_a_line_per_decoder_and_execution_and_refuses_runs_all_at_none(tmp_path, cli):
+    from results.latency_plot import latency_frame
+    from results.runs import combined_episodes, load_runs
+
+    for name, build in (
+        ("n", LatencyBuild("none")),
+        ("s", LatencyBuild("passes:100")),
+        ("a", LatencyBuild("passes:100", "async")),
+    ):
+        run(build(), tmp_path / name)
+    frame = latency_frame(combined_episodes(load_runs([tmp_path / n for n in "nsa"])))
+    lines = frame.groupby("decoder, execution")["latency"].apply(lambda s: sorted(set(s))).to_dict()
+    assert lines == {"fake, async": ["none", "passes:100"], "fake, sync": ["none", "passes:100"]}
+    code, out, _ = cli(
+        "plot", "latency", *(str(tmp_path / n) for n in "nsa"), "--out", str(tmp_path / "l.png")
+    )
+    assert code == 0 and "wrote" in out and (tmp_path / "l.png").stat().st_size > 0
+    code, _, err = cli("plot", "latency", str(tmp_path / "n"), "--out", str(tmp_path / "m.png"))
+    assert code == 2 and "no run at an inference latency other than none" in err
