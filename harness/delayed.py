@@ -70,11 +70,25 @@ def run_delayed(
     traces: list[dict[str, Any]] | None,
     reset_time: float,
 ) -> None:
-    from harness.episode import check_chunk, in_force
+    from harness.episode import check_chunk, in_force, remote_policy
 
     clock = time.perf_counter
     action_dim = int(np.prod(context.action_space.shape))
-    mark = nfe.count  # passes since the last request: a reset's belong to the next chunk
+    remote = remote_policy(policy)
+
+    def passes() -> int:
+        """Passes counted so far this episode: the harness's hooks, plus a remote server's."""
+        if remote is None:
+            return nfe.count
+        served = remote.passes_so_far()
+        if served is None and plan.mode.kind == "passes":
+            raise ValueError(
+                f"--inference-latency {plan.mode.text} needs each call's forward passes, and this "
+                "server reports none (an openpi server); use profile:NAME or measured"
+            )
+        return nfe.count + (served or 0)
+
+    mark = passes()  # passes since the last request: a reset's belong to the next chunk
     since_request = reset_time  # wall clock since the last request (measured mode)
     current: _Chunk | None = None
     pending: _Chunk | None = None
@@ -93,8 +107,9 @@ def run_delayed(
         tally.tokens += batch.action_tokens
         if traces is not None and batch.trace:
             traces.append({**batch.trace[0], "chunk": tally.chunks - 1, "step": tally.steps})
-        d = plan.delay(nfe.count - mark, since_request + took)
-        mark, since_request = nfe.count, 0.0
+        now_passes = passes()
+        d = plan.delay(now_passes - mark, since_request + took)
+        mark, since_request = now_passes, 0.0
         tally.delays.append(d)  # before the checks: a refused chunk took its time too
         actions = np.asarray(batch.actions)
         check_chunk(actions, action_dim)

@@ -171,11 +171,6 @@ def check_run(mode: LatencyMode, suite: Any, policies: list[str], batch_envs: in
             f"--inference-latency {mode.text} cannot run with --batch-envs {batch_envs}: one call "
             "decodes for every slot, so no slot has a latency of its own; use --batch-envs 1"
         )
-    if mode.kind == "passes" and "remote" in policies:
-        raise UsageError(
-            f"--inference-latency {mode.text} needs each call's forward passes, and a remote "
-            "server reports its passes per episode, not per call; use profile:NAME or measured"
-        )
     if mode.kind == "profile":
         missing = [p for p in policies if p not in mode.chunk_ms]
         if missing:

@@ -22,6 +22,7 @@ from harness.runner import run
 from policies.base import ChunkBatch, EpisodeContext
 from results.gate import GateInputError, gate
 from tests.fakes import CountdownEnv, context, fake_resolved
+from tests.test_remote import serve_process  # noqa: F401  (a fixture)
 
 HZ = 10.0  # the fake suite's control frequency: 100 ms a step
 
@@ -331,3 +332,24 @@ def test_plot_latency_draws_a_line_per_decoder_and_execution_and_refuses_runs_al
     assert code == 0 and "wrote" in out and (tmp_path / "l.png").stat().st_size > 0
     code, _, err = cli("plot", "latency", str(tmp_path / "n"), "--out", str(tmp_path / "m.png"))
     assert code == 2 and "no run at an inference latency other than none" in err
+
+
+def test_a_remote_policy_is_charged_the_servers_passes_per_call_like_the_local_one(
+    cli,
+    tmp_path,
+    serve_process,  # noqa: F811
+):
+    url = serve_process("--policy", "fast_dvla", "--suite", "metaworld/mt10", "--task", "reach-v3")
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt10", "--tasks", "reach-v3", "--episodes-per-task", "2",
+        "--policy", f"remote:url={url}", "--policy", "fast_dvla", "--replan-every", "4",
+        "--inference-latency", "passes:4", "--execution", "async", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    rows = pd.read_parquet(out / "episodes.parquet").set_index(["policy", "episode_index"])
+    remote, local = rows.loc["remote"], rows.loc["fast_dvla"]
+    assert (local["delay_steps_max"] > 0).all()
+    for column in ("success", "steps", "chunks", "nfe_total", "delay_steps_mean", "delay_steps_max",
+                   "late_chunks", "hold_steps"):  # fmt: skip
+        assert list(remote[column]) == list(local[column]), column
