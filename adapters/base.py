@@ -76,6 +76,9 @@ class Suite:
     # Anything else that can move scores and belongs in the manifest beside the versions,
     # e.g. the Vulkan driver SAPIEN renders and builds its scene with.
     provenance: Mapping[str, str] = field(default_factory=dict)
+    # Control steps per second, which turns an inference latency into steps
+    # (docs/latency.md); None: the built-in table in harness/latency.py, by suite name.
+    control_hz: float | None = None
 
     def task(self, name_or_index: str) -> TaskSpec:
         """Look a task up by name or by its position in the suite."""

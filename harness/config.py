@@ -20,6 +20,8 @@ from adapters.base import EpisodeSpec, Suite, TaskSpec
 from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
 from harness.action_space import DEFAULT_OUT_OF_SPACE, check_rule
 from harness.errors import HarnessError, UsageError
+from harness.latency import check_execution, parse_latency
+from harness.latency import check_run as check_latency
 from harness.plugins import HARNESS, install_hint
 from policies.base import Policy
 from policies.registry import (
@@ -35,6 +37,7 @@ from policies.registry import (
 # not in RunConfig, so not in the fingerprint, and a resume may use another batch size.
 CONFIG_KEYS = (
     "suite", "tasks", "episodes_per_task", "replan_every", "policy", "split", "batch_envs", "out_of_space",
+    "inference_latency", "execution",
 )  # fmt: skip
 SPLITS = ("eval", "train")
 
@@ -55,6 +58,10 @@ class RunConfig:
     split: str = "eval"  # "train": episodes disjoint from evaluation, for demonstrations
     # What an action outside the action space does: fail, clip or record (harness/action_space.py).
     out_of_space: str = DEFAULT_OUT_OF_SPACE
+    # Simulated decoding time (harness/latency.py, docs/latency.md): the mode as recorded,
+    # and whether the robot waits for each chunk (sync) or keeps moving (async).
+    inference_latency: str = "none"
+    execution: str = "sync"
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -160,6 +167,8 @@ def build_config(data: dict[str, Any]) -> RunConfig:
     if split not in SPLITS:
         raise UsageError(f"split {split!r} is not valid; choose one of {', '.join(SPLITS)}")
     out_of_space = check_rule(data.get("out_of_space", DEFAULT_OUT_OF_SPACE), "out_of_space")
+    latency = parse_latency(data.get("inference_latency", "none")).text
+    execution = check_execution(data.get("execution", "sync"))
     return RunConfig(
         suite=suite,
         policies=tuple(policies),
@@ -168,6 +177,8 @@ def build_config(data: dict[str, Any]) -> RunConfig:
         replan_every=replan,
         split=split,
         out_of_space=out_of_space,
+        inference_latency=latency,
+        execution=execution,
     )
 
 
@@ -337,4 +348,5 @@ def resolve(config: RunConfig) -> ResolvedRun:
         if run.config_id in seen:
             raise UsageError(f"policy {run.spec.name!r} is listed twice with the same parameters")
         seen[run.config_id] = run.spec.name
+    check_latency(parse_latency(config.inference_latency), suite, [r.spec.name for r in runs])
     return ResolvedRun(config, suite, tasks, runs)

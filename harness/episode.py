@@ -29,6 +29,8 @@ import numpy as np
 
 from adapters.base import EpisodeSpec
 from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
+from harness.delayed import Tally, run_delayed
+from harness.latency import LatencyPlan
 from harness.nfe import NFECounter
 from harness.work import Work
 from policies.base import EpisodeContext, Policy
@@ -66,6 +68,13 @@ class EpisodeOutcome:
     max_action_excess: float | None = None
     # Counted work of its passes (harness/work.py); a None field: not measured.
     work: Work = dataclasses.field(default_factory=Work)
+    # Inference latency (harness/delayed.py): per chunk's delay in control steps, chunks that
+    # came after the robot had run out of actions, steps spent holding still. At `none`:
+    # every delay 0 (null without a chunk).
+    delay_steps_mean: float | None = None
+    delay_steps_max: int | None = None
+    late_chunks: int = 0
+    hold_steps: int = 0
 
 
 def remote_policy(policy: Any) -> Any:
@@ -123,6 +132,7 @@ def run_episode(
     replan_every: int = 0,
     record_traces: bool = False,
     out_of_space: str = DEFAULT_OUT_OF_SPACE,
+    latency: LatencyPlan | None = None,
 ) -> EpisodeOutcome:
     clock = time.perf_counter
     started_at = datetime.now(UTC)
@@ -133,6 +143,7 @@ def run_episode(
     failure = trace = None
     traces: list[dict[str, Any]] | None = [] if record_traces else None
     info: dict[str, Any] = {}
+    tally: Tally | None = None
     space = ActionCheck.for_space(context.action_space, out_of_space)
     nfe.take()
     nfe.take_work()
@@ -149,7 +160,10 @@ def run_episode(
             policy.reset([context])
         t2 = clock()
         policy_time += t2 - t
-        done = False
+        done = latency is not None
+        if latency is not None:  # under an inference latency: harness/delayed.py
+            tally = Tally(info=info)
+            run_delayed(env, policy, nfe, context, obs, latency, replan_every, space, tally, traces, t2 - t)
         while not done and steps < context.max_steps:
             t = clock()
             with nfe.counting():
@@ -190,6 +204,21 @@ def run_episode(
         trace = traceback.format_exc()
         success = False
     wall = clock() - start
+    delays = {"delay_steps_mean": 0.0 if chunks else None, "delay_steps_max": 0 if chunks else None}
+    if tally is not None:
+        steps, chunks, tokens, success = (
+            tally.steps,
+            tally.chunks,
+            tally.tokens,
+            tally.success and not failure,
+        )
+        policy_time, env_time, info = policy_time + tally.policy_time, env_time + tally.env_time, tally.info
+        delays = {
+            "delay_steps_mean": float(np.mean(tally.delays)) if tally.delays else None,
+            "delay_steps_max": max(tally.delays) if tally.delays else None,
+            "late_chunks": tally.late_chunks,
+            "hold_steps": tally.hold_steps,
+        }
     passes: int | None = nfe.take()
     work = nfe.take_work()
     transport = None
@@ -218,4 +247,5 @@ def run_episode(
         traces=traces,
         **space.columns(),
         **chain_fields(info),
+        **delays,
     )

@@ -76,7 +76,10 @@ def recorded_config_data(out: Path) -> dict[str, Any] | None:
 
 def config_data(config: Mapping[str, Any]) -> dict[str, Any]:
     """A manifest's recorded config (RunConfig.to_dict) as config data (TOML keys)."""
-    keys = ("suite", "tasks", "episodes_per_task", "replan_every", "split", "out_of_space")
+    keys = (
+        "suite", "tasks", "episodes_per_task", "replan_every", "split", "out_of_space", "inference_latency",
+        "execution",
+    )  # fmt: skip
     data = {key: config[key] for key in keys if key in config}
     if "policies" in config:
         data["policy"] = config["policies"]
@@ -148,7 +151,13 @@ def config_changes(
         shown = [dataclasses.asdict(p) for p in new.policies]
         changes.append(f"policies: {_shown(_without_keys(old.get('policies')))} -> {_shown(shown)}")
     # absent from older manifests: their defaults (rows before the action check ran unchecked)
-    for key, default in (("replan_every", 0), ("split", "eval"), ("out_of_space", DEFAULT_OUT_OF_SPACE)):
+    for key, default in (
+        ("replan_every", 0),
+        ("split", "eval"),
+        ("out_of_space", DEFAULT_OUT_OF_SPACE),
+        ("inference_latency", "none"),
+        ("execution", "sync"),
+    ):
         if old.get(key, default) != getattr(new, key):
             changes.append(f"{key}: {_shown(old.get(key, default))} -> {_shown(getattr(new, key))}")
     extended = None

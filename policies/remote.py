@@ -358,6 +358,11 @@ class RemotePolicy:
             actions=self._actions(reply, len(episodes)), action_tokens=int(reply.get("dvla/action_tokens", 0))
         )
 
+    def passes_so_far(self) -> int | None:
+        """The server's passes reported since the last take, not cleared: an inference
+        latency charges each call its own (harness/delayed.py). None: it reports none."""
+        return self._totals.nfe
+
     def take_remote(self) -> RemoteTotals:
         """The server's count since the last take (the runner reads it once per episode)."""
         totals, self._totals = self._totals, RemoteTotals()

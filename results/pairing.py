@@ -130,6 +130,17 @@ def _describe(keys: pd.DataFrame) -> str:
     return ", ".join(shown) + more
 
 
+def latency_labels(df: pd.DataFrame) -> list[str]:
+    """The inference latencies a table ran at, with the execution where it matters:
+    `none` for rows written before latency was recorded (docs/latency.md)."""
+    if "inference_latency" not in df:
+        return ["none"] if len(df) else []
+    mode = df["inference_latency"].fillna("none")
+    execution = df["execution"].fillna("sync") if "execution" in df else pd.Series("sync", index=df.index)
+    labels = mode.where(mode == "none", mode + " " + execution)
+    return sorted(set(labels))
+
+
 def check_episodes_match(baseline: pd.DataFrame, candidate: pd.DataFrame, pair: ConfigPair) -> None:
     """Refuse (listing why) unless both sides of `pair` hold exactly the same episodes."""
     b = baseline[baseline["policy_config_id"] == pair.baseline_id]
@@ -139,6 +150,9 @@ def check_episodes_match(baseline: pd.DataFrame, candidate: pd.DataFrame, pair: 
         bs, cs = sorted(b[col].unique()), sorted(c[col].unique())
         if bs != cs:
             problems.append(f"{col}: baseline {', '.join(bs)}; candidate {', '.join(cs)}")
+    bl, cl = latency_labels(b), latency_labels(c)
+    if bl != cl:  # success at one latency says nothing about success at another
+        problems.append(f"inference latency: baseline {', '.join(bl)}; candidate {', '.join(cl)}")
     if not problems:
         bk, ck = episode_keys(b)[list(PAIR_KEY)], episode_keys(c)[list(PAIR_KEY)]
         for side, keys in (("baseline", bk), ("candidate", ck)):

@@ -144,6 +144,15 @@ def combined_episodes(runs: Iterable[Run]) -> pd.DataFrame:
     return df
 
 
+def _latency_key(df: pd.DataFrame) -> pd.Series:
+    """A row's latency and execution; `none` for rows written before they were recorded."""
+    if "inference_latency" not in df:
+        return pd.Series("none", index=df.index)
+    mode = df["inference_latency"].fillna("none")
+    execution = df["execution"].fillna("sync") if "execution" in df else "sync"
+    return mode.where(mode == "none", mode + " " + execution)
+
+
 def dedupe_episodes(episodes: pd.DataFrame) -> tuple[pd.DataFrame, int]:
     """(one row per episode and machine, the latest write of each; rows dropped)."""
     df = episodes.copy()
@@ -153,7 +162,10 @@ def dedupe_episodes(episodes: pd.DataFrame) -> tuple[pd.DataFrame, int]:
     df["machine"] = df["machine"].fillna("")
     if "started_at" in df:
         df = df.sort_values("started_at", kind="stable")
-    kept = df.drop_duplicates([*EPISODE_KEY, "machine"], keep="last").reset_index(drop=True)
+    # one episode at two inference latencies is two measurements (docs/latency.md)
+    latency = _latency_key(df)
+    kept = df.assign(_latency=latency).drop_duplicates([*EPISODE_KEY, "machine", "_latency"], keep="last")
+    kept = kept.drop(columns="_latency").reset_index(drop=True)
     kept.attrs["duplicates"] = episodes.attrs.get("duplicates", 0) + len(df) - len(kept)
     return kept, kept.attrs["duplicates"]
 

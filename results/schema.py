@@ -15,9 +15,9 @@ SCHEMA_VERSION = "4"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
 # columns as nulls, a version-2 table (before variants) a null `variant`, which is what
 # they mean for its suites; a version-3 table (before the action-space check, counted
-# work and configuration labels) gets null out-of-space and work columns (its actions
-# were not checked, its work not measured) and `config_label` filled in on read
-# (results.labels.with_config_labels).
+# work, configuration labels and inference latency) gets null out-of-space, work and
+# latency columns (its actions were not checked, its work not measured, it ran at
+# `none`) and `config_label` filled in on read (results.labels.with_config_labels).
 READABLE_VERSIONS = ("1", "2", "3", "4")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
@@ -229,6 +229,56 @@ COLUMNS: tuple[Column, ...] = (
         "action units",
         "The largest distance of any returned action element beyond its bound (0.0 when all were "
         "inside); null when actions_out_of_space is.",
+        nullable=True,
+    ),
+    Column(
+        "inference_latency",
+        pa.string(),
+        "",
+        "The run's --inference-latency mode (docs/latency.md): `none` (the world waits for the "
+        "policy, the upstream protocols), `passes:MS[+FIXED_MS]`, `profile:NAME` or `measured`. "
+        "Null in rows written before it was recorded (they ran at `none`).",
+        nullable=True,
+    ),
+    Column(
+        "execution",
+        pa.string(),
+        "",
+        "--execution under a latency: `sync` (the robot holds still while a chunk decodes) or "
+        "`async` (it keeps executing the current chunk; the new one's first d actions are skipped). "
+        "Null in rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "delay_steps_mean",
+        pa.float64(),
+        "control steps",
+        "Mean over the episode's chunks of d = ceil(latency / control period); 0.0 at `none`. "
+        "Null for an episode without a chunk and in rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "delay_steps_max",
+        pa.int64(),
+        "control steps",
+        "The largest d of the episode's chunks; null as delay_steps_mean.",
+        nullable=True,
+    ),
+    Column(
+        "late_chunks",
+        pa.int64(),
+        "chunks",
+        "Chunks that arrived after the robot had held still waiting for them (async: the previous "
+        "chunk ran out; sync: every chunk with d > 0), the episode's first and the first after an "
+        "instruction switch not counted. 0 at `none`; null in rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "hold_steps",
+        pa.int64(),
+        "steps",
+        "Env steps spent on the suite's hold action waiting for a chunk (counted in `steps`). 0 at "
+        "`none`; null in rows written before it was recorded.",
         nullable=True,
     ),
     Column("started_at", _TS, "UTC", "Wall-clock time the episode started."),

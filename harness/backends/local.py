@@ -15,6 +15,7 @@ import gymnasium as gym
 
 from adapters.base import EpisodeSpec, TaskSpec
 from harness.episode import EpisodeOutcome, run_episode
+from harness.latency import latency_plan, parse_latency
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext
 
@@ -106,6 +107,12 @@ class EpisodeRunner:
             resolved.config.replan_every,
             record_traces=self.traces,
             out_of_space=resolved.config.out_of_space,
+            latency=latency_plan(
+                parse_latency(resolved.config.inference_latency),
+                resolved.config.execution,
+                resolved.suite,
+                job.policy.spec.name,
+            ),
         )
         if outcome.failure_reason is not None:
             envs.pop(job.task.name).close()  # its state is suspect: rebuild next time

@@ -15,12 +15,12 @@ from harness.plugins import install_hint
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "list",
-        help="list suites, policies, or a suite's tasks",
+        help="list suites, policies, a suite's tasks, or latency profiles",
         description="List what can be evaluated. Suites whose simulator is missing show the pip extra to install.",
         epilog="examples:\n  dvla-harness list suites\n  dvla-harness list policies\n  dvla-harness list tasks metaworld/mt10",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("what", choices=("suites", "policies", "tasks"))
+    p.add_argument("what", choices=("suites", "policies", "tasks", "latency-profiles"))
     p.add_argument("suite", nargs="?", help="with `tasks`: the suite whose tasks to list")
     p.set_defaults(func=cmd_list)
 
@@ -43,6 +43,15 @@ def cmd_list(args: argparse.Namespace) -> int:
             table.add_row(
                 info.name, str(info.num_tasks), str(info.episodes_per_task), info.description, extra
             )
+        print_table(table)
+    elif args.what == "latency-profiles":
+        from harness.latency import profile_rows
+
+        table = Table(
+            "profile", "chunk latency per decoder", "source", title="--inference-latency profile:NAME"
+        )
+        for name, chunks, source in profile_rows():
+            table.add_row(name, chunks, source)
         print_table(table)
     elif args.what == "policies":
         import dataclasses

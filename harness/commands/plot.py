@@ -13,6 +13,7 @@ examples:
   dvla-harness plot ablation runs/noise --x block_size --y success --hue noise_schedule --out noise.svg
   dvla-harness plot pareto runs/sweep runs/main --x tokens_per_s --y success --out pareto.svg
   dvla-harness plot decoding-order runs/sweep --out order.png     # needs a run made with --traces
+  dvla-harness plot latency runs/none runs/p2-sync runs/p2-async runs/p4-sync --out latency.png
 
 Columns: episode-table columns (docs/results-schema.md), policy parameters (block_size,
 tau_conf, steps_per_block, ...; `param.NAME` when an episode column has the same name,
@@ -24,7 +25,7 @@ train_steps; `checkpoint.NAME`). Output: .png or .svg, written atomically.
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "plot",
-        help="figures from run folders: ablation lines, speed/success Pareto, decoding order",
+        help="figures from run folders: ablation lines, speed/success Pareto, decoding order, latency",
         description="Draw a figure from one or more run folders (or episodes .parquet files).",
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -61,7 +62,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    for kind in (a, q, d):
+    lat = kinds.add_parser(
+        "latency",
+        help="success against inference latency, a line per decoder and execution",
+        description="Runs at several --inference-latency modes (and `none`): y against the mode, "
+        "a line per policy configuration and execution, 95% intervals (docs/latency.md).",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    lat.add_argument(
+        "--y", default="success", metavar="COL,...", help="default success; e.g. success,hold_steps"
+    )
+    for kind in (a, q, d, lat):
         kind.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run folder(s) or episodes .parquet")
         kind.add_argument("--out", required=True, metavar="FILE.png|FILE.svg", help="figure to write")
         kind.set_defaults(func=cmd_plot)
@@ -90,6 +102,10 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if args.kind == "ablation":
             ys = [c.strip() for c in args.y.split(",") if c.strip()]
             plots.ablation_plot(episodes, args.x, ys, args.hue, out=args.out)
+        elif args.kind == "latency":
+            from results.latency_plot import latency_plot
+
+            latency_plot(episodes, [c.strip() for c in args.y.split(",") if c.strip()], out=args.out)
         elif args.kind == "pareto":
             plots.pareto_plot(episodes, args.x, args.y, out=args.out)
         else:

@@ -62,7 +62,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "--config",
         metavar="FILE",
         help="TOML file with keys: suite, tasks, episodes_per_task, replan_every, batch_envs, "
-        "out_of_space, [[policy]] name/params",
+        "out_of_space, inference_latency, execution, [[policy]] name/params",
     )
     p.add_argument("--suite", help="suite name (see `dvla-harness list suites`)")
     p.add_argument(
@@ -98,6 +98,18 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     from harness.action_space import OUT_OF_SPACE_RULES, RULES_HELP
 
     p.add_argument("--out-of-space", choices=OUT_OF_SPACE_RULES, metavar="RULE", help=RULES_HELP)
+    p.add_argument(
+        "--inference-latency",
+        metavar="MODE",
+        help="simulated decoding time per chunk: none (default; the world waits), passes:MS[+FIXED_MS], "
+        "profile:NAME (`dvla-harness list latency-profiles`) or measured (docs/latency.md)",
+    )
+    p.add_argument(
+        "--execution",
+        choices=("sync", "async"),
+        help="under an inference latency: sync (the robot holds still while a chunk decodes; "
+        "default) or async (it keeps executing the current chunk)",
+    )
     p.add_argument(
         "--out", metavar="DIR", help="run folder (default: runs/<UTC date and time>, printed with the table)"
     )
@@ -188,6 +200,10 @@ def config_from_args(args: argparse.Namespace):
         data["replan_every"] = args.replan_every
     if getattr(args, "out_of_space", None) is not None:
         data["out_of_space"] = args.out_of_space
+    if getattr(args, "inference_latency", None) is not None:
+        data["inference_latency"] = args.inference_latency
+    if getattr(args, "execution", None) is not None:
+        data["execution"] = args.execution
     return build_config(data)
 
 
@@ -226,6 +242,14 @@ def print_out_of_space(episodes: pd.DataFrame, labels: dict[str, str] | None = N
         err_console.print(f"[yellow]warning:[/yellow] {line}", markup=True, highlight=False, soft_wrap=True)
 
 
+def print_latency_table(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
+    """Delays, late chunks and hold steps beside success, for runs at an inference latency."""
+    from results.latency_table import has_latency, latency_summary, latency_table
+
+    if has_latency(episodes):
+        console.print(latency_table(latency_summary(episodes), labels))
+
+
 def print_chain_table(episodes: pd.DataFrame) -> None:
     """CALVIN's table beneath the summary, for instruction-chain runs (docs/chains.md)."""
     from results.chain_table import chain_summary, chain_table, is_chain_run
@@ -256,7 +280,10 @@ def execute_run(
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     from harness.batched import check_batching
+    from harness.latency import check_run, parse_latency
 
+    names = [p.spec.name for p in resolved.policies]
+    check_run(parse_latency(resolved.config.inference_latency), resolved.suite, names, execution.batch_envs)
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
     out = Path(args.out) if args.out else None
     if out is None:
@@ -289,6 +316,7 @@ def execute_run(
             )
         )
         print_chain_table(episodes)
+        print_latency_table(episodes, config_labels(episodes))
         print_out_of_space(episodes, config_labels(episodes))
     console.print(
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"

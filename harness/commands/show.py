@@ -50,10 +50,11 @@ def cmd_show(args: argparse.Namespace) -> int:
     if warning := speed_warning(manifest):
         console.print(f"[yellow]warning[/yellow]: speed figures of this run are unreliable: {warning}")
     if len(episodes):
-        from harness.commands.run import print_chain_table, print_out_of_space
+        from harness.commands.run import print_chain_table, print_latency_table, print_out_of_space
 
         print_table(summary_table(summarize(episodes), labels=config_labels(episodes)))
         print_chain_table(episodes)
+        print_latency_table(episodes, config_labels(episodes))
         print_out_of_space(episodes, config_labels(episodes))
     return 0
 
