@@ -214,6 +214,18 @@ def bddl_problem(path: str) -> dict[str, Any]:
     return robosuite_parse_problem(path)
 
 
+def suite_task_problem(suite: str, task_index: int) -> dict[str, Any]:
+    """The parsed BDDL problem a task of this suite name runs: under a LIBERO-PRO
+    perturbation the perturbed file's (other objects, regions or goals), else the task's."""
+    key, options = _split_name(suite)
+    if not options.perturb:
+        return task_problem(key, task_index)
+    task = benchmark(key).get_task(task_index)
+    return bddl_problem(
+        str(libero_pro.task_bddl(key, options.perturb, task.bddl_file, task.init_states_file))
+    )
+
+
 def task_files(key: str, task_index: int, perturb: tuple[str, ...]) -> tuple[str, Any]:
     """(BDDL path, initial states) of a task, standard or under a LIBERO-PRO perturbation."""
     bench = benchmark(key)

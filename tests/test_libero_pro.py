@@ -165,3 +165,11 @@ def test_each_perturbation_loads_and_resets_under_the_upstream_protocol(key, per
         np.testing.assert_array_equal(obs, again)  # the same start, settled the same way
     finally:
         env.close()
+
+
+@needs_libero
+def test_the_expert_reads_the_perturbed_problem():
+    standard = lb.suite_task_problem("libero/spatial:seeding=openvla", 0)
+    perturbed = lb.suite_task_problem("libero/spatial:perturb=object,seeding=openvla", 0)
+    assert perturbed["objects"] != standard["objects"]  # other assets
+    assert lb.suite_task_problem("libero/spatial:perturb=task", 0)["goal_state"] != standard["goal_state"]
