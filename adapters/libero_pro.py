@@ -258,9 +258,10 @@ def instruction(key: str, combo: tuple[str, ...], bddl_file: str, states_file: s
     name's); the other perturbations keep the standard instruction (`standard`), since
     their BDDL's language is LIBERO's raw text ("Pick the akita black bowl ..."), and
     changing it would mix a language change into a scene perturbation's drop."""
+    bddl = task_bddl(key, combo, bddl_file, states_file)  # a missing file is refused here, at load
     if "lan" not in combo and "task" not in combo:
         return standard
-    return bddl_language(task_bddl(key, combo, bddl_file, states_file).read_text())
+    return bddl_language(bddl.read_text())
 
 
 def record(keys: tuple[str, ...] = SUITES) -> dict[str, str]:

@@ -173,3 +173,10 @@ def test_the_expert_reads_the_perturbed_problem():
     perturbed = lb.suite_task_problem("libero/spatial:perturb=object,seeding=openvla", 0)
     assert perturbed["objects"] != standard["objects"]  # other assets
     assert lb.suite_task_problem("libero/spatial:perturb=task", 0)["goal_state"] != standard["goal_state"]
+
+
+@needs_libero
+def test_missing_perturbation_files_are_refused_when_the_suite_loads(tmp_path, monkeypatch):
+    monkeypatch.setattr(lp, "_root", lambda: tmp_path)
+    with pytest.raises(SuiteOptionError, match=r"LIBERO-PRO file missing: .*libero_object_swap"):
+        lb.load_suite("libero/object:perturb=swap")
