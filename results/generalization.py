@@ -10,8 +10,8 @@ The drop is standard minus perturbed success (positive: the policy got worse). E
 pair when both sides ran exactly the same (task, episode index) keys: episode j of a task
 runs initial state j under the same seed on both, so one policy's two outcomes on a key
 are correlated (a hard layout stays hard) and the paired interval is the narrower, honest
-one. It is a percentile bootstrap over the pairs with a fixed seed (the same rows print
-the same interval), and the cell gives McNemar's discordant counts (standard-only
+one: Newcombe's score interval for paired proportions (Statistics in Medicine 17:2635,
+1998, method 10), and the cell gives McNemar's discordant counts (standard-only
 successes / perturbed-only successes), what the drop is made of. Where the keys differ
 (other episode counts, a subset of tasks) the episodes are treated as independent and the
 interval is Newcombe's hybrid score interval for a difference of proportions (method 10),
@@ -32,8 +32,6 @@ from results.summary import Success
 STANDARD = "standard"
 # LIBERO-PRO's paper order and names; combinations (swap+lan...) follow, in the order seen.
 COLUMNS = {"object": "Obj.", "swap": "Pos.", "lan": "Sem.", "task": "Task", "env": "Env."}
-BOOTSTRAP_RESAMPLES = 10_000
-BOOTSTRAP_SEED = 0
 
 
 def split_perturbation(suite: str) -> tuple[str, str]:
@@ -84,17 +82,26 @@ def newcombe_drop(standard: Success, perturbed: Success) -> Drop:
 
 
 def paired_drop(standard: np.ndarray, perturbed: np.ndarray) -> Drop:
-    """Percentile bootstrap over (task, episode) pairs of standard - perturbed success."""
-    a, b = np.asarray(standard, dtype=float), np.asarray(perturbed, dtype=float)
-    if len(a) == 0:
+    """Newcombe's score interval for a difference of paired proportions (1998b, method 10):
+    the two Wilson intervals combined with the pairs' phi correlation. It stays wide where
+    a bootstrap collapses (every pair concordant gives a zero-width bootstrap interval)."""
+    a_, b_ = np.asarray(standard, dtype=bool), np.asarray(perturbed, dtype=bool)
+    n = len(a_)
+    if n == 0:
         return Drop(math.nan, math.nan, math.nan, True)
-    diff = a - b
-    rng = np.random.default_rng(BOOTSTRAP_SEED)
-    means = diff[rng.integers(0, len(diff), size=(BOOTSTRAP_RESAMPLES, len(diff)))].mean(axis=1)
-    low, high = np.percentile(means, [2.5, 97.5])
-    return Drop(
-        float(diff.mean()), float(low), float(high), True, int((diff > 0).sum()), int((diff < 0).sum())
-    )
+    both = int((a_ & b_).sum())
+    only_std = int((a_ & ~b_).sum())
+    only_pert = int((~a_ & b_).sum())
+    neither = n - both - only_std - only_pert
+    s1, s2 = Success(both + only_std, n), Success(both + only_pert, n)
+    p1, p2 = s1.rate, s2.rate
+    (l1, u1), (l2, u2) = s1.interval, s2.interval
+    margins = (both + only_std) * (only_pert + neither) * (both + only_pert) * (only_std + neither)
+    phi = (both * neither - only_std * only_pert) / math.sqrt(margins) if margins else 0.0
+    d = p1 - p2
+    low = d - math.sqrt(max(0.0, (p1 - l1) ** 2 - 2 * phi * (p1 - l1) * (u2 - p2) + (u2 - p2) ** 2))
+    high = d + math.sqrt(max(0.0, (u1 - p1) ** 2 - 2 * phi * (u1 - p1) * (p2 - l2) + (p2 - l2) ** 2))
+    return Drop(d, low, high, True, only_std, only_pert)
 
 
 def drop(standard_rows: pd.DataFrame, perturbed_rows: pd.DataFrame) -> Drop:
@@ -199,9 +206,9 @@ def gap_tables(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> 
 
 
 NOTE = (
-    "Drop = standard - perturbed success, in points, with a 95% interval: paired (bootstrap "
-    "over matching task and episode index; n/m = pairs only the standard / only the perturbed "
-    "run solved) or unpaired (Newcombe's score interval). LIBERO-PRO perturbations "
+    "Drop = standard - perturbed success, in points, with a 95% interval: paired (matching "
+    "task and episode index, Newcombe's paired score interval; n/m = pairs only the standard "
+    "/ only the perturbed run solved) or unpaired (Newcombe's score interval). LIBERO-PRO perturbations "
     "(Zhou et al., 2025): Obj. appearance, Pos. object positions, Sem. paraphrased "
     "instruction, Task new goals, Env. another table."
 )

@@ -91,7 +91,11 @@ def test_the_paired_interval_is_narrower_than_the_unpaired_one_when_outcomes_cor
     unpaired = newcombe_drop(Success(30, 50), Success(20, 50))
     assert paired.drop == pytest.approx(0.2) and unpaired.drop == pytest.approx(0.2)
     assert paired.high - paired.low < unpaired.high - unpaired.low
-    assert paired_drop(a, b) == paired  # a fixed seed: the same rows, the same interval
+    concordant = paired_drop(np.ones(4, bool), np.ones(4, bool))
+    assert concordant.drop == 0 and concordant.low < -0.4 and concordant.high > 0.4  # 4 pairs say little
+    independent = paired_drop(np.array([1, 1, 0, 0], bool), np.array([1, 0, 1, 0], bool))  # phi = 0
+    expected = newcombe_drop(Success(2, 4), Success(2, 4))
+    assert (independent.low, independent.high) == pytest.approx((expected.low, expected.high))
 
 
 def test_a_configuration_without_standard_rows_gets_no_drop():
