@@ -180,3 +180,26 @@ def test_missing_perturbation_files_are_refused_when_the_suite_loads(tmp_path, m
     monkeypatch.setattr(lp, "_root", lambda: tmp_path)
     with pytest.raises(SuiteOptionError, match=r"LIBERO-PRO file missing: .*libero_object_swap"):
         lb.load_suite("libero/object:perturb=swap")
+
+
+@needs_libero
+def test_a_perturbed_run_records_the_paraphrase_and_its_version(cli, tmp_path, monkeypatch):
+    import pyarrow.parquet as pq
+
+    from policies.base import EpisodeContext
+    from policies.experts import libero_select
+
+    seen: list[EpisodeContext] = []
+    problem = libero_select._problem
+    monkeypatch.setattr(libero_select, "_problem", lambda context: seen.append(context) or problem(context))
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", "libero/spatial:perturb=lan", "--tasks", "0", "--policy", "libero_scripted",
+        "--episodes-per-task", "1", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    row = pq.read_table(out / "episodes.parquet").to_pylist()[0]
+    paraphrase = lb.load_suite("libero/spatial:perturb=lan").tasks[0].instruction
+    assert seen and seen[0].instruction == paraphrase == row["instruction"]  # what the policy was given
+    assert row["suite"] == "libero/spatial:perturb=lan,seeding=openvla" and row["suite_version"] == "1+pro1"
+    assert row["success"]  # the expert reads poses, not words: the paraphrase cannot stop it
