@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
+from adapters import libero_pro
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
 from adapters.libero_options import (  # the suite's options stay this module's API too
     DEFAULT_IMAGE_SIZE as DEFAULT_IMAGE_SIZE,
@@ -204,9 +205,35 @@ def benchmark(key: str) -> Any:
 @cache
 def task_problem(key: str, task_index: int) -> dict[str, Any]:
     """The task's parsed BDDL problem: objects, fixtures, goal predicates."""
+    return bddl_problem(benchmark(key).get_task_bddl_file_path(task_index))
+
+
+@cache
+def bddl_problem(path: str) -> dict[str, Any]:
     from libero.libero.envs.bddl_utils import robosuite_parse_problem
 
-    return robosuite_parse_problem(benchmark(key).get_task_bddl_file_path(task_index))
+    return robosuite_parse_problem(path)
+
+
+def suite_task_problem(suite: str, task_index: int) -> dict[str, Any]:
+    """The parsed BDDL problem a task of this suite name runs: under a LIBERO-PRO
+    perturbation the perturbed file's (other objects, regions or goals), else the task's."""
+    key, options = _split_name(suite)
+    if not options.perturb:
+        return task_problem(key, task_index)
+    task = benchmark(key).get_task(task_index)
+    return bddl_problem(
+        str(libero_pro.task_bddl(key, options.perturb, task.bddl_file, task.init_states_file))
+    )
+
+
+def task_files(key: str, task_index: int, perturb: tuple[str, ...]) -> tuple[str, Any]:
+    """(BDDL path, initial states) of a task, standard or under a LIBERO-PRO perturbation."""
+    bench = benchmark(key)
+    if not perturb:
+        return bench.get_task_bddl_file_path(task_index), bench.get_task_init_states(task_index)
+    task = bench.get_task(task_index)
+    return libero_pro.task_files(key, perturb, task.bddl_file, task.init_states_file)
 
 
 def _is_scenery(category: str) -> bool:
@@ -281,13 +308,11 @@ class LiberoEpisodeEnv(gym.Env):
         images = options.cameras
         if images:
             choose_render_backend()  # before robosuite imports mujoco's GL module
-        bench = benchmark(key)
         from libero.libero.envs.env_wrapper import ControlEnv
 
         self.key, self.task_index, self.options = key, task_index, options
-        self.problem = task_problem(key, task_index) if problem is None else problem
-        self.init_states = bench.get_task_init_states(task_index)
-        self._bddl = bench.get_task_bddl_file_path(task_index)
+        self._bddl, self.init_states = task_files(key, task_index, options.perturb)
+        self.problem = bddl_problem(self._bddl) if problem is None else problem
         size = options.size
         self._build = lambda: ControlEnv(
             bddl_file_name=self._bddl,
@@ -458,9 +483,12 @@ def _split_name(name: str) -> tuple[str, Options]:
         raise UnknownSuiteError(
             f"unknown suite {base!r}; LIBERO suites: {', '.join('libero/' + k for k in MAX_STEPS)} "
             f"(options: libero/spatial:obs={'|'.join(OBS)},image_size=128,shadows=off,reflections=off,"
-            f"seeding={'|'.join(SEEDINGS)},initial_states={'|'.join(INITIAL_STATES)},states_seed=N)"
+            f"seeding={'|'.join(SEEDINGS)},initial_states={'|'.join(INITIAL_STATES)},states_seed=N,"
+            f"perturb={'|'.join(libero_pro.PERTURBATIONS)})"
         )
-    return key, parse_options(opts)
+    options = parse_options(opts)
+    libero_pro.check_suite(key, options.perturb)
+    return key, options
 
 
 def _episodes(options: Options, task: str) -> tuple[EpisodeSpec, ...]:
@@ -476,6 +504,17 @@ def _episodes(options: Options, task: str) -> tuple[EpisodeSpec, ...]:
     )
 
 
+def suite_version(perturb: tuple[str, ...]) -> str:
+    """A perturbed suite's version carries LIBERO-PRO's: its files and env states can change."""
+    return f"{SUITE_VERSION}+pro{libero_pro.PRO_VERSION}" if perturb else SUITE_VERSION
+
+
+def _instruction(task: Any, key: str, perturb: tuple[str, ...]) -> str:
+    if not perturb:
+        return task.language
+    return libero_pro.instruction(key, perturb, task.bddl_file, task.init_states_file, task.language)
+
+
 def load_suite(name: str, split: str = "eval") -> Suite:
     """Evaluation uses the init files' 50 states per task; the train split draws fresh
     ones from the task's BDDL distribution (adapters/libero_states.py)."""
@@ -485,7 +524,7 @@ def load_suite(name: str, split: str = "eval") -> Suite:
     tasks = tuple(
         TaskSpec(
             name=bench.get_task(i).name,
-            instruction=bench.get_task(i).language,
+            instruction=_instruction(bench.get_task(i), key, options.perturb),
             max_steps=MAX_STEPS[key],
             index=i,
             episodes=_episodes(options, bench.get_task(i).name),
@@ -502,12 +541,13 @@ def load_suite(name: str, split: str = "eval") -> Suite:
 
     return Suite(
         name=f"libero/{key}{options.suffix()}",
-        version=SUITE_VERSION,
+        version=suite_version(options.perturb),
         tasks=tasks,
         make_env=make_env,
         description=(
             f"LIBERO {BENCHMARKS[key]}, {len(tasks)} task(s), "
-            f"{OBSERVATIONS[options.obs]}, 7-D OSC_POSE actions, "
+            + (f"LIBERO-PRO perturbation {'+'.join(options.perturb)}, " if options.perturb else "")
+            + f"{OBSERVATIONS[options.obs]}, 7-D OSC_POSE actions, "
             f"{options.seeding} seeding (env seed {SEEDINGS[options.seeding]}), "
             + (
                 f"fresh initial states (states_seed {options.states_seed}, disjoint from evaluation's)"
@@ -530,10 +570,24 @@ def list_suites() -> list[SuiteInfo]:
         ("10", "LIBERO-10 (Long): ten two-step tasks", 10),
         ("90", "LIBERO-90: ninety short tasks", 90),
     ]
-    return [
+    standard = [
         SuiteInfo(f"libero/{key}", f"{desc}; {MAX_STEPS[key]} steps", n, EPISODES_PER_TASK, EXTRA, installed)
         for key, desc, n in rows
     ]
+    perturbed = [
+        SuiteInfo(
+            f"libero/{key}:perturb={p}",
+            f"LIBERO-PRO {libero_pro.DESCRIPTIONS[p]} on libero/{key} (combine with +lan: {libero_pro.allowed_text()})",
+            n,
+            EPISODES_PER_TASK,
+            EXTRA,
+            installed,
+        )
+        for key, _, n in rows
+        if key in libero_pro.SUITES
+        for p in libero_pro.DESCRIPTIONS
+    ]
+    return standard + perturbed
 
 
 PROVIDER = SuiteProvider(prefix="libero/", list_suites=list_suites, load_suite=load_suite)

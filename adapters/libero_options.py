@@ -37,6 +37,9 @@ class Options:
     # None until the split decides: fresh for train (collect), evaluation for eval.
     initial_states: str | None = None
     states_seed: int | None = None  # fresh only; None: DEFAULT_STATES_SEED
+    # LIBERO-PRO perturbations in its order of application, () for the standard suite
+    # (adapters/libero_pro.py)
+    perturb: tuple[str, ...] = ()
 
     @property
     def size(self) -> int:
@@ -56,7 +59,7 @@ class Options:
         Every regime but state is named (`obs=images`, `obs=upstream`), so a row says what
         its policy saw."""
         default_size = UPSTREAM_IMAGE_SIZE if self.obs == "upstream" else DEFAULT_IMAGE_SIZE
-        parts = []
+        parts = [f"perturb={'+'.join(self.perturb)}"] if self.perturb else []
         for key, value, default in (
             ("obs", self.obs, "state"),
             ("image_size", self.size, default_size),
@@ -106,6 +109,10 @@ def parse_options(text: str) -> Options:
                     f"suite option initial_states={value!r}: choose {' or '.join(INITIAL_STATES)}"
                 )
             values[key] = value
+        elif key == "perturb":
+            from adapters.libero_pro import parse_perturb
+
+            values[key] = parse_perturb(value)
         elif key == "states_seed":
             if not value.isdigit():
                 raise SuiteOptionError(f"suite option states_seed={value!r}: expected a non-negative integer")
@@ -114,7 +121,7 @@ def parse_options(text: str) -> Options:
             raise SuiteOptionError(
                 f"unknown suite option {key!r}; valid options: obs={'|'.join(OBS)}, image_size=N, "
                 f"shadows=on|off, reflections=on|off, seeding={'|'.join(SEEDINGS)}, "
-                f"initial_states={'|'.join(INITIAL_STATES)}, states_seed=N"
+                f"initial_states={'|'.join(INITIAL_STATES)}, states_seed=N, perturb=swap|env|object|lan|task"
             )
     return Options(**values)
 

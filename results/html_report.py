@@ -278,7 +278,9 @@ def render_page(
     title: str = "dvla-harness report",
     figures: bool = True,
     paper: Sequence[Block] = (),
+    extra: Sequence[Block] = (),
 ) -> str:
+    """`extra`: further titled tables after the leaderboards (generalization gaps)."""
     # The same de-duplicated rows as the tables: an episode given twice counts once here too.
     episodes = combined_episodes(runs)
     duplicates = episodes.attrs.get("duplicates", 0)
@@ -289,6 +291,7 @@ def render_page(
         "Every number is computed from the runs' Parquet rows; click a column header to sort.</p>"
     )
     sections += [_board_html(b) for b in boards]
+    sections += [_block_html(b) for b in extra]
     if paper:
         sections.append("<h2>Beside the published results</h2>")
         sections += [_block_html(b) for b in paper]
@@ -302,6 +305,15 @@ def render_page(
         "<meta name='viewport' content='width=device-width, initial-scale=1'>"
         f"<style>{_CSS}</style></head><body>{''.join(sections)}<script>{_JS}</script></body></html>\n"
     )
+
+
+def _gap_blocks(runs: Sequence[Run]) -> list[Block]:
+    """LIBERO-PRO generalization gaps, where the runs hold perturbed suites."""
+    from results.generalization import gap_blocks, gap_tables
+    from results.leaderboard import config_labels
+
+    episodes = combined_episodes(runs)
+    return gap_blocks(gap_tables(episodes, config_labels(episodes)))
 
 
 def check_out(out: str | os.PathLike[str], overwrite: bool) -> None:
@@ -337,7 +349,7 @@ def write_report(
     boards = leaderboards(runs, baseline)
     blocks = paper_blocks(paper_table(runs, baseline), allow_privileged)
     files = {
-        INDEX: render_page(runs, boards, paper=blocks),
+        INDEX: render_page(runs, boards, paper=blocks, extra=_gap_blocks(runs)),
         "leaderboard.md": to_markdown(boards),
         "leaderboard.csv": to_csv(boards),
         "paper-table.md": blocks_markdown(blocks),

@@ -23,7 +23,10 @@ Wilson 95% interval and episode counts; speedup is tokens/s over the baseline's 
 same machine, else the cell says why it is missing. Differences that move scores
 (simulator/mujoco versions, render backend, seeds, episode counts) are printed as
 warnings. An instruction-chain suite (chains/...) is laid out as CALVIN's table:
-chains reaching 1/5 ... 5/5 and the average length (docs/chains.md). See docs/reports.md.
+chains reaching 1/5 ... 5/5 and the average length (docs/chains.md). Runs of a LIBERO
+suite and its LIBERO-PRO perturbations (libero/spatial:perturb=swap) add a table of
+generalization gaps: the drop from the standard suite with a 95% interval, paired by
+task and episode where they match (docs/libero.md). See docs/reports.md.
 """
 
 
@@ -100,6 +103,16 @@ def print_warnings(warnings: Sequence[str]) -> None:
         err_console.print(f"[yellow]warning:[/yellow] {w}", markup=True, highlight=False, soft_wrap=True)
 
 
+def generalization_gaps(runs: Sequence) -> list:
+    """The LIBERO-PRO gap tables of runs that include perturbed suites (results/generalization.py)."""
+    from results.generalization import gap_tables
+    from results.leaderboard import config_labels
+    from results.runs import combined_episodes
+
+    episodes = combined_episodes(runs)
+    return gap_tables(episodes, config_labels(episodes))
+
+
 def cmd_leaderboard(args: argparse.Namespace) -> int:
     from harness.console import console, print_table
     from results.leaderboard import leaderboards, rich_table, to_csv, to_markdown
@@ -109,20 +122,30 @@ def cmd_leaderboard(args: argparse.Namespace) -> int:
     runs = load(args.runs)
     check_baseline(runs, args.baseline)
     boards = leaderboards(runs, args.baseline)
+    gaps = generalization_gaps(runs)
     warnings = [f"{b.suite}: {w}" for b in boards for w in b.warnings]
     if fmt is None:
+        from results.generalization import gap_rich
+
         for board in boards:
             print_table(rich_table(board))
+        for table in gaps:
+            print_table(gap_rich(table))
         print_warnings(warnings)
         return 0
     if fmt == "md":
-        text = to_markdown(boards)
+        from results.generalization import gap_markdown
+
+        text = to_markdown(boards) + ("\n" + gap_markdown(gaps) if gaps else "")
     elif fmt == "csv":
         text = to_csv(boards)
     else:
+        from results.generalization import gap_blocks
         from results.html_report import render_page
 
-        text = render_page(runs, boards, title="dvla-harness leaderboard", figures=False)
+        text = render_page(
+            runs, boards, title="dvla-harness leaderboard", figures=False, extra=gap_blocks(gaps)
+        )
     if out is None:
         console.file.write(text)
         console.file.flush()

@@ -84,7 +84,11 @@ def cmd_paper_table(args: argparse.Namespace) -> int:
         blocks = paper_blocks(table, args.allow_privileged)
     except PrivilegedRowsError as exc:
         raise UsageError(str(exc)) from None
-    console.file.write(blocks_markdown(blocks))
+    from harness.commands.leaderboard import generalization_gaps
+    from results.generalization import gap_markdown
+
+    gaps = generalization_gaps(runs)
+    console.file.write(blocks_markdown(blocks) + ("\n" + gap_markdown(gaps) if gaps else ""))
     console.file.flush()
     print_warnings(table.warnings)
     return 0

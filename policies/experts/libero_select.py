@@ -42,7 +42,7 @@ def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
         return chains.subtask_problem(context.task, context.instruction)
 
     key = context.suite.partition(":")[0].removeprefix("libero/")
-    problem = libero.task_problem(key, _task_index(key, context.task))
+    problem = libero.suite_task_problem(context.suite, _task_index(key, context.task))
     return problem, {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
 
 

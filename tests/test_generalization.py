@@ -1,0 +1,134 @@
+"""The generalization-gap table from hand-made rows: pairing, intervals, layout."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from results.generalization import (
+    gap_tables,
+    newcombe_drop,
+    paired_drop,
+    split_perturbation,
+)
+from results.summary import Success
+
+BASE = "libero/spatial:seeding=openvla"
+
+
+def _rows(suite: str, outcomes: list[bool], cid: str = "c1", tasks: int = 2) -> list[dict]:
+    per = len(outcomes) // tasks
+    return [
+        {
+            "suite": suite,
+            "task": f"t{i // per}",
+            "episode_index": i % per,
+            "success": ok,
+            "policy": "libero_scripted",
+            "policy_config_id": cid,
+        }
+        for i, ok in enumerate(outcomes)
+    ]
+
+
+def test_suite_names_split_into_standard_and_perturbation():
+    assert split_perturbation("libero/spatial:perturb=swap+lan,seeding=openvla") == (BASE, "swap+lan")
+    assert split_perturbation(BASE) == (BASE, "standard")
+    assert split_perturbation("libero/goal:perturb=env") == ("libero/goal", "env")
+
+
+def test_matching_episodes_pair_and_count_discordant_pairs():
+    standard = [True] * 8 + [False] * 2
+    swap = [True, False, False, True, False, True, False, False, True, False]
+    rows = _rows(BASE, standard) + _rows("libero/spatial:perturb=swap,seeding=openvla", swap)
+    (table,) = gap_tables(pd.DataFrame(rows))
+    assert table.suite == BASE and table.perturbations == ("swap",)
+    (row,) = table.rows
+    success, d = row.perturbed["swap"]
+    assert row.standard == Success(8, 10) and success == Success(4, 10)
+    assert d.paired and d.drop == pytest.approx(0.4)
+    assert (d.standard_only, d.perturbed_only) == (5, 1)  # keys 1, 2, 4, 6, 7 against key 8
+    assert d.low < 0.4 < d.high
+    headers, cells = table.cells()
+    assert headers[2:] == ["swap (Pos.)", "swap: drop (95%)"]
+    assert "paired, 5/1 discordant" in cells[0][3].text and cells[0][3].text.startswith("+40.0 pts")
+
+
+def test_episodes_that_do_not_match_are_unpaired_with_newcombes_interval():
+    rows = _rows(BASE, [True] * 10) + _rows("libero/spatial:perturb=lan", [True, False] * 3, tasks=2)
+    rows += _rows("libero/spatial:perturb=object", [False] * 10)
+    tables = gap_tables(pd.DataFrame(rows))
+    assert [t.suite for t in tables] == [
+        "libero/spatial"
+    ]  # other options, another suite; BASE has no perturbed rows
+    object_only = gap_tables(
+        pd.DataFrame(_rows(BASE, [True] * 10) + _rows(f"{BASE},perturb=object", [False] * 6, tasks=2))
+    )
+    (row,) = object_only[0].rows
+    _, d = row.perturbed["object"]
+    assert not d.paired and d.drop == pytest.approx(1.0)
+    expected = newcombe_drop(Success(10, 10), Success(0, 6))
+    assert (d.low, d.high) == (expected.low, expected.high)
+    assert "(unpaired)" in object_only[0].cells()[1][0][3].text
+
+
+def test_newcombe_matches_the_published_worked_example():
+    # Newcombe (1998), Statistics in Medicine 17:873, table II example (56/70 vs 48/80):
+    # method 10 gives 0.0524 to 0.3339.
+    d = newcombe_drop(Success(56, 70), Success(48, 80))
+    assert d.drop == pytest.approx(0.2)
+    assert d.low == pytest.approx(0.0524, abs=5e-4) and d.high == pytest.approx(0.3339, abs=5e-4)
+
+
+def test_the_paired_interval_is_narrower_than_the_unpaired_one_when_outcomes_correlate():
+    a = np.array([True] * 30 + [False] * 20)
+    b = a.copy()
+    b[:10] = False  # the perturbation breaks 10 of the 30 successes, nothing else changes
+    paired = paired_drop(a, b)
+    unpaired = newcombe_drop(Success(30, 50), Success(20, 50))
+    assert paired.drop == pytest.approx(0.2) and unpaired.drop == pytest.approx(0.2)
+    assert paired.high - paired.low < unpaired.high - unpaired.low
+    concordant = paired_drop(np.ones(4, bool), np.ones(4, bool))
+    assert concordant.drop == 0 and concordant.low < -0.4 and concordant.high > 0.4  # 4 pairs say little
+    independent = paired_drop(np.array([1, 1, 0, 0], bool), np.array([1, 0, 1, 0], bool))  # phi = 0
+    expected = newcombe_drop(Success(2, 4), Success(2, 4))
+    assert (independent.low, independent.high) == pytest.approx((expected.low, expected.high))
+
+
+def test_a_configuration_without_standard_rows_gets_no_drop():
+    rows = _rows(BASE, [True] * 4, cid="c1") + _rows(f"{BASE},perturb=env", [True] * 4, cid="c2")
+    rows += _rows(f"{BASE},perturb=env", [False] * 4, cid="c1")
+    (table,) = gap_tables(pd.DataFrame(rows))
+    by_id = {r.policy_config_id: r for r in table.rows}
+    assert math.isnan(by_id["c2"].perturbed["env"][1].drop)
+    assert by_id["c1"].perturbed["env"][1].drop == pytest.approx(1.0)
+    assert table.cells()[1][1][3].text == "-"
+    frame = table.frame()
+    assert list(frame["perturbation"]) == ["env", "env"] and frame["paired"].tolist() == [True, False]
+
+
+def test_leaderboard_and_reports_add_the_gap_table(cli, tmp_path):
+    from tests.test_leaderboard import episodes, write_run
+
+    params = '{"steps": 1}'
+    std = episodes("libero_scripted", params, "s0", [1, 1, 1, 0], suite=BASE)
+    swap = episodes(
+        "libero_scripted", params, "s0", [1, 0, 0, 0], suite="libero/spatial:perturb=swap,seeding=openvla"
+    )
+    run = write_run(tmp_path / "r", std + swap)
+    code, out, err = cli("leaderboard", str(run), "--format", "md")
+    assert code == 0, err
+    assert f"## {BASE}: generalization gaps (LIBERO-PRO)" in out
+    assert "+50.0 pts" in out and "paired, 2/0 discordant" in out
+    code, out, err = cli("report", "paper-table", str(run), "--allow-privileged")
+    assert code == 0, err
+    assert "generalization gaps" in out
+    code, _, err = cli("report", "html", str(run), "--out", str(tmp_path / "html"), "--allow-privileged")
+    assert code == 0, err
+    assert "generalization gaps (LIBERO-PRO)" in (tmp_path / "html" / "index.html").read_text()
+    plain = write_run(tmp_path / "p", std)
+    code, out, _ = cli("leaderboard", str(plain), "--format", "md")
+    assert code == 0 and "generalization gaps" not in out
