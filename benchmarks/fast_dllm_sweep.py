@@ -45,7 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.commit_rule import build, row_of  # noqa: E402
+from benchmarks.commit_rule import build, row_of
 
 THRESHOLDS = (0.3, 0.5, 0.7, 0.9)
 TOLERANCE = 0.02  # agreement with the teacher a default may give up against a set's best

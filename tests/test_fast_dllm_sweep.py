@@ -80,7 +80,7 @@ def test_select_uses_only_settings_every_set_has_and_refuses_when_none_qualifies
         "b": [_row(2, 0.3, 9.0, 0.9)],
     }
     assert bench.select(sets) == (2, 0.3)
-    with pytest.raises(ValueError, match="within 0.01"):
+    with pytest.raises(ValueError, match=r"within 0\.01"):
         bench.select(
             {
                 "a": [_row(1, 0.3, 5.0, 0.9), _row(2, 0.3, 9.0, 0.5)],
