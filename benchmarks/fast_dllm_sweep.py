@@ -250,7 +250,7 @@ def plot(choice: dict[str, Any], out: Path) -> None:
                     "paper's literal\n(previous default)",
                     (r["nfe_per_chunk"], 100 * r["same_as_teacher"]),
                     fontsize=8,
-                    xytext=(-70, 14),
+                    xytext=(-95, 34),
                     textcoords="offset points",
                     arrowprops={"arrowstyle": "->", "lw": 0.8},
                 )

@@ -103,7 +103,7 @@ def test_policy_defaults_are_the_committed_sweeps_choice(bench):
     assert chosen == (committed["chosen"]["blocks"], committed["chosen"]["threshold"])
     params = FastDLLMParams(checkpoint=__file__)
     assert (params.blocks, params.threshold, params.block_size) == (*chosen, 0)
-    assert {"metaworld-mt10", "chains-tray"} <= set(committed["sets"])
+    assert {"metaworld-mt10", "libero-spatial", "chains-tray"} <= set(committed["sets"])
 
 
 def test_blocks_that_do_not_divide_the_chunk_are_refused_with_the_valid_ones():
