@@ -151,3 +151,19 @@ def test_measure_refuses_a_bad_threshold_list(bench, tmp_path, capsys):
         )
     assert exc.value.code == 2 and "each must be in (0, 1]" in capsys.readouterr().err
     assert not (tmp_path / "o.json").exists()
+
+
+def test_resume_does_not_adopt_rows_recorded_before_blocks_existed():
+    """Such rows decoded one action step a block; `blocks`' default (the whole chunk) is
+    another decoder, so they must not be counted as made at it."""
+    from harness.resume import _added_at_default
+    from policies.registry import params_json
+
+    current = FastDLLMParams(checkpoint=__file__, threshold=0.9)
+    recorded = json.loads(params_json(current))
+    del recorded["blocks"]
+    assert _added_at_default(json.dumps(recorded), params_json(current), FastDLLMParams) == {}
+    # another parameter added at its default is still adopted
+    recorded = json.loads(params_json(current))
+    del recorded["seed"]
+    assert _added_at_default(json.dumps(recorded), params_json(current), FastDLLMParams) == {"seed": 0}

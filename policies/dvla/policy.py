@@ -12,7 +12,7 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -170,6 +170,11 @@ class FastDLLMParams:
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
     seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
+
+    # Rows recorded before `blocks` existed decoded one action step a block, which its
+    # default does not reproduce: `--resume` must count them as another configuration,
+    # not adopt them as made at the default (harness/resume.py).
+    CHANGED_BY_ADDING: ClassVar[frozenset[str]] = frozenset({"blocks"})
 
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "bidirectional")
