@@ -19,7 +19,8 @@ ROOT = Path(__file__).resolve().parent.parent
 TRACES = ROOT / "benchmarks" / "traces" / "libero-spatial.json"
 RECORD = (
     "dvla-harness run --suite libero/spatial --episodes-per-task 1 "
-    "--policy fast_dvla:checkpoint=libero-spatial --policy fast_dllm:checkpoint=libero-spatial "
+    "--policy fast_dvla:checkpoint=libero-spatial "
+    "--policy fast_dllm:checkpoint=libero-spatial,blocks=8,threshold=0.9 "
     "--traces --out runs/traces-spatial --quiet"
 )
 EXTRACT = "python benchmarks/decoders.py --extract runs/traces-spatial"

@@ -53,8 +53,20 @@ MODES = {
 }
 # Workloads whose policy cannot batch (scripted experts) skip the batched modes.
 BATCHES = {"libero": False, "mt10": True}
-# What batching changes by definition (NFE charged per batch), left out of `differing`.
-BATCH_DEFINED = frozenset({"nfe_total", "nfe_per_chunk", "batch_envs"})
+# What batching changes by definition (NFE charged per batch, a batched pass's counted work
+# shared among the episodes it served), left out of `differing`.
+BATCH_DEFINED = frozenset(
+    {
+        "nfe_total",
+        "nfe_per_chunk",
+        "batch_envs",
+        "flops_total",
+        "flops_per_chunk",
+        "query_tokens_total",
+        "kv_tokens_total",
+        "kv_cached_tokens_total",
+    }
+)
 # Columns that say when, where or how fast, not what happened.
 NOT_RESULTS = TIMING_COLUMNS | PROVENANCE_COLUMNS
 KEY = ["task", "episode_index", "policy_config_id"]

@@ -138,6 +138,9 @@ class _Slot:
             transport_time_s=max(0.0, self.policy_time - self.server_time) if remote else None,
             **(self.space.columns() if self.space is not None else {}),
             **chain_fields(self.info),
+            # no inference latency is modelled in batches (refused): every chunk's d is 0
+            delay_steps_mean=0.0 if self.chunks else None,
+            delay_steps_max=0 if self.chunks else None,
         )
 
     def charge(self, passes: int | None, server_time: float, work: Work, connect_wait: float = 0.0) -> None:

@@ -228,6 +228,8 @@ def _added_at_default(recorded: str, current: str, params_cls: type) -> dict[str
     if any(old[k] != new[k] for k in old):
         return {}
     added = {k: new[k] for k in sorted(set(new) - set(old))}
+    if set(added) & getattr(params_cls, "CHANGED_BY_ADDING", frozenset()):
+        return {}  # its default is not what the recorded rows did (e.g. fast_dllm's blocks)
     return added if all(k in defaults and defaults[k] == v for k, v in added.items()) else {}
 
 

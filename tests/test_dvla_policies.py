@@ -49,7 +49,9 @@ def make_checkpoint(path, pattern: str, block_size: int = 0):
     ("policy", "pattern", "block", "params", "nfe"),
     [
         ("bidirectional", "bidirectional", 0, "steps=5", 5.0),
-        ("fast_dllm", "bidirectional", 0, "threshold=0,steps_per_block=3", 12.0),  # 4 blocks x 3
+        ("fast_dllm", "bidirectional", 0, "threshold=0,steps_per_block=3", 3.0),  # 1 block x 3
+        ("fast_dllm", "bidirectional", 0, "threshold=0,steps_per_block=3,blocks=4", 12.0),  # 4 x 3
+        ("fast_dllm", "bidirectional", 0, "threshold=0,steps_per_block=3,block_size=8", 6.0),  # 2 x 3
         ("autoregressive", "causal", 0, "", 16.0),
         ("block_diffusion", "block_causal", 8, "steps_per_block=3", 6.0),
     ],
@@ -71,6 +73,15 @@ def test_fast_dvla_runs_and_its_nfe_is_bounded(cli, tmp_path):
     assert code == 0
     row = RunDir(tmp_path / "run").read_episodes().iloc[0]
     assert 1 <= row["nfe_per_chunk"] <= 16
+
+
+def test_fast_dllm_blocks_that_do_not_divide_the_chunk_are_refused(cli, tmp_path):
+    ckpt = make_checkpoint(tmp_path / "m.safetensors", "bidirectional")
+    code, _, err = cli(
+        *MT1, "--policy", f"fast_dllm:checkpoint={ckpt},blocks=3", "--out", str(tmp_path / "run")
+    )
+    assert code == 2 and "blocks=3 does not divide the chunk's 16 action tokens; valid: 1, 2, 4, 8, 16" in err
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_checkpoint_of_the_wrong_pattern_is_refused(cli, tmp_path):

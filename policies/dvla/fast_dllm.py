@@ -16,12 +16,14 @@ whose confidence reaches `threshold`, and at least the most confident one, so th
 number of steps per block, and the NFE per chunk, vary with the model's certainty.
 threshold = 0 commits a fixed number per step instead (steps_per_block, `schedule`).
 
-Defaults follow the paper: DualCache, threshold 0.9. Its block of 32 tokens is 1/8 of
-a 256-token answer; an action chunk has 32-56 tokens, so the default block is one
-action step (action_dim tokens, the block Fast-dVLA uses), which divides every chunk;
-any divisor of the chunk can be asked for. In a batch, rows move to the next block
-together (a row that finished its block early waits), as batched Fast-dLLM does; each
-row commits exactly what it would alone.
+This function's defaults are the paper's settings read literally: DualCache,
+threshold 0.9, and a block that is 1/8 of the answer (its 32 of 256 tokens), which on
+a chunk of 8 actions is one action step (action_dim tokens, the block Fast-dVLA uses).
+That block forces a refresh every few tokens; the registered policy's defaults
+(FastDLLMParams) are instead chosen by a sweep on held-out states
+(benchmarks/fast_dllm_sweep.py). Any divisor of the chunk can be asked for. In a batch,
+rows move to the next block together (a row that finished its block early waits), as
+batched Fast-dLLM does; each row commits exactly what it would alone.
 """
 
 from __future__ import annotations

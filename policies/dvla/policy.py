@@ -12,7 +12,7 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -98,6 +98,19 @@ def block_size_error(block_size: int, action_tokens: int, checkpoint_block: int 
     )
 
 
+def blocks_error(params: Any, action_tokens: int) -> str | None:
+    """Why `blocks` (fast_dllm's blocks per chunk) cannot cut this chunk; None if it can or
+    an explicit block_size overrides it."""
+    blocks = getattr(params, "blocks", None)
+    if blocks is None or getattr(params, "block_size", 0) or action_tokens % blocks == 0:
+        return None
+    valid = [d for d in range(1, action_tokens + 1) if action_tokens % d == 0]
+    return (
+        f"blocks={blocks} does not divide the chunk's {action_tokens} action tokens; "
+        f"valid: {', '.join(map(str, valid))} (or set block_size)"
+    )
+
+
 @dataclass(frozen=True)
 class BidirectionalParams:
     checkpoint: str = param(shipped("bidirectional"), f"{CHECKPOINT_HELP} bidirectional model")
@@ -117,6 +130,13 @@ class BidirectionalParams:
         resolve_checkpoint(self, "bidirectional")
 
 
+# fast_dllm's defaults, chosen on held-out demonstration states by
+# benchmarks/fast_dllm_sweep.py (docs/decoders-and-training.md, "Fast-dLLM's defaults");
+# tests/test_fast_dllm_sweep.py checks them against benchmarks/results/fast-dllm-sweep.json.
+FAST_DLLM_BLOCKS = 1
+FAST_DLLM_THRESHOLD = 0.3
+
+
 @dataclass(frozen=True)
 class FastDLLMParams:
     checkpoint: str = param(shipped("bidirectional"), f"{CHECKPOINT_HELP} bidirectional model")
@@ -127,19 +147,34 @@ class FastDLLMParams:
         choices=CACHE_MODES,
     )
     threshold: float = param(
-        0.9,
-        "commit every token at this confidence, at least one per step (0 = fixed steps)",
+        FAST_DLLM_THRESHOLD,
+        "commit every token at this confidence, at least one per step (0 = fixed steps); the paper's is 0.9",
         low=0.0,
         high=1.0,
     )
     block_size: int = param(
-        0, "action tokens per block (0 = one action step); must divide the chunk", low=0, high=4096
+        0,
+        "action tokens per block (0 = the chunk cut into `blocks`); must divide the chunk",
+        low=0,
+        high=4096,
+    )
+    blocks: int = param(
+        FAST_DLLM_BLOCKS,
+        "with block_size=0: blocks per chunk, which must divide the chunk's tokens (8 on a "
+        "chunk of 8 actions = one action step a block, the paper's 1/8 of the answer)",
+        low=1,
+        high=4096,
     )
     steps_per_block: int = param(4, "steps per block when threshold=0", low=1, high=1024)
     schedule: str = param("linear", "with threshold=0: tokens left masked after each step", choices=SCHEDULES)
     confidence: str = param("max_prob", "how positions are ranked", choices=CONFIDENCES)
     temperature: float = param(0.0, TEMPERATURE_HELP, low=0.0, high=10.0)
     seed: int = param(0, SEED_HELP, low=0, high=2**63 - 1)
+
+    # Rows recorded before `blocks` existed decoded one action step a block, which its
+    # default does not reproduce: `--resume` must count them as another configuration,
+    # not adopt them as made at the default (harness/resume.py).
+    CHANGED_BY_ADDING: ClassVar[frozenset[str]] = frozenset({"blocks"})
 
     def __post_init__(self) -> None:
         resolve_checkpoint(self, "bidirectional")
@@ -263,6 +298,9 @@ class DVLAPolicy:
                 f"{self.params.checkpoint}: a {got} model; this decoder needs a {self._pattern} model"
             )
         self._set_block_size(getattr(self.params, "block_size", 0))
+        error = blocks_error(self.params, self.ckpt.model.cfg.action_tokens)
+        if error:
+            raise ValueError(error)
         if device == "cpu":
             from policies.dvla.kernels import pack_linears
 
@@ -383,7 +421,7 @@ def _fast_dllm(m, w, s, p, i=None):
         m,
         w,
         s,
-        p.block_size,
+        p.block_size or m.cfg.action_tokens // p.blocks,
         p.threshold,
         p.cache,
         p.steps_per_block,
@@ -430,7 +468,7 @@ SPECS = [
     ),
     _spec(
         "fast_dllm",
-        "Fast-dLLM baseline: bidirectional model, block-wise approximate KV cache refreshed per block, confidence-threshold parallel decoding",
+        "Fast-dLLM baseline: bidirectional model, block-wise approximate KV cache refreshed per block, confidence-threshold parallel decoding (defaults chosen by benchmarks/fast_dllm_sweep.py; the paper's literal: blocks=8,threshold=0.9)",
         FastDLLMParams,
         "bidirectional",
         _fast_dllm,
