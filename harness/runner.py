@@ -18,6 +18,7 @@ from adapters.base import EpisodeSpec, TaskSpec
 from adapters.simpler_variants import label as variant_label
 from harness.backends import Execution, execute, record_execution
 from harness.config import PolicyRun, ResolvedRun
+from harness.cpu_time import is_starved
 from harness.episode import EpisodeOutcome
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.manifest import now, record_end_calibration
@@ -144,6 +145,8 @@ def make_row(run_id: str, resolved: ResolvedRun, job: EpisodeJob, out: EpisodeOu
         ),
         "policy_time_s": out.policy_time_s,
         "transport_time_s": out.transport_time_s,
+        "policy_cpu_time_s": out.policy_cpu_time_s,
+        "starved": is_starved(out.policy_time_s, out.policy_cpu_time_s),
         "env_time_s": out.env_time_s,
         "overhead_s": out.wall_clock_s - out.policy_time_s - out.env_time_s,
         "wall_clock_s": out.wall_clock_s,
@@ -305,6 +308,16 @@ def _run_planned(
     return report
 
 
+def _episodes_or_none(run_dir: RunDir) -> Any:
+    """The run's rows for its speed verdict; None when they cannot be read (the verdict
+    then rests on the calibration alone, and the failure that made them unreadable is
+    the one reported)."""
+    try:
+        return run_dir.read_episodes()
+    except (OSError, ValueError):
+        return None
+
+
 def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None = None) -> None:
     """Compact the rows and record how the run ended; each step is tried even if one
     before it failed (a full disk), and the first failure is raised as a HarnessError."""
@@ -324,8 +337,9 @@ def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None 
     try:
         manifest = run_dir.read_manifest()
         try:
-            if not interrupted:
-                record_end_calibration(manifest, status)  # seconds of measuring
+            if not interrupted:  # seconds of measuring, and the rows' starved episodes counted
+                rows = _episodes_or_none(run_dir) if status == "finished" else None
+                record_end_calibration(manifest, status, rows)
         except KeyboardInterrupt:
             interrupted, status = True, "interrupted"
         manifest.update(status=status, finished_at=now())

@@ -11,11 +11,12 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "3"
+SCHEMA_VERSION = "4"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
 # columns as nulls, a version-2 table (before variants) a null `variant`, which is what
-# they mean for its suites.
-READABLE_VERSIONS = ("1", "2", "3")
+# they mean for its suites; a version-3 table (before CPU time was measured) null
+# `policy_cpu_time_s` and `starved`: not measured, not judged.
+READABLE_VERSIONS = ("1", "2", "3", "4")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
 
@@ -124,6 +125,27 @@ COLUMNS: tuple[Column, ...] = (
         "server's own policy time (encoding, the network, waiting). Null for policies in this process.",
         nullable=True,
     ),
+    Column(
+        "policy_cpu_time_s",
+        pa.float64(),
+        "s",
+        "CPU time over the same policy calls as policy_time_s: the calling thread's "
+        "(time.thread_time) when torch runs on one intra-op thread, else the process's "
+        "(time.process_time); batched calls shared equally as policy_time_s is. Null when not "
+        "the policy's work: remote policies (the server works), GPU policies (the thread "
+        "waits for kernels), and rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "starved",
+        pa.bool_(),
+        "",
+        "The policy waited for a core: policy_time_s above 1.25 x policy_cpu_time_s (the "
+        "machine was busy with other work during this episode's calls), so its timings are "
+        "not comparable and the run's speed_reliable is false. Null when not judged: no CPU "
+        "time, or policy_time_s under 0.05 s (too short to judge).",
+        nullable=True,
+    ),
     Column("env_time_s", pa.float64(), "s", "Time inside the environment (reset and step calls)."),
     Column(
         "overhead_s", pa.float64(), "s", "wall_clock_s - policy_time_s - env_time_s: the harness's own time."
@@ -228,6 +250,8 @@ TIMING_COLUMNS = frozenset(
     {
         "policy_time_s",
         "transport_time_s",
+        "policy_cpu_time_s",
+        "starved",
         "env_time_s",
         "overhead_s",
         "wall_clock_s",
