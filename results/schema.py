@@ -200,10 +200,11 @@ COLUMNS: tuple[Column, ...] = (
         pa.bool_(),
         "",
         "False when the run's calibration moved beyond the tolerance between its start and end "
-        "(the machine's load changed; the manifest's speed_warning says how much): this row's "
-        "timings (policy_time_s, tokens_per_s, control_hz, ...) are not comparable. Set on every "
-        "row when the run finishes; null while it runs, after an interrupt, for runs without "
-        "torch policies, and in rows written before it was recorded.",
+        "(the machine's load changed), or when any of the run's episodes was `starved`; the "
+        "manifest's speed_warning says which and how much: this row's timings (policy_time_s, "
+        "tokens_per_s, control_hz, ...) are not comparable. Set on every row when the run "
+        "finishes; null while it runs, after an interrupt, for runs without torch policies "
+        "(unless starved), and in rows written before it was recorded.",
         nullable=True,
     ),
     Column(
