@@ -3,8 +3,9 @@
 Every env and policy call is timed with one monotonic clock; the overhead column is
 the episode's wall-clock minus both, so the three add up by construction and the
 overhead is exactly the loop's own bookkeeping. Policy calls are also timed with a CPU
-clock, which tells the policy's work from its wait for a core (harness/cpu_time.py). NFE is counted by the harness's hooks,
-which are on only inside `policy.reset` and `policy.act` (`nfe.counting()`).
+clock, which tells the policy's work from its wait for a core (harness/cpu_time.py).
+NFE is counted by the harness's hooks, which are on only inside `policy.reset` and
+`policy.act` (`nfe.counting()`).
 A Python exception from the env or the policy ends the episode with a failure reason;
 it never ends the run: a policy's SystemExit or other BaseException is that episode's
 failure row too, and so is a non-finite or absurd action. Only KeyboardInterrupt (Ctrl-C,

@@ -348,9 +348,9 @@ def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None 
         failure = failure or io_error(run_dir.path, "writing manifest.json", exc)
     except KeyboardInterrupt:
         raise stopped from None
-    if failure is None and not interrupted and "speed_reliable" in manifest:
-        try:  # the rows carry the run's verdict too, for whoever reads the Parquet alone
-            run_dir.stamp_rows("speed_reliable", manifest["speed_reliable"])
+    if failure is None and not interrupted and ("speed_reliable" in manifest or "starvation" in manifest):
+        try:  # the rows carry the run's verdict too (null again when none), for the Parquet alone
+            run_dir.stamp_rows("speed_reliable", manifest.get("speed_reliable"))
         except OSError as exc:
             failure = io_error(run_dir.path, "writing speed_reliable into episodes.parquet", exc)
         except KeyboardInterrupt:  # the rewrite is atomic: the rows are as they were
