@@ -34,9 +34,9 @@ from collections.abc import Callable
 from typing import Any
 
 # Policy wall time / policy CPU time above which an episode was starved. Measured on a
-# 2-core machine (docs/ci-gate.md, "Starved episodes"): the smoke config's fast_dvla and
-# bidirectional episodes at one torch thread had ratios 1.00-1.07 idle and 1.3-2.9
-# beside two busy loops; 1.25 is above every idle episode.
+# 2-core machine (docs/ci-gate.md, "Starved episodes"; benchmarks/starvation.py): the
+# smoke config's fast_dvla and bidirectional episodes at one torch thread read 1.00-1.03
+# on a quiet machine and 1.24-4.18 (median 1.93) beside two busy loops.
 STARVED_FACTOR = 1.25
 # An episode whose policy calls took less wall time than this is not judged: too few
 # scheduler time slices for the ratio to mean anything (a scripted expert's 2 ms).
