@@ -66,7 +66,7 @@ def test_the_rule_judges_only_episodes_with_enough_policy_time_and_a_cpu_time():
 
 
 def test_a_policy_that_waits_for_its_core_is_starved_and_the_run_unreliable(tmp_path):
-    policy = ChunkPolicy(chunk=2, delay=0.02)  # 5 calls a episode: 0.1 s of waiting
+    policy = ChunkPolicy(chunk=2, delay=0.02)  # 5 calls an episode: 0.1 s of waiting
     run(fake_resolved(policy, episodes=2, succeed_at=10), tmp_path / "r")
     rows = RunDir(tmp_path / "r").read_episodes()
     assert (rows["policy_time_s"] >= 0.1).all()
