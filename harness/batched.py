@@ -11,7 +11,8 @@ What each episode is charged, so that its row means what an unbatched row means:
   over K episodes is K episode-passes, never 1/K). An adaptive decoder (fast_dvla,
   fast_dllm's threshold) runs until its slowest row is decoded, so a row may be charged
   more passes than it needed alone: the passes it waited for.
-- Policy time: a call's time is shared equally among the slots it served.
+- Policy time: a call's time is shared equally among the slots it served, and so is
+  its CPU time (harness/cpu_time.py), so a slot's ratio of the two is its calls'.
 - Env time: the slot's own env.reset and env.step calls, timed one by one.
 - Wall clock: policy share + env time + an equal share of the loop's own bookkeeping in
   each step among the slots running in it. The rows' wall clocks therefore add up to the
@@ -51,6 +52,7 @@ import numpy as np
 
 from adapters.base import EpisodeSpec
 from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
+from harness.cpu_time import cpu_clock
 from harness.episode import EpisodeOutcome, chain_fields, check_chunk, in_force, remote_policy
 from harness.errors import UsageError
 from harness.nfe import NFECounter
@@ -104,6 +106,7 @@ class _Slot:
     work: Work = field(default_factory=Work)
     tokens: int = 0
     policy_time: float = 0.0
+    cpu_time: float = 0.0  # CPU time of its share of the policy calls
     server_time: float = 0.0  # remote policies: the server's own share of policy_time
     env_time: float = 0.0
     overhead: float = 0.0  # its share of the loop's own time (wall = policy + env + this)
@@ -119,7 +122,7 @@ class _Slot:
         self.failure, self.trace = f"{type(exc).__name__}: {exc}", traceback.format_exc()
         self.success, self.done = False, True
 
-    def outcome(self, batch_envs: int, remote: bool) -> EpisodeOutcome:
+    def outcome(self, batch_envs: int, remote: bool, cpu_measured: bool) -> EpisodeOutcome:
         return EpisodeOutcome(
             success=self.success,
             steps=self.steps,
@@ -128,6 +131,7 @@ class _Slot:
             work=self.work,
             action_tokens_total=self.tokens,
             policy_time_s=self.policy_time,
+            policy_cpu_time_s=self.cpu_time if cpu_measured else None,
             env_time_s=self.env_time,
             wall_clock_s=self.policy_time + self.env_time + self.overhead,
             started_at=self.started_at,
@@ -170,6 +174,9 @@ class _Loop:
         self.out_of_space = out_of_space
         self.finished: list[tuple[int, _Slot | EpisodeOutcome]] = []
         self.remote = remote_policy(policy)
+        cpu_now = None if self.remote is not None else cpu_clock(policy)
+        self.cpu_measured = cpu_now is not None
+        self.cpu = cpu_now or (lambda: 0.0)  # unmeasured: read as 0 and recorded as None
 
     def passes(self) -> tuple[int | None, float, Work, float]:
         """Forward passes since the last take, here and (remote policies) on the server,
@@ -210,11 +217,13 @@ class _Loop:
             slot.env_time += t - t0
             slot.context = in_force(slot.context, slot.info)
             self.passes()
+            c = self.cpu()
             try:
                 with self.nfe.counting():
                     self.policy.reset([slot.context])
             finally:
                 slot.policy_time += clock() - t
+                slot.cpu_time += self.cpu() - c
                 slot.charge(*self.passes())
         except KeyboardInterrupt:
             raise
@@ -230,7 +239,7 @@ class _Loop:
     def act(self, slots: list[tuple[int, _Slot]]) -> float:
         """One act_batch call for `slots` (their chunks are used up); returns its time."""
         self.passes()
-        t = clock()
+        c, t = self.cpu(), clock()
         try:
             with self.nfe.counting():
                 batch = self.policy.act_batch([s.context for _, s in slots], [s.obs for _, s in slots])
@@ -243,20 +252,24 @@ class _Loop:
         except KeyboardInterrupt:
             raise
         except BaseException as exc:
-            elapsed, (passes, server, work, wait) = clock() - t, self.passes()
+            elapsed, cpu = clock() - t, self.cpu() - c
+            passes, server, work, wait = self.passes()
             for (_, slot), share in zip(slots, work.split(len(slots)), strict=True):
                 slot.policy_time += elapsed / len(slots)
+                slot.cpu_time += cpu / len(slots)
                 slot.charge(passes, server / len(slots), share, wait / len(slots))
                 if len(slots) == 1:
                     slot.fail(exc)
             if len(slots) > 1:  # which episode raised? ask each alone (the failed call stays charged)
                 elapsed += sum(self.act([served]) for served in slots)
             return elapsed
-        elapsed, (passes, server, work, wait) = clock() - t, self.passes()
+        elapsed, cpu = clock() - t, self.cpu() - c
+        passes, server, work, wait = self.passes()
         tokens = _shares(int(batch.action_tokens), len(slots))
         works = work.split(len(slots))
         for row, (_, slot) in enumerate(slots):
             slot.policy_time += elapsed / len(slots)
+            slot.cpu_time += cpu / len(slots)
             slot.charge(passes, server / len(slots), works[row], wait / len(slots))
             slot.tokens += tokens[row]
             slot.chunks += 1
@@ -303,7 +316,7 @@ class _Loop:
         slot.context = context
         slot.actions.clear()
         self.passes()
-        t = clock()
+        c, t = self.cpu(), clock()
         try:
             with self.nfe.counting():
                 self.policy.reset([context])
@@ -313,6 +326,7 @@ class _Loop:
             slot.fail(exc)
         elapsed = clock() - t
         slot.policy_time += elapsed
+        slot.cpu_time += self.cpu() - c
         slot.charge(*self.passes())
         return elapsed
 
@@ -386,7 +400,9 @@ def batch_events(
         remote = loop.remote is not None
         while loop.finished:
             index, done = loop.finished.pop(0)
-            yield DONE, (index, done.outcome(batch_envs, remote) if isinstance(done, _Slot) else done)
+            if isinstance(done, _Slot):
+                done = done.outcome(batch_envs, remote, loop.cpu_measured)
+            yield DONE, (index, done)
 
     for i in range(batch_envs):
         yield from fill(i)

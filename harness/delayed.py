@@ -26,6 +26,7 @@ import gymnasium as gym
 import numpy as np
 
 from harness.action_space import ActionCheck
+from harness.cpu_time import cpu_clock
 from harness.latency import LatencyPlan
 from harness.nfe import NFECounter
 from policies.base import EpisodeContext, Policy
@@ -39,6 +40,7 @@ class Tally:
     chunks: int = 0
     tokens: int = 0
     policy_time: float = 0.0
+    cpu_time: float = 0.0  # CPU time of the same policy calls (harness/cpu_time.py)
     env_time: float = 0.0
     success: bool = False
     info: dict[str, Any] = field(default_factory=dict)
@@ -75,6 +77,7 @@ def run_delayed(
     clock = time.perf_counter
     action_dim = int(np.prod(context.action_space.shape))
     remote = remote_policy(policy)
+    cpu = (None if remote is not None else cpu_clock(policy)) or (lambda: 0.0)
 
     def passes() -> int:
         """Passes counted so far this episode: the harness's hooks, plus a remote server's."""
@@ -98,11 +101,12 @@ def run_delayed(
 
     def request() -> _Chunk:
         nonlocal mark, since_request
-        t = clock()
+        c, t = cpu(), clock()
         with nfe.counting():
             batch = policy.act([obs])
         took = clock() - t
         tally.policy_time += took
+        tally.cpu_time += cpu() - c
         tally.chunks += 1
         tally.tokens += batch.action_tokens
         if traces is not None and batch.trace:
@@ -154,11 +158,12 @@ def run_delayed(
             return
         if (switched := in_force(context, info)) is not context:
             context = switched  # a new subtask: what was decoded for the old one is dropped
-            t0 = clock()
+            c, t0 = cpu(), clock()
             with nfe.counting():
                 policy.reset([context])
             took = clock() - t0
             tally.policy_time += took
+            tally.cpu_time += cpu() - c
             since_request += took
             current = pending = None
             next_request, awaited = tally.steps, True

@@ -2,8 +2,10 @@
 
 Every env and policy call is timed with one monotonic clock; the overhead column is
 the episode's wall-clock minus both, so the three add up by construction and the
-overhead is exactly the loop's own bookkeeping. NFE is counted by the harness's hooks,
-which are on only inside `policy.reset` and `policy.act` (`nfe.counting()`).
+overhead is exactly the loop's own bookkeeping. Policy calls are also timed with a CPU
+clock, which tells the policy's work from its wait for a core (harness/cpu_time.py).
+NFE is counted by the harness's hooks, which are on only inside `policy.reset` and
+`policy.act` (`nfe.counting()`).
 A Python exception from the env or the policy ends the episode with a failure reason;
 it never ends the run: a policy's SystemExit or other BaseException is that episode's
 failure row too, and so is a non-finite or absurd action, and (under the default
@@ -29,6 +31,7 @@ import numpy as np
 
 from adapters.base import EpisodeSpec
 from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
+from harness.cpu_time import cpu_clock
 from harness.delayed import Tally, run_delayed
 from harness.latency import LatencyPlan
 from harness.nfe import NFECounter
@@ -75,6 +78,9 @@ class EpisodeOutcome:
     delay_steps_max: int | None = None
     late_chunks: int = 0
     hold_steps: int = 0
+    # CPU time over the same policy calls (harness/cpu_time.py); None: not measured
+    # (remote policies, GPU policies).
+    policy_cpu_time_s: float | None = None
 
 
 def remote_policy(policy: Any) -> Any:
@@ -135,11 +141,13 @@ def run_episode(
     latency: LatencyPlan | None = None,
 ) -> EpisodeOutcome:
     clock = time.perf_counter
+    cpu_now = None if remote_policy(policy) is not None else cpu_clock(policy)
+    cpu = cpu_now or (lambda: 0.0)  # unmeasured: read as 0 and recorded as None
     started_at = datetime.now(UTC)
     action_dim = int(np.prod(context.action_space.shape))
     success = False
     steps = chunks = tokens = 0
-    policy_time = env_time = 0.0
+    policy_time = env_time = cpu_time = 0.0
     failure = trace = None
     traces: list[dict[str, Any]] | None = [] if record_traces else None
     info: dict[str, Any] = {}
@@ -156,20 +164,23 @@ def run_episode(
         t = clock()
         env_time += t - start
         context = in_force(context, info)
+        c = cpu()
         with nfe.counting():
             policy.reset([context])
         t2 = clock()
         policy_time += t2 - t
+        cpu_time += cpu() - c
         done = latency is not None
         if latency is not None:  # under an inference latency: harness/delayed.py
             tally = Tally(info=info)
             run_delayed(env, policy, nfe, context, obs, latency, replan_every, space, tally, traces, t2 - t)
         while not done and steps < context.max_steps:
-            t = clock()
+            c, t = cpu(), clock()
             with nfe.counting():
                 batch = policy.act([obs])
             t2 = clock()
             policy_time += t2 - t
+            cpu_time += cpu() - c
             chunks += 1
             tokens += batch.action_tokens
             if traces is not None and batch.trace:
@@ -192,10 +203,11 @@ def run_episode(
                     break
                 if (switched := in_force(context, info)) is not context:
                     context = switched  # a new subtask: a fresh chunk for its instruction
-                    t = clock()
+                    c, t = cpu(), clock()
                     with nfe.counting():
                         policy.reset([context])
                     policy_time += clock() - t
+                    cpu_time += cpu() - c
                     break
     except KeyboardInterrupt:
         raise  # an interrupt (Ctrl-C, SIGTERM) stops the run; it is not the episode's failure
@@ -213,6 +225,7 @@ def run_episode(
             tally.success and not failure,
         )
         policy_time, env_time, info = policy_time + tally.policy_time, env_time + tally.env_time, tally.info
+        cpu_time += tally.cpu_time
         delays = {
             "delay_steps_mean": float(np.mean(tally.delays)) if tally.delays else None,
             "delay_steps_max": max(tally.delays) if tally.delays else None,
@@ -239,6 +252,7 @@ def run_episode(
         transport_time_s=transport,
         action_tokens_total=tokens,
         policy_time_s=policy_time,
+        policy_cpu_time_s=None if cpu_now is None else cpu_time,
         env_time_s=env_time,
         wall_clock_s=wall,
         started_at=started_at,

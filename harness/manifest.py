@@ -7,9 +7,11 @@ Timings move with the machine and with whatever else it is doing, so the manifes
 carries a calibration: a fixed small torch workload timed at the start and the end of
 the run. When the two differ beyond a tolerance the machine's load changed during the
 run, and the manifest flags its speed figures as unreliable (`speed_reliable: false`),
-which `show`, `leaderboard` and `gate` repeat. (Speeds are compared across machines as
-ratios to a reference decoder in the same run, not through the calibration:
-results/gate.py.)
+which `run`, `show`, `leaderboard` and `gate` repeat. A load that comes and goes between
+the two calibrations is caught by the episodes themselves: one whose policy calls waited
+for a core (`starved`, harness/cpu_time.py) also makes the run unreliable, and the
+manifest's `starvation` counts them. (Speeds are compared across machines as ratios to
+a reference decoder in the same run, not through the calibration: results/gate.py.)
 """
 
 from __future__ import annotations
@@ -219,22 +221,56 @@ def start_calibration() -> dict[str, Any]:
     }
 
 
-def record_end_calibration(manifest: dict[str, Any], status: str) -> None:
+def record_end_calibration(manifest: dict[str, Any], status: str, episodes: Any = None) -> None:
     """Add the end-of-run measurement (not after an interrupt: the user wants out), and
     flag the run's speed figures as unreliable when the calibration drifted beyond
-    results.runs.CALIBRATION_DRIFT_TOLERANCE between start and end (the load changed)."""
-    from results.runs import CALIBRATION_DRIFT_TOLERANCE, calibration_drift, drift_reason
+    results.runs.CALIBRATION_DRIFT_TOLERANCE between start and end (the load changed),
+    or when any of `episodes` (the run's rows, all sessions of a resumed run) was starved.
 
+    `speed_reliable` is true only for a calibrated run (its policies use torch) that
+    neither drifted nor starved; a run without calibration gets a verdict only when it
+    starved (false)."""
+    from results.runs import calibration_drift, speed_reasons
+
+    if status != "finished":
+        return
     calibration = manifest.get("calibration")
-    if status == "finished" and calibration and "workload" in calibration:
+    if calibration and "workload" in calibration:
         calibration["end"] = measure_calibration()
         drift = calibration_drift(manifest)
         if drift is not None:  # a resumed run is judged again, from its first start
             calibration["drift"] = drift
-            manifest["speed_reliable"] = abs(drift) <= CALIBRATION_DRIFT_TOLERANCE
-            manifest.pop("speed_warning", None)
-            if not manifest["speed_reliable"]:
-                manifest["speed_warning"] = drift_reason(manifest, drift)
+    if episodes is not None:
+        manifest["starvation"] = starvation_record(episodes)
+    calibrated = calibration_drift(manifest) is not None
+    if not calibrated and "starvation" not in manifest:
+        return  # nothing measured this time to judge by: an earlier verdict stands
+    reasons = speed_reasons(manifest)
+    manifest.pop("speed_warning", None)
+    if reasons:
+        manifest["speed_reliable"] = False
+        manifest["speed_warning"] = "; ".join(reasons)
+    elif calibrated:
+        manifest["speed_reliable"] = True
+    else:  # not calibrated (no torch), none starved: no verdict, as before any was recorded
+        manifest.pop("speed_reliable", None)
+
+
+def starvation_record(episodes: Any) -> dict[str, Any]:
+    """The manifest's `starvation` block: how many of the rows were judged and starved,
+    by what rule (harness/cpu_time.py), and the worst policy wall/CPU ratio judged."""
+    from harness.cpu_time import MIN_JUDGED_POLICY_TIME_S, STARVED_FACTOR
+
+    judged = episodes[episodes["starved"].notna()]
+    # a judged episode whose calls used no measurable CPU reads as 1e6 (JSON has no infinity)
+    ratios = judged["policy_time_s"] / judged["policy_cpu_time_s"].clip(lower=1e-6 * judged["policy_time_s"])
+    return {
+        "starved_episodes": int(judged["starved"].astype(bool).sum()),
+        "judged_episodes": len(judged),
+        "factor": STARVED_FACTOR,
+        "min_policy_time_s": MIN_JUDGED_POLICY_TIME_S,
+        "worst_ratio": round(float(ratios.max()), 3) if len(judged) else None,
+    }
 
 
 def mujoco_gl(render_backend: str) -> str | None:

@@ -21,6 +21,7 @@ from adapters.simpler_variants import label as variant_label
 from harness.backends import Execution, execute, record_execution
 from harness.bounded import CallTimedOut, call_within
 from harness.config import PolicyRun, ResolvedRun
+from harness.cpu_time import is_starved
 from harness.episode import EpisodeOutcome
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.manifest import now, record_end_calibration
@@ -183,6 +184,8 @@ def make_row(
         ),
         "policy_time_s": out.policy_time_s,
         "transport_time_s": out.transport_time_s,
+        "policy_cpu_time_s": out.policy_cpu_time_s,
+        "starved": is_starved(out.policy_time_s, out.policy_cpu_time_s),
         "env_time_s": out.env_time_s,
         "overhead_s": out.wall_clock_s - out.policy_time_s - out.env_time_s,
         "wall_clock_s": out.wall_clock_s,
@@ -357,6 +360,16 @@ def _run_planned(
     return report
 
 
+def _episodes_or_none(run_dir: RunDir) -> Any:
+    """The run's rows for its speed verdict; None when they cannot be read (the verdict
+    then rests on the calibration alone, and the failure that made them unreadable is
+    the one reported)."""
+    try:
+        return run_dir.read_episodes()
+    except (OSError, ValueError):
+        return None
+
+
 def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None = None) -> None:
     """Compact the rows and record how the run ended; each step is tried even if one
     before it failed (a full disk), and the first failure is raised as a HarnessError."""
@@ -376,8 +389,9 @@ def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None 
     try:
         manifest = run_dir.read_manifest()
         try:
-            if not interrupted:
-                record_end_calibration(manifest, status)  # seconds of measuring
+            if not interrupted:  # seconds of measuring, and the rows' starved episodes counted
+                rows = _episodes_or_none(run_dir) if status == "finished" else None
+                record_end_calibration(manifest, status, rows)
         except KeyboardInterrupt:
             interrupted, status = True, "interrupted"
         manifest.update(status=status, finished_at=now())
@@ -386,9 +400,9 @@ def _finish(run_dir: RunDir, status: str, report: RunReport, reason: str | None 
         failure = failure or io_error(run_dir.path, "writing manifest.json", exc)
     except KeyboardInterrupt:
         raise stopped from None
-    if failure is None and not interrupted and "speed_reliable" in manifest:
-        try:  # the rows carry the run's verdict too, for whoever reads the Parquet alone
-            run_dir.stamp_rows("speed_reliable", manifest["speed_reliable"])
+    if failure is None and not interrupted and ("speed_reliable" in manifest or "starvation" in manifest):
+        try:  # the rows carry the run's verdict too (null again when none), for the Parquet alone
+            run_dir.stamp_rows("speed_reliable", manifest.get("speed_reliable"))
         except OSError as exc:
             failure = io_error(run_dir.path, "writing speed_reliable into episodes.parquet", exc)
         except KeyboardInterrupt:  # the rewrite is atomic: the rows are as they were

@@ -45,6 +45,11 @@ FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "status": (str,),
     "speed_reliable": (bool,),
     "speed_warning": (str,),
+    "starvation": (dict,),  # starved episodes counted at the run's end (harness/manifest.py)
+    "starvation.starved_episodes": (int,),
+    "starvation.judged_episodes": (int,),
+    "starvation.factor": NUMBER,
+    "starvation.worst_ratio": (int, float, NoneType),
     "traces": (bool,),
     "extended": (list,),  # --resume with more episodes per task (harness/resume.py)
 }

@@ -56,7 +56,8 @@ class Run:
 
     @property
     def speed_warning(self) -> str:
-        """Why this run's speed figures are unreliable, or '' (calibration drift)."""
+        """Why this run's speed figures are unreliable, or '' (calibration drift, starved
+        episodes)."""
         return speed_warning(self.manifest)
 
 
@@ -83,10 +84,26 @@ def speed_warning(manifest: Mapping[str, Any]) -> str:
         return str(manifest.get("speed_warning") or "flagged unreliable in its manifest")
     if manifest.get("speed_reliable") is True:
         return ""
+    return "; ".join(speed_reasons(manifest))
+
+
+def speed_reasons(manifest: Mapping[str, Any]) -> list[str]:
+    """Each reason a run's speed figures are unreliable, from what its manifest measured:
+    a calibration drift beyond the tolerance, and starved episodes (harness/cpu_time.py)."""
+    reasons = []
     drift = calibration_drift(manifest)
-    if drift is None or abs(drift) <= CALIBRATION_DRIFT_TOLERANCE:
-        return ""
-    return drift_reason(manifest, drift)
+    if drift is not None and abs(drift) > CALIBRATION_DRIFT_TOLERANCE:
+        reasons.append(drift_reason(manifest, drift))
+    starvation = (manifest or {}).get("starvation") or {}
+    if starvation.get("starved_episodes"):
+        worst = starvation.get("worst_ratio")
+        reasons.append(
+            f"{starvation['starved_episodes']} of {starvation.get('judged_episodes', '?')} episodes "
+            f"judged were starved (policy time over {starvation.get('factor', '?')}x its CPU time"
+            + (f", worst {worst:.2f}x" if isinstance(worst, (int, float)) else "")
+            + "): the policy waited for a core the machine gave to other work"
+        )
+    return reasons
 
 
 def drift_reason(manifest: Mapping[str, Any], drift: float) -> str:

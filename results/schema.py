@@ -15,9 +15,10 @@ SCHEMA_VERSION = "4"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
 # columns as nulls, a version-2 table (before variants) a null `variant`, which is what
 # they mean for its suites; a version-3 table (before the action-space check, counted
-# work, configuration labels and inference latency) gets null out-of-space, work and
-# latency columns (its actions were not checked, its work not measured, it ran at
-# `none`) and `config_label` filled in on read (results.labels.with_config_labels).
+# work, CPU time, configuration labels and inference latency) gets null out-of-space,
+# work, CPU-time and latency columns (its actions were not checked, its work and CPU
+# time not measured, it ran at `none`) and `config_label` filled in on read
+# (results.labels.with_config_labels).
 READABLE_VERSIONS = ("1", "2", "3", "4")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
@@ -182,6 +183,27 @@ COLUMNS: tuple[Column, ...] = (
         "server's own policy time (encoding, the network, waiting). Null for policies in this process.",
         nullable=True,
     ),
+    Column(
+        "policy_cpu_time_s",
+        pa.float64(),
+        "s",
+        "CPU time over the same policy calls as policy_time_s: the calling thread's "
+        "(time.thread_time) when torch runs on one intra-op thread, else the process's "
+        "(time.process_time); batched calls shared equally as policy_time_s is. Null when not "
+        "the policy's work: remote policies (the server works), GPU policies (the thread "
+        "waits for kernels), and rows written before it was recorded.",
+        nullable=True,
+    ),
+    Column(
+        "starved",
+        pa.bool_(),
+        "",
+        "The policy waited for a core: policy_time_s above 1.25 x policy_cpu_time_s (the "
+        "machine was busy with other work during this episode's calls), so its timings are "
+        "not comparable and the run's speed_reliable is false. Null when not judged: no CPU "
+        "time, or policy_time_s under 0.05 s (too short to judge).",
+        nullable=True,
+    ),
     Column("env_time_s", pa.float64(), "s", "Time inside the environment (reset and step calls)."),
     Column(
         "overhead_s", pa.float64(), "s", "wall_clock_s - policy_time_s - env_time_s: the harness's own time."
@@ -315,10 +337,11 @@ COLUMNS: tuple[Column, ...] = (
         pa.bool_(),
         "",
         "False when the run's calibration moved beyond the tolerance between its start and end "
-        "(the machine's load changed; the manifest's speed_warning says how much): this row's "
-        "timings (policy_time_s, tokens_per_s, control_hz, ...) are not comparable. Set on every "
-        "row when the run finishes; null while it runs, after an interrupt, for runs without "
-        "torch policies, and in rows written before it was recorded.",
+        "(the machine's load changed), or when any of the run's episodes was `starved`; the "
+        "manifest's speed_warning says which and how much: this row's timings (policy_time_s, "
+        "tokens_per_s, control_hz, ...) are not comparable. Set on every row when the run "
+        "finishes; null while it runs, after an interrupt, for runs without torch policies "
+        "(unless starved), and in rows written before it was recorded.",
         nullable=True,
     ),
     Column(
@@ -370,6 +393,8 @@ TIMING_COLUMNS = frozenset(
     {
         "policy_time_s",
         "transport_time_s",
+        "policy_cpu_time_s",
+        "starved",
         "env_time_s",
         "overhead_s",
         "wall_clock_s",

@@ -228,7 +228,8 @@ def test_the_cli_states_a_dtype_conversion_in_one_line(cli, tmp_path):
     line = (
         f"dvla-harness run: warning: {path}: weights stored as torch.float16, converted to float32 on load\n"
     )
-    assert err == line
+    # the speed verdict on a busy machine (drift, starved episodes) is no part of the checkpoint's
+    assert [ln for ln in err.splitlines(keepends=True) if "speed figures of this run" not in ln] == [line]
 
 
 # --- things in a run folder that are not the files the harness writes -----------------

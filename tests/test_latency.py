@@ -21,6 +21,7 @@ from harness.nfe import NFECounter
 from harness.runner import run
 from policies.base import ChunkBatch, EpisodeContext
 from results.gate import GateInputError, gate
+from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
 from tests.fakes import CountdownEnv, context, fake_resolved
 from tests.test_remote import serve_process  # noqa: F401  (a fixture)
 
@@ -167,9 +168,7 @@ def test_an_instruction_switch_mid_delay_drops_the_chunk_in_flight_and_awaits_a_
     assert all(s[0] != 2 for s in steps if s != H)  # decoded for the old instruction: never run
 
 
-TIMING = {"policy_time_s", "env_time_s", "overhead_s", "wall_clock_s", "control_hz", "loop_hz",
-          "tokens_per_s", "transport_time_s", "started_at", "host", "worker_id", "run_id",
-          "speed_reliable"}  # fmt: skip
+TIMING = TIMING_COLUMNS | PROVENANCE_COLUMNS  # how fast, when and where: not what happened
 
 
 def rows_of(report) -> pd.DataFrame:

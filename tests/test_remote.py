@@ -146,8 +146,16 @@ def test_a_shared_server_batches_two_workers_calls_and_their_rows_equal_local_on
     cli, tmp_path, serve_process
 ):
     """serve --max-batch: two env workers' calls decoded together (mean batch > 1), each
-    episode's outcome and NFE those of the same decoder run locally and alone."""
-    url = serve_process("--policy", "bidirectional", "--suite", "metaworld/mt10", "--max-batch", "4")
+    episode's outcome and NFE those of the same decoder run locally and alone.
+
+    --batch-wait-ms 2000 holds each call until the other worker has asked (a call closes
+    as soon as every active client is in it): with the default 5 ms the two workers fall
+    into turns on a loaded machine, each stepping its env while the other's call decodes,
+    and no call is ever shared. A worker's gap between calls is milliseconds; the longest
+    wait is once, for a worker that finished (it counts as active for 2 s)."""
+    url = serve_process(
+        "--policy", "bidirectional", "--suite", "metaworld/mt10", "--max-batch", "4", "--batch-wait-ms", "2000"
+    )  # fmt: skip
     tasks = ("--tasks", "reach-v3,push-v3", "--episodes-per-task", "3", "--quiet")
     remote_out, local_out = tmp_path / "remote", tmp_path / "local"
     code, _, err = cli(

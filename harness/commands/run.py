@@ -258,6 +258,23 @@ def print_chain_table(episodes: pd.DataFrame) -> None:
         print_table(chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)"))
 
 
+def print_speed_warning(run_dir: Any) -> None:
+    """The run's own speed verdict, as `show` prints it: a CI log that shows only `run`
+    says its timings are not comparable (calibration drift, starved episodes)."""
+    from results.runs import speed_warning
+
+    try:
+        warning = speed_warning(run_dir.read_manifest())
+    except (OSError, ValueError):  # an unreadable manifest: the run's own error says so
+        return
+    if warning:
+        err_console.print(
+            f"[yellow]warning[/yellow]: speed figures of this run are unreliable: {warning}",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+
 def execute_run(
     resolved: Any, args: argparse.Namespace, again: str, labels: dict[str, str] | None = None
 ) -> int:
@@ -321,6 +338,7 @@ def execute_run(
     console.print(
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
     )
+    print_speed_warning(report.run_dir)
     if report.interrupted:
         err_console.print(f"interrupted; continue with: {again.format(out=out)}")
         return 130
