@@ -130,7 +130,8 @@ def test_a_ray_actor_records_where_its_policies_decode(monkeypatch, reserved, us
     policy = _Placed()
     actor = ray_backend.EpisodeActor("ray-0", lambda: fake_resolved(policy), 1, 1, False, device="auto")
     try:
-        kind, record = actor.ready()
+        *warming, (kind, record) = actor.ready()  # a stream: each policy's warm-up, then ready
+        assert [k for k, _ in warming] == ["warming"]
         assert kind == "ready" and policy.moved == [used]
         gpu = "Fake GPU" if used == "cuda" else None
         assert record["device"] == {"requested": "auto", "used": used, "gpu": gpu, "ray_gpu_ids": reserved}
