@@ -24,6 +24,7 @@ average. Written: every trial's exit codes, verdict, failing lines and timings a
 
     python benchmarks/gate_stability.py [--n 10] [--conditions idle,busy2,tests]
         [--candidates unchanged,slow15,morework] [--slowdown 0.15]
+        [--tests-command 'tox -e test'] [--tests-log FILE]
         [--json benchmarks/results/gate_stability.json]
 """
 
@@ -34,6 +35,7 @@ import contextlib
 import json
 import os
 import platform
+import shlex
 import signal
 import statistics
 import subprocess
@@ -146,17 +148,15 @@ def child_main(candidate: str, slowdown: float, argv: list[str]) -> int:
 
 
 @contextlib.contextmanager
-def load(condition: str) -> Iterator[None]:
+def load(condition: str, tests_command: str, tests_log: str) -> Iterator[None]:
     """Start the condition's load in its own process group; always kill it on the way out."""
     procs: list[subprocess.Popen] = []
     if condition == "busy2":
         procs = [
             subprocess.Popen([sys.executable, "-c", BUSY_LOOP], start_new_session=True) for _ in range(2)
         ]
-    elif condition == "tests":
-        loop = (
-            f"while true; do {sys.executable} -m pytest -q -x -p no:cacheprovider tests >/dev/null 2>&1; done"
-        )
+    elif condition == "tests":  # the suite, restarted when it ends; its output kept for reading
+        loop = f"while true; do {tests_command} >>{shlex.quote(tests_log)} 2>&1; done"
         procs = [subprocess.Popen(["bash", "-c", loop], cwd=ROOT, start_new_session=True)]
     elif condition != "idle":
         raise ValueError(f"unknown condition {condition!r}; valid: {', '.join(CONDITIONS)}")
@@ -280,6 +280,12 @@ def main(argv: list[str] | None = None) -> int:
         "--slowdown", type=float, default=0.15, help="slow15's extra time per pass (default 0.15)"
     )
     parser.add_argument("--time-box", type=float, default=600.0, help="seconds before one command is stopped")
+    parser.add_argument(
+        "--tests-command",
+        default=f"{sys.executable} -m pytest -q -p no:cacheprovider tests",
+        help="the `tests` condition's load, restarted when it ends (e.g. 'tox -e test')",
+    )
+    parser.add_argument("--tests-log", default=os.devnull, help="where the tests load's output goes")
     parser.add_argument("--json", default=str(ROOT / "benchmarks/results/gate_stability.json"))
     args = parser.parse_args(argv)
     if args.n < 1 or not 0 < args.slowdown < 10:
@@ -289,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     results: list[dict[str, Any]] = []
     summary: list[dict[str, Any]] = []
     for condition in conditions:
-        with load(condition):
+        with load(condition, args.tests_command, args.tests_log):
             for candidate in candidates:
                 trials = []
                 for i in range(args.n):
@@ -312,6 +318,7 @@ def main(argv: list[str] | None = None) -> int:
         "cpus": os.cpu_count(),
         "commands": [" ".join(("dvla-harness", *c)) for c in CI_COMMANDS],
         "slowdown": args.slowdown,
+        "tests_command": args.tests_command if "tests" in conditions else None,
     }
     out.write_text(
         json.dumps({"meta": meta, "summary": summary, "trials": results}, indent=1, allow_nan=False)
