@@ -189,6 +189,27 @@ def failing_lines(gate_out: str) -> list[str]:
     return [line.strip() for line in lines[start:]][:12] if start is not None else []
 
 
+def replay_ratios(path: Path) -> dict[str, float]:
+    """Each timed configuration's median per-round seconds per chunk over the reference's
+    (bidirectional), from a bench's replay.json: how far a passing trial was from failing."""
+    if not path.is_file():
+        return {}
+    configs = json.loads(path.read_text())["configurations"]
+    reference = next((c for c in configs if c["policy"] == "bidirectional"), None)
+    if reference is None:
+        return {}
+    return {
+        c["policy"]: round(
+            statistics.median(
+                a / b for a, b in zip(c["round_chunk_s"], reference["round_chunk_s"], strict=True)
+            ),
+            4,
+        )
+        for c in configs
+        if c is not reference
+    }
+
+
 def trial(candidate: str, slowdown: float, time_box: float) -> dict[str, Any]:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     with tempfile.TemporaryDirectory(prefix="gate-stability-") as tmp:
@@ -213,6 +234,7 @@ def trial(candidate: str, slowdown: float, time_box: float) -> dict[str, Any]:
                 gate_out = done.stdout[-2000:] + done.stderr[-2000:]
                 break
         record.update(
+            replay_ratios=replay_ratios(Path(out) / "replay.json"),
             seconds=round(time.perf_counter() - started, 1),
             exit_codes=codes,
             verdict=verdict(codes[-1], gate_out) if len(codes) == len(CI_COMMANDS) else "error (did not run)",
