@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from results.published import PublishedGapRow, libero_pro_label, libero_pro_rows
 from results.render import Cell, finite_or_none
 from results.summary import Success
 
@@ -127,11 +128,48 @@ class GapRow:
     perturbed: dict[str, tuple[Success, Drop]]  # perturbation -> its success and drop
 
 
+def _published_cells(row: PublishedGapRow, perturbations: tuple[str, ...], label: str) -> list[Cell]:
+    """A published row in the table's columns: its success values as printed and the drop
+    where both sides are published (no interval: the sources give no episode counts)."""
+    standard = row.values.get("standard")
+    cells = [Cell(f"{row.method} [{row.table}] {label}", row.method), _percent(standard)]
+    for p in perturbations:
+        value = row.values.get(p)
+        cells.append(_percent(value))
+        if value is None or standard is None:
+            cells.append(Cell("-", None))
+        else:
+            cells.append(Cell(f"{standard - value:+.1f} pts (published)", (standard - value) / 100))
+    return cells
+
+
+def _percent(value: float | None) -> Cell:
+    return Cell("-", None) if value is None else Cell(f"{value:.0f}%", value / 100)
+
+
 @dataclass(frozen=True)
 class GapTable:
     suite: str  # the standard suite's name
     perturbations: tuple[str, ...]
     rows: tuple[GapRow, ...]
+    published: tuple[PublishedGapRow, ...] = ()  # LIBERO-PRO's own rows for this suite
+
+    def notes(self) -> tuple[str, ...]:
+        """The table's note, and where its published rows come from and why they are apart."""
+        if not self.published:
+            return (NOTE,)
+        sources = sorted({f"[{r.table}] {r.source.rsplit(', row ', 1)[0]}" for r in self.published})
+        label = libero_pro_label(self.suite)
+        why = (
+            "they read camera images, and the measured rows above read privileged state"
+            if "not comparable" in label
+            else "other checkpoints, simulator versions and episodes"
+        )
+        return (
+            NOTE,
+            f"Rows marked {label} are the LIBERO-PRO authors' numbers, not measured here ({why}); "
+            f"'-' where the source prints none. Sources: {'; '.join(sources)}.",
+        )
 
     def cells(self) -> tuple[list[str], list[list[Cell]]]:
         headers = ["policy", "standard (Wilson 95%)"]
@@ -151,6 +189,8 @@ class GapTable:
                     Cell(d.text(), finite_or_none(d.drop)),
                 ]
             rows.append(row)
+        label = libero_pro_label(self.suite)
+        rows += [_published_cells(r, self.perturbations, label) for r in self.published]
         return headers, rows
 
     def frame(self) -> pd.DataFrame:
@@ -201,7 +241,7 @@ def gap_tables(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> 
                     perturbed[p] = (_success(these), drop(standard, these))
             label = labels.get(str(cid), str(rows_of["policy"].iloc[0]))
             rows.append(GapRow(label, str(cid), _success(standard), perturbed))
-        tables.append(GapTable(str(base), tuple(order), tuple(rows)))
+        tables.append(GapTable(str(base), tuple(order), tuple(rows), libero_pro_rows(str(base))))
     return tables
 
 
@@ -223,6 +263,7 @@ def gap_markdown(tables: list[GapTable]) -> str:
         parts.append(
             f"## {t.suite}: generalization gaps (LIBERO-PRO)\n\n"
             + markdown_table(headers, [[c.text for c in r] for r in rows])
+            + "".join(f"\n\n{n}" for n in t.notes()[1:])
         )
     return "\n\n".join(parts) + f"\n\n{NOTE}\n" if parts else ""
 
@@ -231,7 +272,7 @@ def gap_rich(table: GapTable):
     from rich.table import Table
 
     headers, rows = table.cells()
-    out = Table(title=f"{table.suite}: generalization gaps (LIBERO-PRO)", caption=NOTE)
+    out = Table(title=f"{table.suite}: generalization gaps (LIBERO-PRO)", caption=" ".join(table.notes()))
     for i, h in enumerate(headers):
         out.add_column(h, justify="left" if i == 0 else "right")
     for row in rows:
@@ -243,4 +284,12 @@ def gap_blocks(tables: list[GapTable]) -> list:
     """The tables as the HTML report's titled blocks."""
     from results.leaderboard import Block
 
-    return [Block(f"{t.suite}: generalization gaps (LIBERO-PRO)", *t.cells(), (NOTE,)) for t in tables]
+    return [
+        Block(
+            f"{t.suite}: generalization gaps (LIBERO-PRO)",
+            *t.cells(),
+            t.notes(),
+            published_from=len(t.rows) if t.published else None,
+        )
+        for t in tables
+    ]

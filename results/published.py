@@ -256,3 +256,111 @@ def tables_for(suites: list[str]) -> list[PublishedTable]:
     suite in that benchmark's own layout instead (results.paper_table.calvin_block and
     simpler_block)."""
     return [LIBERO] if any(is_libero(s) for s in suites) else []
+
+
+# --- LIBERO-PRO (generalization under perturbation) ---------------------------------
+# Success rates the LIBERO-PRO authors publish for image-based models on the standard
+# suites and under their perturbations. They go beneath measured rows in the
+# generalization-gap table (results/generalization.py), per suite, never mixed into them.
+# The arXiv paper's own tables could not be read where these were transcribed; both tables
+# below are the authors' README tables in their repository (the leaderboard the README
+# says summarises "model performance under five generalization perturbations"). The
+# README prints fractions (0.96); values here are percentages (96.0); '-' is None.
+LIBERO_PRO = "LIBERO-PRO (Zhou et al., 2025, arXiv 2510.03827)"
+_PRO_README = f"{LIBERO_PRO}, README of github.com/Zxy-MLlab/LIBERO-PRO (commit 2b910b5)"
+PRO_SUITES = ("goal", "spatial", "10", "object")  # the README's column-group order
+PRO_PERTURBATIONS = ("object", "swap", "lan", "task", "env")  # Obj. Pos. Sem. Task Env.
+
+
+@dataclass(frozen=True)
+class PublishedGapRow:
+    """One model on one suite: success (%) on the standard suite (`standard`) and under
+    each perturbation it was published for (keys of PRO_PERTURBATIONS)."""
+
+    method: str
+    suite: str  # spatial, object, goal or 10
+    values: dict[str, float | None]
+    source: str  # paper or repository, table and row the numbers were read from
+    table: str  # a short name of the source table, printed beside the method
+    kind: str = PUBLISHED
+
+
+def _pro_rows(
+    tag: str, table: str, columns: tuple[str, ...], data: list[tuple[str, str]]
+) -> tuple[PublishedGapRow, ...]:
+    """data: (model as the table prints it, the row's values as printed: one group of
+    `columns` per suite in PRO_SUITES order, fractions, '-' for no value)."""
+    out = []
+    for method, printed in data:
+        numbers = [None if v == "-" else round(100 * float(v), 1) for v in printed.split()]
+        if len(numbers) != len(columns) * len(PRO_SUITES):
+            raise ValueError(f"{table}, row {method!r}: {len(numbers)} values")
+        for i, suite in enumerate(PRO_SUITES):
+            group = numbers[i * len(columns) : (i + 1) * len(columns)]
+            source = f"{_PRO_README}, {table}, row '{method}', LIBERO-{suite.capitalize()} columns"
+            out.append(PublishedGapRow(method, suite, dict(zip(columns, group, strict=True)), source, tag))
+    return tuple(out)
+
+
+# "LIBERO-Pro Model Leaderboard": per suite Obj, Pos, Sem, Task, Env (its Total column left out).
+LIBERO_PRO_LEADERBOARD = _pro_rows(
+    "leaderboard",
+    "table 'LIBERO-Pro Model Leaderboard'",
+    PRO_PERTURBATIONS,
+    [
+        (
+            "OpenVLA",
+            "0.96 0.00 0.98 0.00 0.98  0.97 0.00 0.97 0.00 0.89  0.81 0.00 0.96 0.00 0.85  0.98 0.00 0.98 0.00 0.00",
+        ),
+        (
+            "Pi0",
+            "0.94 0.00 0.93 0.00 0.39  0.95 0.00 0.97 0.00 0.60  0.79 0.00 0.82 0.00 0.27  0.94 0.00 0.90 0.00 0.29",
+        ),
+        (
+            "Pi0.5",
+            "0.97 0.38 0.97 0.00 0.46  0.97 0.20 0.97 0.01 0.46  0.92 0.08 0.93 0.01 0.46  0.98 0.17 0.96 0.01 0.73",
+        ),
+        (
+            "Molmoact",
+            "0.68 0.00 0.85 0.00 -  0.90 0.00 0.88 0.00 -  0.54 0.00 0.74 0.06 -  0.92 0.06 0.96 0.00 -",
+        ),
+        (
+            "NORA",
+            "0.58 0.00 0.88 0.00 -  0.92 0.00 0.91 0.00 -  0.46 0.00 0.74 0.00 -  0.86 0.00 0.92 0.00 -",
+        ),
+        (
+            "x-VLA",
+            "0.68 0.01 0.98 0.09 -  0.97 0.00 0.96 0.00 -  0.62 0.00 0.95 0.10 -  0.89 0.02 0.98 0.08 -",
+        ),
+    ],
+)
+# "Motivation": per suite Original, + P1 (task perturbation), + P2 (position perturbation).
+LIBERO_PRO_MOTIVATION = _pro_rows(
+    "motivation",
+    "table under 'Motivation' (Original, + P1: Task, + P2: Position)",
+    ("standard", "task", "swap"),
+    [
+        ("OpenVLA", "0.98 0.0 0.0  0.95 0.0 0.0  0.93 0.0 0.0  0.99 0.0 0.0"),
+        ("Pi0", "0.92 0.0 0.0  0.90 0.0 0.0  0.82 0.0 0.0  0.98 0.0 0.0"),
+        ("Pi0.5", "0.97 0.0 0.4  0.96 0.0 0.2  0.93 0.0 0.1  0.98 0.0 0.2"),
+        ("UniVLA", "0.89 0.0 0.1  0.85 0.0 0.1  0.61 0.0 0.0  0.98 0.0 0.0"),
+    ],
+)
+LIBERO_PRO_ROWS = LIBERO_PRO_MOTIVATION + LIBERO_PRO_LEADERBOARD
+LIBERO_PRO_NOT_COMPARABLE = "(published, LIBERO-PRO: not comparable)"
+
+
+def libero_pro_rows(suite: str) -> tuple[PublishedGapRow, ...]:
+    """The published LIBERO-PRO rows for a measured LIBERO suite (`libero/goal:seeding=openvla`),
+    none for any other suite (a plugin suite with a `perturb=` option of its own included)."""
+    base = suite.partition(":")[0].lower()
+    if not base.startswith("libero/"):
+        return ()
+    key = base.removeprefix("libero/")
+    return tuple(r for r in LIBERO_PRO_ROWS if r.suite == key)
+
+
+def libero_pro_label(suite: str) -> str:
+    """The label of published LIBERO-PRO rows beside a measured suite: they read camera
+    images, so beside rows measured on privileged state they are 'not comparable'."""
+    return LIBERO_PRO_NOT_COMPARABLE if is_privileged(suite) else "(published, LIBERO-PRO)"

@@ -132,3 +132,32 @@ def test_leaderboard_and_reports_add_the_gap_table(cli, tmp_path):
     plain = write_run(tmp_path / "p", std)
     code, out, _ = cli("leaderboard", str(plain), "--format", "md")
     assert code == 0 and "generalization gaps" not in out
+
+
+def test_published_libero_pro_rows_sit_beneath_labelled_not_comparable():
+    from results.generalization import gap_blocks, gap_markdown
+    from results.published import LIBERO_PRO_NOT_COMPARABLE
+
+    rows = _rows(BASE, [True] * 4) + _rows("libero/spatial:perturb=swap,seeding=openvla", [True] * 4)
+    (table,) = gap_tables(pd.DataFrame(rows))
+    _, cells = table.cells()
+    measured, published = cells[:1], cells[1:]
+    assert measured[0][0].text == "libero_scripted" and len(published) == len(table.published) > 0
+    assert all(r[0].text.endswith(LIBERO_PRO_NOT_COMPARABLE) for r in published)
+    pi05 = next(r for r in published if r[0].text.startswith("Pi0.5 [motivation]"))
+    assert [c.text for c in pi05[1:]] == ["96%", "20%", "+76.0 pts (published)"]  # README: 0.96, P2 0.2
+    (block,) = gap_blocks([table])
+    assert block.published_from == 1 and any("commit 2b910b5" in n for n in block.notes)
+    assert "Pi0.5 [leaderboard] (published, LIBERO-PRO: not comparable) | - | 20% | -" in gap_markdown(
+        [table]
+    )
+    upstream = "libero/spatial:obs=upstream"
+    rows = _rows(upstream, [True] * 4) + _rows(f"{upstream},perturb=swap", [True] * 4)
+    (table,) = gap_tables(pd.DataFrame(rows))
+    assert table.cells()[1][1][0].text.endswith("(published, LIBERO-PRO)")  # same regime: images
+
+
+def test_only_libero_suites_get_published_rows():
+    rows = _rows("plugin/spatial", [True] * 4) + _rows("plugin/spatial:perturb=swap", [False] * 4)
+    (table,) = gap_tables(pd.DataFrame(rows))
+    assert table.published == () and len(table.cells()[1]) == 1 and len(table.notes()) == 1

@@ -46,3 +46,28 @@ def test_paper_table_prints_each_published_rows_own_source(tmp_path):
     published = block.rows[block.published_from :]
     assert [r[-1].text for r in published] == [f"published: {p.source}" for p in LIBERO.rows]
     assert not any("swap" in n for n in block.notes)
+
+
+def test_every_libero_pro_row_names_its_source_table_and_row():
+    from results.published import LIBERO_PRO, LIBERO_PRO_ROWS, PRO_PERTURBATIONS
+
+    for row in LIBERO_PRO_ROWS:
+        assert row.source.startswith(f"{LIBERO_PRO}, README of github.com/Zxy-MLlab/LIBERO-PRO (commit ")
+        assert f", row '{row.method}', LIBERO-" in row.source and row.kind == "published"
+        assert set(row.values) <= {"standard", *PRO_PERTURBATIONS}
+        assert all(v is None or 0 <= v <= 100 for v in row.values.values())
+    assert len({r.source for r in LIBERO_PRO_ROWS}) == len(LIBERO_PRO_ROWS)
+
+
+def test_the_libero_pro_rows_are_the_readmes_tables():
+    """Spot checks against the README as printed (fractions there, % here)."""
+    from results.published import LIBERO_PRO_LEADERBOARD, LIBERO_PRO_MOTIVATION, libero_pro_rows
+
+    pi05_goal = next(r for r in LIBERO_PRO_LEADERBOARD if r.method == "Pi0.5" and r.suite == "goal")
+    assert pi05_goal.values == {"object": 97.0, "swap": 38.0, "lan": 97.0, "task": 0.0, "env": 46.0}
+    nora_10 = next(r for r in LIBERO_PRO_LEADERBOARD if r.method == "NORA" and r.suite == "10")
+    assert nora_10.values["env"] is None and nora_10.values["lan"] == 74.0
+    univla = next(r for r in LIBERO_PRO_MOTIVATION if r.method == "UniVLA" and r.suite == "10")
+    assert univla.values == {"standard": 61.0, "task": 0.0, "swap": 0.0}
+    assert len(libero_pro_rows("libero/spatial:seeding=openvla")) == 4 + 6
+    assert libero_pro_rows("libero/90") == () and libero_pro_rows("plugin/spatial:perturb=swap") == ()
