@@ -577,7 +577,7 @@ def list_suites() -> list[SuiteInfo]:
     perturbed = [
         SuiteInfo(
             f"libero/{key}:perturb={p}",
-            f"LIBERO-PRO {libero_pro.DESCRIPTIONS[p]} on libero/{key} (combine with +lan: {libero_pro.allowed_text()})",
+            f"LIBERO-PRO {libero_pro.DESCRIPTIONS[p]} on libero/{key} ({libero_pro.combines_text(p)})",
             n,
             EPISODES_PER_TASK,
             EXTRA,

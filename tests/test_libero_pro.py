@@ -20,7 +20,14 @@ needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero 
 
 @pytest.mark.parametrize(
     ("text", "combo"),
-    [("swap", ("swap",)), ("lan+swap", ("swap", "lan")), ("lan + env", ("env", "lan")), ("task", ("task",))],
+    [
+        ("swap", ("swap",)),
+        ("lan+swap", ("swap", "lan")),
+        ("lan + env", ("env", "lan")),
+        ("task", ("task",)),
+        ("object+swap", ("swap", "object")),
+        ("lan+object+env+swap", ("swap", "env", "object", "lan")),
+    ],
 )
 def test_perturbations_parse_into_libero_pros_order(text, combo):
     assert lp.parse_perturb(text) == combo
@@ -33,7 +40,7 @@ def test_perturbations_parse_into_libero_pros_order(text, combo):
     ("text", "needle"),
     [
         ("task+lan", "task perturbation combines with nothing"),
-        ("swap+object", "two scene perturbations"),
+        ("swap+object+task", "docs/libero.md, 'Combinations'"),
         ("colour", "perturbations are"),
         ("swap+swap", "perturbations are"),
     ],
@@ -42,7 +49,9 @@ def test_forbidden_combinations_name_the_allowed_ones(text, needle):
     with pytest.raises(SuiteOptionError) as err:
         lp.parse_perturb(text)
     assert needle in str(err.value)
-    assert "allowed: swap, env, object, lan, task, swap+lan, env+lan, object+lan" in str(err.value)
+    allowed = str(err.value).split("allowed: ")[1].split(", ")
+    assert allowed[:5] == ["swap", "env", "object", "lan", "swap+env"] and allowed[-1] == "task"
+    assert len(allowed) == 16 and "swap+env+object+lan" in allowed  # 15 combinations, and task alone
 
 
 def test_a_forbidden_combination_exits_2_naming_the_allowed_ones():
@@ -113,11 +122,11 @@ def test_a_combined_bddl_is_the_scene_with_the_paraphrase(tmp_path, monkeypatch)
 @needs_libero
 def test_env_states_generate_identically_twice(tmp_path):
     bddl = lp.task_bddl("goal", ("env",), *_files("goal", 0))
-    first = lp.generate_env_states(bddl, bddl.stem, n=2)
-    second = lp.generate_env_states(bddl, bddl.stem, n=2)
+    first = lp.generate_states(bddl, bddl.stem, n=2)
+    second = lp.generate_states(bddl, bddl.stem, n=2)
     assert first.shape[0] == 2 and np.array_equal(first, second)
     assert not np.array_equal(first[0], first[1])  # each state its own draw
-    other = lp.generate_env_states(bddl, bddl.stem, n=1, seed=1)
+    other = lp.generate_states(bddl, bddl.stem, n=1, seed=1)
     assert not np.array_equal(other[0], first[0])  # the recorded seed decides them
 
 
@@ -125,14 +134,54 @@ def test_env_states_generate_identically_twice(tmp_path):
 def test_env_states_match_the_recorded_checksums(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     name = lb.benchmark("goal").get_task(0).name
-    want = lp.recorded_env_checksums()[f"goal/{name}"]
+    want = lp.recorded_checksums()[f"goal/{name}"]
     _, states = lb.task_files("goal", 0, ("env",))
-    assert states.shape[0] == lp.ENV_STATES_PER_TASK
+    assert states.shape[0] == lp.STATES_PER_TASK
     assert lp.states_sha256(states) == want
     cached = next((tmp_path / "dvla-harness").rglob(f"{name}.npz"))
     np.savez_compressed(cached, states=states + 1e-3)  # a cache from another simulator version
     with pytest.raises(RuntimeError, match="differ from the recorded"):
         lb.task_files("goal", 0, ("env",))
+
+
+@needs_libero
+@pytest.mark.parametrize("key", lp.SUITES)
+def test_every_shipped_object_choice_is_rebuilt_by_the_packages_perturbator(key, env_cache):
+    """The object step of a combination makes the single `_object` file's choice: for every
+    task, its replacements rebuild that file exactly (object_replacements refuses otherwise)."""
+    bench = lb.benchmark(key)
+    for i in range(bench.get_num_tasks()):
+        replacements = lp.object_replacements(key, *_files(key, i))
+        assert replacements and all(a != b for a, b in replacements.items())
+
+
+@needs_libero
+def test_a_scene_combination_applies_each_single_perturbations_choice_in_libero_pros_order(env_cache):
+    files = _files("spatial", 0)
+    swap = Path(lb.task_files("spatial", 0, ("swap",))[0]).read_text()
+    obj = Path(lb.task_files("spatial", 0, ("object",))[0]).read_text()
+    both = Path(lp.task_bddl("spatial", ("swap", "object"), *files)).read_text()
+    replacements = lp.object_replacements("spatial", *files)
+    assert both == lp._replace_objects("spatial", files[0], swap, replacements)  # swap first, then object
+    assert (
+        both not in (swap, obj)
+        and "yellow_plate_1" in both
+        and "(On yellow_plate_1 main_table_box_region)" in both
+    )
+    everything = Path(lp.task_bddl("spatial", ("swap", "env", "object", "lan"), *files)).read_text()
+    assert "(On yellow_plate_1 living_room_table_box_region)" in everything
+    lan = Path(lb.task_files("spatial", 0, ("lan",))[0]).read_text()
+    assert lp.bddl_language(everything) == lp.bddl_language(lan)
+
+
+@needs_libero
+def test_combined_scene_states_are_seeded_apart_from_env_and_generate_identically(env_cache):
+    bddl = lp.task_bddl("spatial", ("swap", "object"), *_files("spatial", 0))
+    first = lp.generate_states(bddl, bddl.stem, n=2, scene="swap+object")
+    again = lp.generate_states(bddl, bddl.stem, n=2, scene="swap+object")
+    assert np.array_equal(first, again) and not np.array_equal(first[0], first[1])
+    assert lp.state_seed(bddl.stem, 0, scene="swap+object") != lp.state_seed(bddl.stem, 0)
+    assert lp.checksum_key("spatial", "swap+object", bddl.stem) == f"swap+object/spatial/{bddl.stem}"
 
 
 @pytest.fixture(scope="module")
@@ -149,8 +198,11 @@ def _files(key: str, i: int) -> tuple[str, str]:
 
 
 @needs_libero
-@pytest.mark.parametrize("key", lp.SUITES)
-@pytest.mark.parametrize("perturb", ["lan", "object", "swap", "task", "env"])
+@pytest.mark.parametrize(
+    ("key", "perturb"),
+    [(k, p) for k in lp.SUITES for p in ("lan", "object", "swap", "task", "env")]
+    + [("goal", "swap+object"), ("10", "swap+env+object+lan")],
+)
 def test_each_perturbation_loads_and_resets_under_the_upstream_protocol(key, perturb, env_cache):
     suite = lb.load_suite(f"libero/{key}:perturb={perturb}")
     task = suite.tasks[0]
