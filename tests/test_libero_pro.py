@@ -184,6 +184,15 @@ def test_combined_scene_states_are_seeded_apart_from_env_and_generate_identicall
     assert lp.checksum_key("spatial", "swap+object", bddl.stem) == f"swap+object/spatial/{bddl.stem}"
 
 
+@needs_libero
+def test_combined_scene_states_match_the_recorded_checksums(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    name = lb.benchmark("spatial").get_task(0).name
+    want = lp.recorded_checksums()[f"swap+object/spatial/{name}"]
+    _, states = lb.task_files("spatial", 0, ("swap", "object", "lan"))  # a paraphrase moves nothing
+    assert states.shape[0] == lp.STATES_PER_TASK and lp.states_sha256(states) == want
+
+
 @pytest.fixture(scope="module")
 def env_cache(tmp_path_factory):
     """Generated files go to a temporary cache, shared by the module's tests, not the user's."""
