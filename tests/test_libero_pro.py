@@ -236,6 +236,53 @@ def test_the_expert_reads_the_perturbed_problem():
     assert lb.suite_task_problem("libero/spatial:perturb=task", 0)["goal_state"] != standard["goal_state"]
 
 
+def _expert_context(suite: str, i: int):
+    import gymnasium as gym
+
+    from policies.base import EpisodeContext
+
+    key = suite.partition(":")[0].removeprefix("libero/")
+    size = max(stop for _, _, stop in lb.state_layout(lb.suite_task_problem(suite, i)))
+    return EpisodeContext(
+        suite=suite,
+        task=lb.benchmark(key).get_task(i).name,
+        instruction="",
+        action_space=gym.spaces.Box(-1, 1, (7,)),
+        observation_space=gym.spaces.Box(-np.inf, np.inf, (size,)),
+        max_steps=lb.MAX_STEPS[key],
+        episode_index=0,
+    )
+
+
+@needs_libero
+def test_the_expert_follows_the_task_perturbations_new_goal(env_cache):
+    """Under `task` the expert acts on the new goal: spatial's picks the other bowl; it
+    attempts every single-goal task whose predicate it scripts (On, In, Open, TurnOn), and
+    refuses TurnOff (goal 7) and libero/10's two-step goals, as it does on the standard suites."""
+    from policies.experts.libero_scripted import LiberoScriptedParams
+    from policies.experts.libero_select import _problem, expert_for, plan_for
+
+    context = _expert_context("libero/spatial:perturb=task", 0)
+    _, slices = _problem(context)
+    assert plan_for(context).obj == slices["akita_black_bowl_2"]  # the standard goal's is bowl 1
+    attempted = {}
+    for key in lp.SUITES:
+        attempted[key] = []
+        for i in range(lb.benchmark(key).get_num_tasks()):
+            try:
+                expert_for(_expert_context(f"libero/{key}:perturb=task", i), LiberoScriptedParams(), None)
+            except ValueError as exc:
+                assert "no script for the goal" in str(exc)
+            else:
+                attempted[key].append(i)
+    assert attempted == {
+        "spatial": list(range(10)),
+        "object": list(range(10)),
+        "goal": [0, 1, 2, 3, 4, 5, 6, 8, 9],
+        "10": [5],
+    }
+
+
 @needs_libero
 def test_missing_perturbation_files_are_refused_when_the_suite_loads(tmp_path, monkeypatch):
     monkeypatch.setattr(lp, "_root", lambda: tmp_path)
