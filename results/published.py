@@ -1,6 +1,7 @@
 """Published numbers from the papers, as data, for labelled reference rows.
 
-These are facts transcribed from Fast-dVLA (arXiv 2603.25661), never measurements of
+These are facts transcribed from Fast-dVLA (arXiv 2603.25661), and LIBERO-PRO's success
+under perturbation from its authors' README (at the end of this file), never measurements of
 ours: every row says `kind = "published"` and, in `source`, the paper, table and row its
 numbers come from, and outputs show them beneath measured rows, never mixed into them.
 Every value was checked against the paper's Tables 1, 2 and 4 as its authors publish
