@@ -23,6 +23,7 @@ from harness.runner import run
 from policies.base import ChunkBatch, EpisodeContext
 from tests.fakes import CountdownEnv, context, fake_resolved
 from tests.test_latency import rows_of
+from tests.test_remote import serve_process  # noqa: F401  (a fixture)
 
 HZ = 10.0  # 100 ms a control step
 MAX_STEPS = 24
@@ -239,3 +240,40 @@ def pd_equal(a, b) -> None:
     import pandas as pd
 
     pd.testing.assert_frame_equal(a.reset_index(drop=True), b.reset_index(drop=True))
+
+
+def test_batched_workers_give_the_rows_of_one_unbatched_process(tmp_path):
+    build = BatchedBuild("passes:60+20", "async")
+    one = rows_of(run(build(), tmp_path / "one"))
+    workers = rows_of(
+        run(build(), tmp_path / "w", execution=Execution(workers=2, batch_envs=2, rebuild=build))
+    )
+    assert set(workers["batch_envs"]) == {2}
+    same = [c for c in one.columns if c != "batch_envs"]
+    pd_equal(one[same], workers[same])
+
+
+def test_a_remote_policy_batched_is_charged_the_servers_passes_like_the_local_one_alone(
+    cli,
+    tmp_path,
+    serve_process,  # noqa: F811
+):
+    import pandas as pd
+
+    url = serve_process("--policy", "bidirectional", "--suite", "metaworld/mt10", "--task", "reach-v3")
+    argv = ["run", "--suite", "metaworld/mt10", "--tasks", "reach-v3", "--episodes-per-task", "2",
+            "--replan-every", "4", "--inference-latency", "passes:4", "--execution", "async", "--quiet"]  # fmt: skip
+    code, _, err = cli(
+        *argv, "--policy", f"remote:url={url}", "--batch-envs", "2", "--out", str(tmp_path / "r")
+    )
+    assert code == 0, err
+    code, _, err = cli(*argv, "--policy", "bidirectional", "--out", str(tmp_path / "l"))
+    assert code == 0, err
+    remote = pd.read_parquet(tmp_path / "r" / "episodes.parquet").set_index("episode_index").sort_index()
+    local = pd.read_parquet(tmp_path / "l" / "episodes.parquet").set_index("episode_index").sort_index()
+    assert (
+        set(remote["batch_envs"]) == {2} and (local["delay_steps_max"] == 4).all()
+    )  # 12 passes x 4 ms at 80 Hz
+    for column in ("success", "steps", "chunks", "nfe_total", "delay_steps_mean", "delay_steps_max",
+                   "late_chunks", "hold_steps"):  # fmt: skip
+        assert list(remote[column]) == list(local[column]), column
