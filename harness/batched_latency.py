@@ -55,8 +55,8 @@ class DelayedLoop(_Loop):
         slot = super().start(i, index, spec)
         if slot is not None:
             action_dim = int(np.prod(slot.context.action_space.shape))
-            # the reset's passes are counted before the first request, as unbatched
-            slot.schedule = Schedule(self.plan, self.every, action_dim, Tally(), slot.nfe, slot.policy_time)
+            # from 0: the reset's passes and time delay the first chunk, as unbatched
+            slot.schedule = Schedule(self.plan, self.every, action_dim, Tally(), 0, slot.policy_time)
         return slot
 
     def tick(self, slots: dict[int, _Slot]) -> float:

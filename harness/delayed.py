@@ -181,7 +181,9 @@ def run_delayed(
             raise no_passes(plan)
         return nfe.count + (served or 0)
 
-    schedule = Schedule(plan, replan_every, action_dim, tally, mark=passes(), since_request=reset_time)
+    passes()  # a server that reports none fails the episode here, before its first step
+    # the counter was cleared before the episode's reset: its passes delay the first chunk
+    schedule = Schedule(plan, replan_every, action_dim, tally, mark=0, since_request=reset_time)
 
     def request() -> None:
         c, t = cpu(), clock()

@@ -69,11 +69,17 @@ class RecordingBatchPolicy:
     decodes until its slowest row is done). Records each row's observation and each reset's
     instruction by episode."""
 
-    def __init__(self, chunk: int = 4, passes: int = 2, need: Callable[[int, float], int] | None = None):
+    def __init__(
+        self,
+        chunk: int = 4,
+        passes: int = 2,
+        need: Callable[[int, float], int] | None = None,
+        reset_passes: int = 0,
+    ):
         import torch
 
         self.net = torch.nn.Linear(1, 1)
-        self.chunk, self.passes, self.need = chunk, passes, need
+        self.chunk, self.passes, self.need, self.reset_passes = chunk, passes, need, reset_passes
         self.seen: dict[int, list[float]] = {}
         self.instructions: dict[int, list[str]] = {}
         self.sizes: list[int] = []
@@ -82,6 +88,11 @@ class RecordingBatchPolicy:
         for e in episodes:
             self.instructions.setdefault(e.episode_index, []).append(e.instruction)
         self.episodes = episodes
+        import torch
+
+        with torch.no_grad():
+            for _ in range(self.reset_passes):
+                self.net(torch.zeros(len(episodes), 1))
 
     def act(self, observations):  # unbatched: run_episode's call
         return self.act_batch(self.episodes, observations)
@@ -180,6 +191,17 @@ def test_a_chain_switch_in_one_slot_drops_only_that_slots_chunks(execution):
     assert together_log == alone_log and batch_policy.seen == alone_policy.seen
     assert batch_policy.instructions == alone_policy.instructions
     assert all(v == ["first", "second"] for v in batch_policy.instructions.values())
+
+
+@pytest.mark.parametrize("execution", ["sync", "async"])
+def test_a_resets_passes_delay_the_next_chunk_alone_and_batched(execution):
+    # passes:100 at 10 Hz: a pass is a step; the reset's pass makes the first chunk d = 3
+    p = plan("passes:100", execution)
+    alone, _ = unbatched(p, 2, RecordingBatchPolicy(reset_passes=1))
+    together, _ = batched(p, 2, RecordingBatchPolicy(reset_passes=1), 3)
+    for i, o in alone.items():
+        assert o.delay_steps_max == 3 and o.delay_steps_mean == (3 + 2 * (o.chunks - 1)) / o.chunks
+        assert [getattr(together[i], f) for f in FIELDS] == [getattr(o, f) for f in FIELDS], i
 
 
 def test_an_adaptive_decoders_slot_waits_for_its_batchs_slowest_row():
