@@ -193,6 +193,16 @@ def test_a_chain_switch_in_one_slot_drops_only_that_slots_chunks(execution):
     assert all(v == ["first", "second"] for v in batch_policy.instructions.values())
 
 
+def test_an_instruction_on_the_budgets_last_step_ends_the_episode_without_a_reset():
+    switch_at = lambda episode: MAX_STEPS if episode % 2 else 5  # noqa: E731
+    p = plan("passes:100", "async")
+    alone_policy, batch_policy = RecordingBatchPolicy(), RecordingBatchPolicy()
+    unbatched(p, 2, alone_policy, switch_at)
+    batched(p, 2, batch_policy, 2, switch_at)
+    for policy in (alone_policy, batch_policy):
+        assert policy.instructions[1] == ["first"] and policy.instructions[0] == ["first", "second"]
+
+
 @pytest.mark.parametrize("execution", ["sync", "async"])
 def test_a_resets_passes_delay_the_next_chunk_alone_and_batched(execution):
     # passes:100 at 10 Hz: a pass is a step; the reset's pass makes the first chunk d = 3
