@@ -309,3 +309,20 @@ def test_a_remote_policy_batched_is_charged_the_servers_passes_like_the_local_on
     for column in ("success", "steps", "chunks", "nfe_total", "delay_steps_mean", "delay_steps_max",
                    "late_chunks", "hold_steps"):  # fmt: skip
         assert list(remote[column]) == list(local[column]), column
+
+
+def test_a_batch_call_that_raises_fails_its_episode_and_its_batch_mates_wait_for_it():
+    class Raising(RecordingBatchPolicy):
+        def act_batch(self, episodes, observations):
+            out = super().act_batch(episodes, observations)  # its passes run, then it raises
+            rows = zip(episodes, observations, strict=True)
+            if any(e.episode_index == 2 and float(np.asarray(o)[0]) >= 6 for e, o in rows):
+                raise RuntimeError("cannot decode episode 2's observation")
+            return out
+
+    policy = Raising()
+    together, _ = batched(plan("passes:100", "async"), 2, policy, 3)  # a pass is a step: d = 2 alone
+    assert "cannot decode episode 2" in together[2].failure_reason
+    assert all(o.failure_reason is None for i, o in together.items() if i != 2)
+    # a batch-mate asked again alone waited for the failed call's 2 passes and its own 2
+    assert max(o.delay_steps_max for i, o in together.items() if i != 2) == 4
