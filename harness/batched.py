@@ -55,6 +55,7 @@ from harness.action_space import DEFAULT_OUT_OF_SPACE, ActionCheck
 from harness.cpu_time import cpu_clock
 from harness.episode import EpisodeOutcome, chain_fields, check_chunk, in_force, remote_policy
 from harness.errors import UsageError
+from harness.latency import LatencyPlan, latency_plan, parse_latency
 from harness.nfe import NFECounter
 from harness.work import Work
 from policies.base import EpisodeContext, can_batch
@@ -117,6 +118,7 @@ class _Slot:
     traces: list[dict[str, Any]] | None = None
     info: dict[str, Any] = field(default_factory=dict)  # the env's last info (chains read it)
     space: ActionCheck | None = None  # the action space's bounds and the --out-of-space rule
+    schedule: Any = None  # under an inference latency: its chunks in flight (harness/batched_latency.py)
 
     def fail(self, exc: BaseException) -> None:
         self.failure, self.trace = f"{type(exc).__name__}: {exc}", traceback.format_exc()
@@ -142,9 +144,14 @@ class _Slot:
             transport_time_s=max(0.0, self.policy_time - self.server_time) if remote else None,
             **(self.space.columns() if self.space is not None else {}),
             **chain_fields(self.info),
-            # no inference latency is modelled in batches (refused): every chunk's d is 0
-            delay_steps_mean=0.0 if self.chunks else None,
-            delay_steps_max=0 if self.chunks else None,
+            **(
+                self.schedule.tally.latency_columns()
+                if self.schedule is not None  # at `none` every chunk's d is 0
+                else {
+                    "delay_steps_mean": 0.0 if self.chunks else None,
+                    "delay_steps_max": 0 if self.chunks else None,
+                }
+            ),
         )
 
     def charge(self, passes: int | None, server_time: float, work: Work, connect_wait: float = 0.0) -> None:
@@ -285,6 +292,18 @@ class _Loop:
             slot.actions.extend(chunk)
         return elapsed
 
+    def tick(self, slots: dict[int, _Slot]) -> float:
+        """One lockstep step: one call for the slots whose chunk is used up, then one
+        action for each running slot; returns the time charged to the slots."""
+        charged = 0.0
+        hungry = [(i, s) for i, s in sorted(slots.items()) if not s.actions]
+        if hungry:
+            charged += self.act(hungry)
+        for i, slot in sorted(slots.items()):
+            if not slot.done and slot.actions:
+                charged += self.step(i, slot)
+        return charged
+
     def step(self, i: int, slot: _Slot) -> float:
         """Execute slot i's next action; returns the time charged to it (the env's, and
         the policy's when a chain's instruction changed)."""
@@ -345,17 +364,20 @@ def run_batched(
     record_traces: bool = False,
     envs: list[gym.Env | None] | None = None,
     out_of_space: str = DEFAULT_OUT_OF_SPACE,
+    latency: LatencyPlan | None = None,
 ) -> Iterator[tuple[int, EpisodeOutcome]]:
     """Run every episode of `specs` (one task) with `batch_envs` slots; yields (position in
     `specs`, outcome) as each episode ends, each exactly once.
 
     envs: the slots' envs, reused and left open for the caller to close (a slot's env is
     closed and rebuilt after an episode that failed; None entries are built with
-    make_env). Its length becomes `batch_envs`.
+    make_env). Its length becomes `batch_envs`. latency: each slot's own chunks in flight
+    (harness/batched_latency.py); None at `none`.
     """
     events = batch_events(
-        specs, make_env, policy, nfe, context_for, batch_envs, replan_every, record_traces, envs, out_of_space
-    )
+        specs, make_env, policy, nfe, context_for, batch_envs, replan_every, record_traces, envs, out_of_space,
+        latency,
+    )  # fmt: skip
     for kind, payload in events:
         if kind == DONE:
             yield payload
@@ -372,6 +394,7 @@ def batch_events(
     record_traces: bool = False,
     envs: list[gym.Env | None] | None = None,
     out_of_space: str = DEFAULT_OUT_OF_SPACE,
+    latency: LatencyPlan | None = None,
 ) -> Iterator[tuple[str, Any]]:
     """`run_batched` that also says when each episode starts and when each lockstep step
     ends: (STARTED, position) before an episode's env is built or reset, (STEPPED, None)
@@ -384,7 +407,13 @@ def batch_events(
     """
     envs = [] if envs is None else envs
     envs.extend([None] * (batch_envs - len(envs)))
-    loop = _Loop(envs, make_env, policy, nfe, context_for, replan_every, record_traces, out_of_space)
+    args = (envs, make_env, policy, nfe, context_for, replan_every, record_traces, out_of_space)
+    if latency is None:
+        loop = _Loop(*args)
+    else:  # each slot's chunks in flight under an inference latency
+        from harness.batched_latency import DelayedLoop
+
+        loop = DelayedLoop(latency, *args)
     queue = deque(enumerate(specs))
     slots: dict[int, _Slot] = {}
 
@@ -410,13 +439,7 @@ def batch_events(
     while slots:
         t0 = clock()
         running = len(slots)
-        charged = 0.0
-        hungry = [(i, s) for i, s in sorted(slots.items()) if not s.actions]
-        if hungry:
-            charged += loop.act(hungry)
-        for i, slot in sorted(slots.items()):
-            if not slot.done and slot.actions:
-                charged += loop.step(i, slot)
+        charged = loop.tick(slots)
         overhead = (clock() - t0 - charged) / running
         for slot in slots.values():
             slot.overhead += overhead
@@ -501,6 +524,12 @@ class BatchedRunner:
             self.traces,
             self.slot_envs,
             self.resolved.config.out_of_space,
+            latency_plan(
+                parse_latency(self.resolved.config.inference_latency),
+                self.resolved.config.execution,
+                suite,
+                policy.spec.name,
+            ),
         )
 
     def close(self) -> None:

@@ -49,6 +49,15 @@ class Tally:
     hold_steps: int = 0
     skipped_actions: int = 0
 
+    def latency_columns(self) -> dict[str, Any]:
+        """The row's latency columns (harness/episode.py's EpisodeOutcome fields)."""
+        return {
+            "delay_steps_mean": float(np.mean(self.delays)) if self.delays else None,
+            "delay_steps_max": max(self.delays) if self.delays else None,
+            "late_chunks": self.late_chunks,
+            "hold_steps": self.hold_steps,
+        }
+
 
 @dataclass
 class _Chunk:
@@ -57,6 +66,90 @@ class _Chunk:
     anchor: int
     follows: bool  # a chunk was running when it was requested (not an awaited one)
     held: bool = False  # the robot held still for want of an action while it was on its way
+
+
+def no_passes(plan: LatencyPlan) -> ValueError:
+    """The failure of a `passes:` episode whose remote server reports no passes."""
+    return ValueError(
+        f"--inference-latency {plan.mode.text} needs each call's forward passes, and this "
+        "server reports none (an openpi server); use profile:NAME or measured"
+    )
+
+
+@dataclass
+class Schedule:
+    """One episode's chunks in control steps: the one running, the one on its way, when
+    the next request is due. Its own clock is the episode's step count, so the unbatched
+    loop (run_delayed) and each slot of a batch (harness/batched_latency.py) follow the
+    same rules whatever else shares the process.
+
+    The caller, at each step t: asks `due(t)` and, while it says so, makes a request from
+    t's observation and hands its chunk to `send` (its delay from `delay`); then executes
+    `action(t)`; after an instruction switch it calls `switch`."""
+
+    plan: LatencyPlan
+    replan_every: int
+    action_dim: int
+    tally: Tally  # where the delays, late chunks and holds are counted
+    mark: int | None  # passes counted when the last request was made (a reset's go to the next)
+    since_request: float  # wall clock of policy calls since then (measured mode)
+    current: _Chunk | None = None
+    pending: _Chunk | None = None
+    next_request: int = 0
+    last_action: np.ndarray | None = None
+    awaited: bool = True  # the next chunk is awaited: nothing is moving
+
+    def due(self, t: int) -> bool:
+        """Take in the chunk that has arrived by step t; is a request due at t?"""
+        while self.pending is not None and t >= self.pending.arrival:
+            pending, self.pending = self.pending, None
+            if pending.follows and pending.held:
+                self.tally.late_chunks += 1  # the robot ran out of actions (or, sync, waited) for it
+            self.tally.skipped_actions += min(t - pending.anchor, len(pending.actions))
+            self.current = pending
+            n = len(pending.actions)
+            s = n if self.replan_every == 0 else min(self.replan_every, n)
+            self.next_request = max(pending.anchor + s, t)  # t: due again at once (d >= s)
+        return self.pending is None and t >= self.next_request
+
+    def delay(self, passes: int | None, took: float) -> int:
+        """The delay of the chunk a request just returned, from the passes counted so far
+        (the episode's running total) and the call's wall clock; recorded at once, before
+        the chunk is checked: a refused chunk took its time too."""
+        if passes is None and self.plan.mode.kind == "passes":
+            raise no_passes(self.plan)
+        d = self.plan.delay((passes or 0) - (self.mark or 0), self.since_request + took)
+        self.mark, self.since_request = passes, 0.0
+        self.tally.delays.append(d)
+        return d
+
+    def send(self, t: int, actions: np.ndarray, d: int) -> None:
+        """The checked chunk requested at step t, arriving at t + d."""
+        anchor = t + d if self.awaited or self.plan.execution == "sync" else t
+        self.pending = _Chunk(actions, t + d, anchor, follows=not self.awaited)
+        self.awaited = False
+
+    def action(self, t: int) -> np.ndarray:
+        """What the robot does at step t: the running chunk's action for t, or a hold
+        (none due, or sync with a chunk on its way)."""
+        current = self.current
+        i = -1 if current is None else t - current.anchor
+        moving = current is not None and 0 <= i < len(current.actions)
+        if moving and not (self.plan.execution == "sync" and self.pending is not None):
+            self.last_action = current.actions[i]  # type: ignore[union-attr]
+            return self.last_action  # type: ignore[return-value]
+        self.tally.hold_steps += 1
+        if self.pending is not None:
+            self.pending.held = True
+        return self.plan.hold(self.last_action, self.action_dim)
+
+    def switch(self, t: int, took: float) -> None:
+        """A new instruction is in force after step t (the policy reset, taking `took`
+        s): the chunk in flight and the rest of the current one are dropped, and the
+        next is requested at once and awaited."""
+        self.since_request += took
+        self.current = self.pending = None
+        self.next_request, self.awaited = t, True
 
 
 def run_delayed(
@@ -85,22 +178,14 @@ def run_delayed(
             return nfe.count
         served = remote.passes_so_far()
         if served is None and plan.mode.kind == "passes":
-            raise ValueError(
-                f"--inference-latency {plan.mode.text} needs each call's forward passes, and this "
-                "server reports none (an openpi server); use profile:NAME or measured"
-            )
+            raise no_passes(plan)
         return nfe.count + (served or 0)
 
-    mark = passes()  # passes since the last request: a reset's belong to the next chunk
-    since_request = reset_time  # wall clock since the last request (measured mode)
-    current: _Chunk | None = None
-    pending: _Chunk | None = None
-    next_request = 0
-    last_action: np.ndarray | None = None
-    awaited = True
+    passes()  # a server that reports none fails the episode here, before its first step
+    # the counter was cleared before the episode's reset: its passes delay the first chunk
+    schedule = Schedule(plan, replan_every, action_dim, tally, mark=0, since_request=reset_time)
 
-    def request() -> _Chunk:
-        nonlocal mark, since_request
+    def request() -> None:
         c, t = cpu(), clock()
         with nfe.counting():
             batch = policy.act([obs])
@@ -111,41 +196,15 @@ def run_delayed(
         tally.tokens += batch.action_tokens
         if traces is not None and batch.trace:
             traces.append({**batch.trace[0], "chunk": tally.chunks - 1, "step": tally.steps})
-        now_passes = passes()
-        d = plan.delay(now_passes - mark, since_request + took)
-        mark, since_request = now_passes, 0.0
-        tally.delays.append(d)  # before the checks: a refused chunk took its time too
+        d = schedule.delay(passes(), took)
         actions = np.asarray(batch.actions)
         check_chunk(actions, action_dim)
-        returned = space.apply(actions[0], tally.steps)
-        now = tally.steps
-        anchor = now + d if awaited or plan.execution == "sync" else now
-        return _Chunk(returned, now + d, anchor, follows=not awaited)
+        schedule.send(tally.steps, space.apply(actions[0], tally.steps), d)
 
     while tally.steps < context.max_steps:
-        t = tally.steps
-        if pending is None and t >= next_request:
-            pending = request()
-            awaited = False
-        if pending is not None and t >= pending.arrival:
-            if pending.follows and pending.held:
-                tally.late_chunks += 1  # the robot ran out of actions (or, sync, waited) for it
-            tally.skipped_actions += min(t - pending.anchor, len(pending.actions))
-            current, pending = pending, None
-            s = len(current.actions) if replan_every == 0 else min(replan_every, len(current.actions))
-            next_request = max(current.anchor + s, t)
-            if t >= next_request:
-                continue  # due again at once (d >= s): ask before acting
-        i = -1 if current is None else t - current.anchor
-        moving = current is not None and 0 <= i < len(current.actions)
-        if moving and not (plan.execution == "sync" and pending is not None):
-            action = current.actions[i]  # type: ignore[union-attr]
-            last_action = action
-        else:
-            action = plan.hold(last_action, action_dim)
-            tally.hold_steps += 1
-            if pending is not None:
-                pending.held = True
+        while schedule.due(tally.steps):
+            request()  # from this step's observation, before acting
+        action = schedule.action(tally.steps)
         t0 = clock()
         obs, _, terminated, truncated, info = env.step(action)
         tally.env_time += clock() - t0
@@ -154,8 +213,8 @@ def run_delayed(
         if info.get("success"):
             tally.success = True
             return
-        if terminated or truncated:
-            return
+        if terminated or truncated or tally.steps >= context.max_steps:
+            return  # the budget is spent: no reset for an instruction that comes now
         if (switched := in_force(context, info)) is not context:
             context = switched  # a new subtask: what was decoded for the old one is dropped
             c, t0 = cpu(), clock()
@@ -164,6 +223,4 @@ def run_delayed(
             took = clock() - t0
             tally.policy_time += took
             tally.cpu_time += cpu() - c
-            since_request += took
-            current = pending = None
-            next_request, awaited = tally.steps, True
+            schedule.switch(tally.steps, took)

@@ -297,10 +297,7 @@ def execute_run(
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     from harness.batched import check_batching
-    from harness.latency import check_run, parse_latency
 
-    names = [p.spec.name for p in resolved.policies]
-    check_run(parse_latency(resolved.config.inference_latency), resolved.suite, names, execution.batch_envs)
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
     out = Path(args.out) if args.out else None
     if out is None:
