@@ -128,3 +128,14 @@ def with_config_labels(episodes: pd.DataFrame) -> pd.DataFrame:
     out = episodes.copy()
     out[LABEL_COLUMN] = out["policy_config_id"].map(config_labels(out))
     return out
+
+
+def row_labels(episodes: pd.DataFrame) -> dict[str, str]:
+    """policy_config_id -> the config_label the rows hold, for printing a run's tables: the
+    labels were worked out from every configuration the run lists, so a summary printed
+    before all of them have rows still names each one as its rows do."""
+    labelled = with_config_labels(episodes)
+    if labelled.empty:
+        return {}
+    pairs = labelled.drop_duplicates("policy_config_id")
+    return dict(zip(pairs["policy_config_id"], pairs[LABEL_COLUMN], strict=True))

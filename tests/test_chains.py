@@ -389,6 +389,9 @@ def test_the_calvin_table_from_hand_made_rows():
     console.print(chain_table(chain_summary(df)))
     text = console.export_text()
     assert "40.0 [17, 69]" in text and "3.00 [" in text and "2.50x" in text
+    labelled = Console(width=200, record=True)
+    labelled.print(chain_table(chain_summary(df), labels={"fast_dvla": "fast_dvla (tau_conf=0.5)"}))
+    assert "fast_dvla (tau_conf=0.5)" in labelled.export_text()  # the name the summary table prints
 
 
 def test_listing_chain_suites_never_imports_the_simulator():
