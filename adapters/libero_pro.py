@@ -267,7 +267,7 @@ def instruction(key: str, combo: tuple[str, ...], bddl_file: str, states_file: s
 def record(keys: tuple[str, ...] = SUITES) -> dict[str, str]:
     """Generate every task's `env` states and write their checksums to the project's data
     file (`python -m adapters.libero_pro spatial goal`): what other machines are checked against."""
-    from adapters.libero import benchmark, task_files
+    from adapters.libero_sim import benchmark, task_files
 
     path = DATA / "env_states.json"
     recorded = dict(recorded_env_checksums())
