@@ -296,7 +296,7 @@ def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
     apply_device(resolved.policies, args.device, per_worker=getattr(args, "backend", "local") == "ray")
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
-    from harness.batched import check_batching
+    from harness.batch_runner import check_batching
     from harness.latency import check_run, parse_latency
 
     names = [p.spec.name for p in resolved.policies]
