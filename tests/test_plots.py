@@ -337,3 +337,18 @@ def test_the_cli_names_the_dropped_configuration_on_stderr_and_exits_2_when_none
         str(tmp_path / "b.png"),
     )
     assert code == 2 and "valid users: block_diffusion" in err and not (tmp_path / "b.png").exists()
+
+
+def test_fast_dllms_block_size_and_blocks_are_named_only_where_they_apply():
+    """block_size 0 cuts the chunk into `blocks`; a block_size set overrides `blocks`."""
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["cut", "sized"],
+            "policy": ["fast_dllm", "fast_dllm"],
+            "policy_params": [
+                json.dumps({"block_size": 0, "blocks": 2}),
+                json.dumps({"block_size": 4, "blocks": 8}),
+            ],
+        }
+    )
+    assert plots.config_labels(frame) == {"cut": "fast_dllm (blocks=2)", "sized": "fast_dllm (block_size=4)"}
