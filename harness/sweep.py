@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from collections.abc import Sequence
-from pathlib import Path
 
 from harness.config import PolicyChoice, RunConfig
 from harness.errors import UsageError
@@ -115,9 +114,3 @@ def expand(config: RunConfig, grid: Grid) -> RunConfig:
                 _check_block_sizes([{"checkpoint": getattr(typed, "checkpoint", "")} | combo])
             points.append(PolicyChoice(base.name, {**base.params, **combo}))
     return dataclasses.replace(config, policies=tuple(points))
-
-
-def point_label(name: str, params: dict[str, object], grid: Grid) -> str:
-    """How a grid point is shown in the summary: the policy and its grid values."""
-    shown = [f"{k}={Path(str(params[k])).stem if k == 'checkpoint' else params[k]}" for k in grid]
-    return " ".join([name, *shown])

@@ -160,6 +160,23 @@ def show_default(value: Any) -> str:
     return repr(value)
 
 
+def portable_checkpoint(spec: PolicySpec, value: str) -> str:
+    """A shipped checkpoint file as its set name (`metaworld-mt10`), which `checkpoint=`
+    turns back into the same file for this policy, so a results file committed to the
+    repository names no folder of the machine that wrote it; a shipped file the set name
+    would not give back is named by its path in the package. Any other value unchanged:
+    a user's own checkpoint is wherever they keep it."""
+    path = Path(value)
+    if not (path.is_absolute() and path.parent == SHIPPED_CHECKPOINTS and path.suffix == ".safetensors"):
+        return value
+    name = path.stem.rsplit("-", 1)[0]
+    try:
+        same = getattr(parse_params(spec, {"checkpoint": name}), "checkpoint", None) == value
+    except PolicyParamError:
+        same = False
+    return name if same else f"{SHIPPED_CHECKPOINTS.parent.name}/{SHIPPED_CHECKPOINTS.name}/{path.name}"
+
+
 def param_types(params_cls: type) -> dict[str, type]:
     hints = typing.get_type_hints(params_cls)
     return {f.name: hints[f.name] for f in dataclasses.fields(params_cls)}

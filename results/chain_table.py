@@ -125,9 +125,11 @@ def chain_summary(episodes: pd.DataFrame, max_length: int = 5) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
+def chain_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str] | None = None) -> Table:
     """CALVIN's layout: % of chains reaching 1/5 ... 5/5 (Wilson 95%), average length
-    (bootstrap 95%), then NFE per chunk, tokens/s and speedup over bidirectional."""
+    (bootstrap 95%), then NFE per chunk, tokens/s and speedup over bidirectional.
+    `labels` (policy_config_id -> config_label) name each configuration as the summary
+    table does, so several settings of one policy read apart."""
     table = Table(
         title=title or None,
         caption="chains reaching k of 5 subtasks, % (Wilson 95%); avg len: subtasks completed per "
@@ -156,7 +158,8 @@ def chain_table(summary: pd.DataFrame, title: str = "") -> Table:
     previous = None
     for _, row in summary.iterrows():
         base_speed = float(base[row["task"]]) if row["task"] in base.index else math.nan
-        policy = str(row["policy"]) if row["policy_config_id"] != previous else ""
+        name = (labels or {}).get(row["policy_config_id"], str(row["policy"]))
+        policy = name if row["policy_config_id"] != previous else ""
         previous = row["policy_config_id"]
         length = length_text(row["avg_len"], row["avg_len_low"], row["avg_len_high"])
         speedup = _num(row["tokens_per_s"] / base_speed, ".2f")

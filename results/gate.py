@@ -37,6 +37,10 @@ docs/ci-gate.md explains the rules; in short:
   decides speed instead (results/replay.py): the same ratio round by round, failing only
   when its whole bootstrap interval lies beyond the allowed slowdown, "inconclusive"
   (a warning, no failure) when it straddles it; the closed-loop ratio is then reported.
+
+Here: the success, chain-length, NFE and counted-work tests and the verdict. The
+per-side measures of a pair's episodes are results/gate_measures.py; the speed rules
+(reference decoder, manifests, replay) results/gate_speed.py.
 """
 
 from __future__ import annotations
@@ -49,7 +53,26 @@ from typing import Any
 import pandas as pd
 
 from results.board_warnings import out_of_space_gate_warnings
-from results.pairing import PAIR_KEY, ConfigPair, check_episodes_match, episode_keys, pair_configs
+from results.gate_measures import (
+    merged_pair,
+    nfe_per_chunk,
+    side_measures,
+    tokens_per_s,
+    work_per_chunk,
+    work_unmeasured,
+)
+from results.gate_speed import (
+    DEFAULT_REFERENCE,
+    SpeedDiff,
+    is_reference,
+    machine_notes,
+    one_sided_reference,
+    pair_speed,
+    reference_pair,
+    speed_comparable,
+    with_replay,
+)
+from results.pairing import ConfigPair, check_episodes_match, episode_keys, pair_configs
 from results.pairing import (
     GateInputError as GateInputError,  # raised from here; callers catch it by this name
 )
@@ -113,34 +136,6 @@ class TaskDiff:
 
 
 @dataclass(frozen=True)
-class SpeedDiff:
-    """tokens/s relative to the in-run reference decoder's, per pair: candidate run vs baseline run."""
-
-    pair: str
-    baseline_tokens_per_s: float
-    candidate_tokens_per_s: float
-    baseline_reference: float  # the reference decoder's tokens/s in the baseline run
-    candidate_reference: float  # ... and in the candidate run, over the same episodes
-    max_slowdown: float
-
-    @property
-    def baseline_ratio(self) -> float:
-        return self.baseline_tokens_per_s / self.baseline_reference
-
-    @property
-    def candidate_ratio(self) -> float:
-        return self.candidate_tokens_per_s / self.candidate_reference
-
-    @property
-    def change(self) -> float:
-        return self.candidate_ratio / self.baseline_ratio - 1.0
-
-    @property
-    def regressed(self) -> bool:
-        return self.change < -self.max_slowdown
-
-
-@dataclass(frozen=True)
 class GateResult:
     pairs: tuple[ConfigPair, ...]
     tasks: tuple[TaskDiff, ...]
@@ -201,48 +196,6 @@ class GateResult:
         return not self.failures
 
 
-# ---- comparing -------------------------------------------------------------------
-
-
-_MEASURES = (
-    "success",
-    "nfe_total",
-    "flops_total",
-    "chunks",
-    "action_tokens_total",
-    "policy_time_s",
-    "task_index",
-    "subtasks_completed",
-)
-
-
-def _side(merged: pd.DataFrame, side: str) -> pd.DataFrame:
-    """One run's measures from a merged pair table (`side` is "b" or "c")."""
-    return merged[[f"{m}_{side}" for m in _MEASURES]].set_axis(list(_MEASURES), axis=1)
-
-
-def _nfe(df: pd.DataFrame) -> float | None:
-    if df["nfe_total"].isna().all():  # a remote server that reports none: not measured
-        return None
-    chunks = int(df["chunks"].sum())
-    return float(df["nfe_total"].sum()) / chunks if chunks else None
-
-
-def _work(df: pd.DataFrame) -> float | None:
-    """Counted FLOPs per chunk; None unless every row measured them (a sum with holes
-    would read as a drop)."""
-    if df.empty or df["flops_total"].isna().any():
-        return None
-    chunks = int(df["chunks"].sum())
-    return float(df["flops_total"].astype(float).sum()) / chunks if chunks else None
-
-
-def _tokens_per_s(df: pd.DataFrame) -> float | None:
-    decoded = df[df["action_tokens_total"] > 0]
-    time_s = float(decoded["policy_time_s"].sum())
-    return float(decoded["action_tokens_total"].sum()) / time_s if len(decoded) and time_s > 0 else None
-
-
 def _chain_lengths(b: pd.DataFrame, c: pd.DataFrame) -> dict[str, Any]:
     """The sign test on subtasks completed, for chain rows; {} for other suites. A chain
     row without a count (it raised before the runner could count) completed none."""
@@ -263,7 +216,7 @@ def _chain_lengths(b: pd.DataFrame, c: pd.DataFrame) -> dict[str, Any]:
 def _task_diff(
     pair: str, task: str, merged: pd.DataFrame, alpha: float, gate_nfe: bool, gate_work: bool = True
 ) -> TaskDiff:
-    b, c = _side(merged, "b"), _side(merged, "c")
+    b, c = side_measures(merged, "b"), side_measures(merged, "c")
     base, cand = b["success"].astype(bool), c["success"].astype(bool)
     drops, gains = int((base & ~cand).sum()), int((~base & cand).sum())
     lengths = _chain_lengths(b, c)
@@ -279,87 +232,14 @@ def _task_diff(
         gains=gains,
         p_value=mcnemar_drop_p(drops, gains),
         alpha=alpha,
-        baseline_nfe=_nfe(b),
-        candidate_nfe=_nfe(c),
+        baseline_nfe=nfe_per_chunk(b),
+        candidate_nfe=nfe_per_chunk(c),
         nfe_gated=gate_nfe,
-        baseline_work=_work(b),
-        candidate_work=_work(c),
+        baseline_work=work_per_chunk(b),
+        candidate_work=work_per_chunk(c),
         work_gated=gate_work,
         **lengths,
     )
-
-
-DEFAULT_REFERENCE = "bidirectional"  # the teacher: every decoder config can run beside it
-
-
-def _is_reference(df: pd.DataFrame, reference: str | None) -> pd.Series:
-    return (df["policy"] == reference) | (df["policy_config_id"] == reference)
-
-
-def _one_sided_reference(
-    baseline: pd.DataFrame, candidate: pd.DataFrame, reference: str | None
-) -> tuple[str, pd.DataFrame] | None:
-    """(side, its table) when only that side holds the reference decoder, else None."""
-    if not reference:
-        return None
-    held = {
-        side: bool(_is_reference(df, reference).any())
-        for side, df in (("baseline", baseline), ("candidate", candidate))
-    }
-    if held["baseline"] == held["candidate"]:
-        return None
-    return ("baseline", baseline) if held["baseline"] else ("candidate", candidate)
-
-
-def _reference_pair(
-    pairs: list[ConfigPair], baseline: pd.DataFrame, reference: str | None
-) -> tuple[ConfigPair | None, str]:
-    """The pair of the reference decoder's configurations, or (None, why there is none)."""
-    if not reference:
-        return None, "no reference decoder given"
-    found = list(dict.fromkeys(baseline.loc[_is_reference(baseline, reference), "policy_config_id"]))
-    if not found:
-        return None, (
-            f"neither run has {reference} rows to time against (a run needs the reference "
-            "decoder beside the others: docs/ci-gate.md)"
-        )
-    if len(found) > 1:
-        return (
-            None,
-            f"the baseline has {len(found)} configurations of {reference} (pass --reference CONFIG_ID)",
-        )
-    pair = next(p for p in pairs if p.baseline_id == found[0])
-    if pair.rule != "same policy and params":
-        what = pair.changes or f"{pair.baseline} -> {pair.candidate}"
-        return None, f"the reference {reference} differs between the runs ({what})"
-    return pair, ""
-
-
-def _merged(baseline: pd.DataFrame, candidate: pd.DataFrame, pair: ConfigPair) -> pd.DataFrame:
-    """The pair's episodes side by side (measures suffixed _b and _c)."""
-    b = episode_keys(baseline[baseline["policy_config_id"] == pair.baseline_id])
-    c = episode_keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
-    b, c = (df if "subtasks_completed" in df else df.assign(subtasks_completed=None) for df in (b, c))
-    b, c = (df if "flops_total" in df else df.assign(flops_total=None) for df in (b, c))
-    cols = [*PAIR_KEY, *_MEASURES]
-    return b[cols].merge(c[cols], on=list(PAIR_KEY), suffixes=("_b", "_c"))
-
-
-def _speed(
-    pair: ConfigPair, merged: pd.DataFrame, reference: pd.DataFrame, max_slowdown: float
-) -> SpeedDiff | str:
-    """The pair's tokens/s against the reference's over the episodes both ran, or why not."""
-    keys = list(PAIR_KEY)
-    common = merged[keys].merge(reference[keys])
-    if common.empty:
-        return "not comparable: it shares no episodes with the reference"
-    mine, ref = merged.merge(common), reference.merge(common)
-    tps = [_tokens_per_s(_side(df, side)) for df in (mine, ref) for side in ("b", "c")]
-    if tps[0] is None or tps[1] is None:
-        return "no action tokens decoded on both sides"
-    if tps[2] is None or tps[3] is None:
-        return "not comparable: the reference decoded no tokens on these episodes"
-    return SpeedDiff(pair.label, tps[0], tps[1], tps[2], tps[3], max_slowdown)
 
 
 def gate(
@@ -379,10 +259,10 @@ def gate(
 
     Raises GateInputError when the runs cannot be compared (nothing is judged then).
     """
-    one_sided = _one_sided_reference(baseline, candidate, reference)
+    one_sided = one_sided_reference(baseline, candidate, reference)
     if one_sided:  # a run without the reference is still gated on success and NFE
         side, df = one_sided
-        keep = ~_is_reference(df, reference)
+        keep = ~is_reference(df, reference)
         baseline, candidate = (
             (baseline[keep], candidate) if side == "baseline" else (baseline, candidate[keep])
         )
@@ -401,11 +281,11 @@ def gate(
             ),
         )
     else:
-        ref_pair, why = _reference_pair(pairs, baseline, reference)
+        ref_pair, why = reference_pair(pairs, baseline, reference)
     if why and not why.startswith("not comparable"):
         why = f"not comparable: {why}"
     notes = [f"speed {why}"] if why else []
-    ref_rows = _merged(baseline, candidate, ref_pair) if ref_pair else None
+    ref_rows = merged_pair(baseline, candidate, ref_pair) if ref_pair else None
     tasks: list[TaskDiff] = []
     speed: list[SpeedDiff] = []
     skipped: list[tuple[str, str]] = []
@@ -413,14 +293,14 @@ def gate(
     for pair in pairs:
         b = episode_keys(baseline[baseline["policy_config_id"] == pair.baseline_id])
         c = episode_keys(candidate[candidate["policy_config_id"] == pair.candidate_id])
-        merged = _merged(baseline, candidate, pair)
+        merged = merged_pair(baseline, candidate, pair)
         order = list(dict.fromkeys(merged.sort_values("task_index_b", kind="stable")["task"]))
         gated = (not allow_nfe_increase, not allow_work_increase)
         for task in order:
             rows = merged[merged["task"] == task]
             tasks.append(_task_diff(pair.label, task, rows, alpha / len(order), *gated))
         tasks.append(_task_diff(pair.label, "ALL", merged, alpha, *gated))
-        if (unmeasured := _work_unmeasured(merged)) is not None:
+        if (unmeasured := work_unmeasured(merged)) is not None:
             notes.append(f"{pair.label}: counted work not compared (not measured in the {unmeasured})")
         raised = {
             side: int(rows["failure_reason"].notna().sum())
@@ -439,7 +319,8 @@ def gate(
         if pair == ref_pair:
             continue
         decodes = (
-            _tokens_per_s(_side(merged, "b")) is not None and _tokens_per_s(_side(merged, "c")) is not None
+            tokens_per_s(side_measures(merged, "b")) is not None
+            and tokens_per_s(side_measures(merged, "c")) is not None
         )
         if not decodes:
             notes.append(f"{pair.label}: tokens/s not compared (no action tokens decoded on both sides)")
@@ -447,7 +328,7 @@ def gate(
         if ref_rows is None:
             skipped.append((pair.label, why))
             continue
-        diff = _speed(pair, merged, ref_rows, max_slowdown)
+        diff = pair_speed(pair, merged, ref_rows, max_slowdown)
         if isinstance(diff, SpeedDiff):
             speed.append(diff)
         else:
@@ -473,81 +354,12 @@ def gate(
     )
 
 
-# ---- what the manifests say about timing ---------------------------------------------
-
-
-def torch_threads(manifest: dict[str, Any]) -> int | None:
-    """The torch thread count a run's policies ran with, if its manifest recorded it."""
-    threads = ((manifest or {}).get("calibration") or {}).get("torch_threads")
-    return int(threads) if threads is not None else None
-
-
-def _speed_comparable(manifests: dict[str, dict[str, Any]]) -> str:
-    """'' or "not comparable: why" from the manifests (bare tables say nothing: compared)."""
-    threads = {side: torch_threads(m) for side, m in manifests.items()}
-    if None not in threads.values() and len(set(threads.values())) > 1:
-        return (
-            "not comparable: torch threads differ (baseline {baseline}, candidate {candidate}); "
-            "decoders gain unequally from threads, so their ratio moves (run both with "
-            "OMP_NUM_THREADS=1)".format(**threads)
-        )
-    return ""
-
-
-def _machine_notes(manifests: dict[str, dict[str, Any]]) -> list[str]:
-    envs = {side: (m or {}).get("environment") or {} for side, m in manifests.items()}
-    cpus = {side: f"{e.get('cpu')} ({e.get('cpu_count')} CPUs)" for side, e in envs.items() if e}
-    if len(cpus) == 2 and len(set(cpus.values())) > 1:
-        return [
-            f"the runs come from different CPUs (baseline {cpus['baseline']}, candidate "
-            f"{cpus['candidate']}): speed is compared only through the in-run reference"
-        ]
-    return []
-
-
-def _with_replay(result: GateResult, baseline: Run, candidate: Run, max_slowdown: float) -> GateResult:
-    """The replay benchmark's verdicts (results/replay.py) when both runs were benched
-    against a comparable reference; the result unchanged otherwise."""
-    from results.replay import (
-        load_replay,
-        replay_comparable,
-        replay_notes,
-        replay_verdicts,
-        replay_warnings,
-    )
-
-    benches = [load_replay(run.path) for run in (baseline, candidate)]
-    reference = next((p for p in result.pairs if p.label == result.reference), None)
-    if reference is None or None in benches:
-        if reference is not None and any(benches):
-            side = "baseline" if benches[0] is None else "candidate"
-            note = f"replay: only one run was benched (not the {side}); closed-loop speed decides"
-            return dataclasses.replace(result, notes=(*result.notes, note))
-        return result
-    why = replay_comparable(benches[0], benches[1])
-    if why:
-        return dataclasses.replace(result, notes=(*result.notes, f"replay not comparable: {why}"))
-    speeds, notes = replay_verdicts(result.pairs, reference, benches[0], benches[1], max_slowdown)
-    notes = replay_notes(benches[0], benches[1]) + notes
-    if speeds:
-        notes.append(
-            "speed: judged on the replay benchmark (replay.json); the closed-loop tokens/s ratio is "
-            "reported beside it, not judged"
-        )
-    return dataclasses.replace(
-        result,
-        replay=tuple(speeds),
-        notes=(*result.notes, *notes),
-        warnings=(*result.warnings, *replay_warnings(speeds)),
-    )
-
-
 def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
     """`gate` on two loaded runs: thread counts, CPUs, calibration drift and simulator
     versions from their manifests, and the replay benchmark's figures (replay.json) when
     both runs have them."""
     manifests = {"baseline": baseline.manifest, "candidate": candidate.manifest}
-    skipped = options.pop("speed_skipped", "") or _speed_comparable(manifests)
+    skipped = options.pop("speed_skipped", "") or speed_comparable(manifests)
     result = gate(baseline.episodes, candidate.episodes, speed_skipped=skipped, **options)
     warnings = tuple(
         f"{side} {run.label}: speed figures unreliable: {run.speed_warning}"
@@ -564,7 +376,7 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
             "the passes its batch ran), are compared across batch sizes; run both at one batch size",
         )
     warnings += out_of_space_gate_warnings(baseline.episodes, candidate.episodes)
-    notes = result.notes + tuple(_machine_notes(manifests))
+    notes = result.notes + tuple(machine_notes(manifests))
     suspect = simulator_suspect(manifests)
     moved = [t for t in result.tasks if t.task == "ALL" and (t.drops or t.gains)]
     if suspect and moved and not any(t.success_regressed for t in result.tasks):
@@ -572,14 +384,7 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
     elif suspect and not moved:
         notes = (suspect, *notes)
     result = dataclasses.replace(result, notes=notes, warnings=warnings, simulator_suspect=suspect)
-    return _with_replay(result, baseline, candidate, options.get("max_slowdown", 0.10))
-
-
-def _work_unmeasured(merged: pd.DataFrame) -> str | None:
-    """Which side left a pair's counted work unmeasured ('baseline', 'candidate', 'baseline
-    and candidate'), or None when both measured it."""
-    sides = [name for name, s in (("baseline", "b"), ("candidate", "c")) if _work(_side(merged, s)) is None]
-    return " and ".join(sides) or None
+    return with_replay(result, baseline, candidate, options.get("max_slowdown", 0.10))
 
 
 def _moves(tasks: list[TaskDiff]) -> str:

@@ -50,6 +50,46 @@ def unused_params(policy: str, values: Mapping[str, Any]) -> set[str]:
         return set()
 
 
+def uses_param(policy: str, values: Mapping[str, Any], key: str) -> bool:
+    """Whether a configuration sets `key` and it has an effect: the rule labels follow,
+    so a plot axis and a legend agree on which configurations a parameter describes."""
+    return key in values and key not in unused_params(policy, values)
+
+
+def not_using(episodes: pd.DataFrame, key: str) -> dict[str, str]:
+    """policy_config_id -> config_label of the configurations in `episodes` that do not use
+    parameter `key` (not theirs, or without effect at their settings)."""
+    configs = episodes.drop_duplicates("policy_config_id")
+    labels = with_config_labels(configs).set_index("policy_config_id")[LABEL_COLUMN]
+    return {
+        cid: str(labels[cid])
+        for cid, policy, params in configs[["policy_config_id", "policy", "policy_params"]].itertuples(
+            index=False
+        )
+        if not uses_param(str(policy), _parse(params), key)
+    }
+
+
+def param_users(key: str) -> list[str]:
+    """The registered policies a parameter means something to, for an error that says where
+    `key` applies: a policy whose defaults leave it unused is named with that condition."""
+    try:
+        from policies.registry import all_policies
+    except Exception:  # pragma: no cover - the registry is part of the package
+        return []
+    users = []
+    for name, default in sorted(registered_defaults().items()):
+        if key not in default:
+            continue
+        spec = all_policies()[name]
+        unused = getattr(spec.params, "unused", None)
+        ignored = callable(unused) and key in unused(default)
+        users.append(
+            f"{name} (not at its default {key}={show_value(key, default[key])})" if ignored else name
+        )
+    return users
+
+
 def show_value(key: str, value: Any) -> str:
     """A parameter value as a label prints it: a checkpoint by its file name (paths differ
     between machines; the name does not), floats to 4 significant digits, numpy scalars
@@ -128,3 +168,14 @@ def with_config_labels(episodes: pd.DataFrame) -> pd.DataFrame:
     out = episodes.copy()
     out[LABEL_COLUMN] = out["policy_config_id"].map(config_labels(out))
     return out
+
+
+def row_labels(episodes: pd.DataFrame) -> dict[str, str]:
+    """policy_config_id -> the config_label the rows hold, for printing a run's tables: the
+    labels were worked out from every configuration the run lists, so a summary printed
+    before all of them have rows still names each one as its rows do."""
+    labelled = with_config_labels(episodes)
+    if labelled.empty:
+        return {}
+    pairs = labelled.drop_duplicates("policy_config_id")
+    return dict(zip(pairs["policy_config_id"], pairs[LABEL_COLUMN], strict=True))

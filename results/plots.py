@@ -20,6 +20,7 @@ import json
 import math
 import os
 import re
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator, PercentFormatter
 
 from results.labels import config_labels as shared_config_labels
+from results.labels import not_using, param_users
 from results.schema import COLUMNS
 from results.summary import wilson_interval
 
@@ -247,6 +249,7 @@ def ablation_plot(
     x = _resolve(df, x, "x")
     ys = [_resolve(df, c, "y", numeric=True) for c in y]
     hue = _resolve(df, hue, "hue") if hue else None
+    df = _configurations_using(df, x)
     _check_not_pooled(df, hue)
     numeric_x = _numeric(df[x]) is not None
     xkey = _numeric(df[x]) if numeric_x else df[x].astype(str)
@@ -325,6 +328,20 @@ def ablation_plot(
         )
     _save(fig, out)
     return fig
+
+
+def _configurations_using(df: pd.DataFrame, x: str) -> pd.DataFrame:
+    """The rows of configurations that use the x parameter (fast_dllm's block_size of 0 is
+    no block size: a point at x=0 no decoder ran); the others named in one warning."""
+    key = x if x.startswith(PARAM) else df.attrs.get("aliases", {}).get(x, "")
+    dropped = not_using(df, key[len(PARAM) :]) if key.startswith(PARAM) else {}
+    names = ", ".join(dropped.values())
+    if dropped and len(dropped) == df["policy_config_id"].nunique():
+        users = ", ".join(param_users(key[len(PARAM) :])) or "none registered"
+        raise PlotInputError(f"no configuration in these rows uses {x} ({names}); valid users: {users}")
+    if dropped:
+        warnings.warn(f"left out of the plot, as they do not use {x}: {names}", UserWarning, stacklevel=3)
+    return df[~df["policy_config_id"].isin(list(dropped))]
 
 
 def _check_not_pooled(df: pd.DataFrame, hue: str | None) -> None:

@@ -16,7 +16,8 @@ import pytest
 
 from adapters.base import EpisodeSpec
 from harness.backends import Execution
-from harness.batched import check_batching, run_batched
+from harness.batch_runner import check_batching
+from harness.batched import run_batched
 from harness.errors import UsageError
 from harness.nfe import NFECounter
 from harness.runner import run

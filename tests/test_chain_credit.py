@@ -13,7 +13,7 @@ from adapters import libero as lb
 from results import schema
 from results.store import read_table, rows_to_table
 
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 SCENE = "living_room_scene3"
 GROCERIES = ("butter", "ketchup", "alphabet_soup", "cream_cheese", "tomato_sauce")
 

@@ -10,7 +10,7 @@ import pytest
 from adapters import libero as lb
 from policies.base import EpisodeContext
 
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 
 
 def test_the_next_subtasks_expert_starts_from_the_chains_starting_pose():

@@ -45,7 +45,7 @@ def test_an_unknown_option_names_the_chain_option_too():
         load_suite(f"chains/{SCENE}:goal=on")
 
 
-@pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+@pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 def test_goal_positions_follow_the_subtask_in_force():
     from adapters import chains
     from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams

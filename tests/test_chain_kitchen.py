@@ -9,7 +9,7 @@ import pytest
 from adapters import chain_scenes as cs
 from adapters import libero as lb
 
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 SCENE = "kitchen_scene1"
 DRAWERS = ("top", "middle", "bottom")
 

@@ -27,7 +27,7 @@ from results import schema
 from results.store import read_table, rows_to_table
 from tests.fakes import context
 
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 SCENE = "living_room_scene3"
 
 
@@ -341,7 +341,7 @@ def test_the_expert_completes_a_chain_and_resume_extends_the_run(cli, tmp_path):
 )
 def test_bad_chain_input_exits_2_and_writes_nothing(cli, tmp_path, monkeypatch, suite, chains, needle):
     if chains is not None:
-        if not lb._installed():
+        if not lb.installed():
             pytest.skip("needs the libero extra")
         (tmp_path / "data").mkdir()
         _scene_dir(tmp_path / "data", monkeypatch, chains=chains)
@@ -389,6 +389,9 @@ def test_the_calvin_table_from_hand_made_rows():
     console.print(chain_table(chain_summary(df)))
     text = console.export_text()
     assert "40.0 [17, 69]" in text and "3.00 [" in text and "2.50x" in text
+    labelled = Console(width=200, record=True)
+    labelled.print(chain_table(chain_summary(df), labels={"fast_dvla": "fast_dvla (tau_conf=0.5)"}))
+    assert "fast_dvla (tau_conf=0.5)" in labelled.export_text()  # the name the summary table prints
 
 
 def test_listing_chain_suites_never_imports_the_simulator():

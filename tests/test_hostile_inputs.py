@@ -344,7 +344,7 @@ def test_a_chain_file_that_repeats_an_episode_is_refused_when_the_suite_loads(
 ):
     from adapters import libero
 
-    if not libero._installed():
+    if not libero.installed():
         pytest.skip("needs the libero extra")
     _chain_file(chain_data, edit)
     out = tmp_path / "run"

@@ -11,10 +11,11 @@ import pyarrow.parquet as pq
 import pytest
 
 from adapters import libero as lb
+from adapters import libero_sim
 from tests.fakes import TINY_TRAIN
 
 pytestmark = pytest.mark.libero
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 # Per suite, a task whose episode 0 the shipped student solved, and nearly every other one
 # (object task 2: 50/50 at 50 per task; spatial task 3: 10/10 for the held-out student
 # under upstream seeding, runs/heldout-set-10; docs/libero-policies.md).
@@ -397,7 +398,7 @@ def test_camera_images_are_collected_trained_on_and_read_by_the_policy(cli, tmp_
     ],
 )
 def test_bad_input_exits_2_and_writes_nothing(cli, tmp_path, suite, tasks, episodes, needle):
-    if suite != "libero/nope" and ":" not in suite and not lb._installed():
+    if suite != "libero/nope" and ":" not in suite and not lb.installed():
         pytest.skip("needs the libero extra")
     out = tmp_path / "run"
     code, _, err = _run(cli, out, suite, tasks, "libero_scripted", episodes)
@@ -407,7 +408,7 @@ def test_bad_input_exits_2_and_writes_nothing(cli, tmp_path, suite, tasks, episo
 
 
 def test_missing_extra_names_the_fix(cli, tmp_path, monkeypatch):
-    monkeypatch.setattr(lb, "_installed", lambda: False)
+    monkeypatch.setattr(libero_sim, "installed", lambda: False)  # what loading a suite asks
     lb.benchmark.cache_clear()
     try:
         code, _, err = _run(cli, tmp_path / "run", "libero/spatial")

@@ -15,7 +15,7 @@ from adapters.libero_options import SuiteOptionError, parse_options
 from adapters.registry import list_suites
 
 pytestmark = pytest.mark.libero
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 
 
 @pytest.mark.parametrize(

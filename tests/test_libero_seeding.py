@@ -22,7 +22,7 @@ from adapters import libero as lb
 from adapters import libero_seeding
 
 pytestmark = pytest.mark.libero
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 
 # Spatial task 4, the bowl in the cabinet's top drawer: both details a soft reset must
 # reproduce (libero_seeding's docstring) change its draws, the drawer's joint sampler and

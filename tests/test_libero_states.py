@@ -12,7 +12,7 @@ from adapters import libero as lb
 from adapters import libero_states
 
 pytestmark = pytest.mark.libero
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 TASK = 3  # spatial: a bowl, a plate, a ramekin, cookies, a cabinet and a stove
 
 

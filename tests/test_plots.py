@@ -268,3 +268,87 @@ def test_labels_leave_out_parameters_a_configuration_does_not_use():
         "t": "fast_dllm (threshold=0.9)",
         "f": "fast_dllm (steps_per_block=2, threshold=0)",
     }
+
+
+def _with_fast_dllm() -> pd.DataFrame:
+    """fast_dvla at block sizes 4 and 8 beside fast_dllm at its default block_size 0 (the
+    chunk cut into `blocks`: no block size of its own)."""
+    from tests.test_leaderboard import episodes
+
+    rows = []
+    for policy, config, params in (
+        ("fast_dvla", "fast04", {"block_size": 4}),
+        ("fast_dvla", "fast08", {"block_size": 8}),
+        ("fast_dllm", "dllm00", {"block_size": 0, "blocks": 1, "threshold": 0.3}),
+    ):
+        rows += episodes(policy, json.dumps(params), config, [1, 0, 1])
+    return pd.DataFrame(rows)
+
+
+def test_a_configuration_that_does_not_use_x_is_left_out_with_a_warning(tmp_path):
+    frame = _with_fast_dllm()
+    with pytest.warns(UserWarning, match=r"left out of the plot, as they do not use block_size: fast_dllm$"):
+        fig = plots.ablation_plot(frame, "block_size", ["success"], hue="config_label")
+    assert list(fig.axes[0].get_xticks()) == [4.0, 8.0]  # no point at x=0
+    _, legend = fig.axes[0].get_legend_handles_labels()
+    assert not any("fast_dllm" in label for label in legend)
+    with pytest.warns(UserWarning, match="fast_dllm"):  # one decoder remains: no hue needed
+        plots.ablation_plot(frame, "block_size", ["success"], out=tmp_path / "a.png")
+    assert (tmp_path / "a.png").stat().st_size > 1000
+
+
+def test_an_ablation_over_a_parameter_no_configuration_uses_is_refused_naming_its_users(tmp_path):
+    frame = _with_fast_dllm()
+    only = frame[frame["policy"] == "fast_dllm"]
+    with pytest.raises(plots.PlotInputError) as err:
+        plots.ablation_plot(only, "block_size", ["success"], out=tmp_path / "a.png")
+    message = str(err.value)
+    assert "no configuration in these rows uses block_size (fast_dllm)" in message
+    assert "valid users: block_diffusion, fast_dllm (not at its default block_size=0), fast_dvla" in message
+    assert not (tmp_path / "a.png").exists()
+    # set, fast_dllm's block_size is one: it is plotted, and its unused `blocks` leaves the legend
+    sized = frame[frame["policy"] == "fast_dllm"].assign(
+        policy_params=json.dumps({"block_size": 4, "blocks": 8})
+    )
+    fig = plots.ablation_plot(sized, "block_size", ["success"])
+    assert list(fig.axes[0].get_xticks()) == [4.0]
+
+
+def test_the_cli_names_the_dropped_configuration_on_stderr_and_exits_2_when_none_remain(cli, tmp_path):
+    from tests.test_leaderboard import write_run
+
+    rows = _with_fast_dllm().to_dict("records")
+    both = write_run(tmp_path / "both", rows)
+    code, _, err = cli(
+        "plot", "ablation", str(both), "--x", "block_size", "--y", "success", "--out", str(tmp_path / "a.png")
+    )
+    assert code == 0, err
+    assert "warning: left out of the plot, as they do not use block_size: fast_dllm" in err
+    alone = write_run(tmp_path / "alone", [r for r in rows if r["policy"] == "fast_dllm"])
+    code, _, err = cli(
+        "plot",
+        "ablation",
+        str(alone),
+        "--x",
+        "block_size",
+        "--y",
+        "success",
+        "--out",
+        str(tmp_path / "b.png"),
+    )
+    assert code == 2 and "valid users: block_diffusion" in err and not (tmp_path / "b.png").exists()
+
+
+def test_fast_dllms_block_size_and_blocks_are_named_only_where_they_apply():
+    """block_size 0 cuts the chunk into `blocks`; a block_size set overrides `blocks`."""
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["cut", "sized"],
+            "policy": ["fast_dllm", "fast_dllm"],
+            "policy_params": [
+                json.dumps({"block_size": 0, "blocks": 2}),
+                json.dumps({"block_size": 4, "blocks": 8}),
+            ],
+        }
+    )
+    assert plots.config_labels(frame) == {"cut": "fast_dllm (blocks=2)", "sized": "fast_dllm (block_size=4)"}

@@ -248,6 +248,7 @@ def test_bench_on_a_tiny_run_writes_figures_the_gate_uses(cli, tmp_path, one_tor
         low, high = c["median_chunk_s_interval"]
         assert low <= c["median_chunk_s"] <= high and c["action_tokens_per_chunk"] > 0
     assert timed["bidirectional"]["nfe_per_chunk"] > timed["fast_dvla"]["nfe_per_chunk"]
+    assert {c["policy_params"]["checkpoint"] for c in timed.values()} == {"metaworld-mt10"}  # no machine path
     assert data["observations"]["count"] == 2 and "replay:" in out
     # a copy benched on the first's observations decodes the same set, and the gate judges on it
     other = tmp_path / "other"
@@ -297,6 +298,40 @@ def test_the_committed_baseline_is_benched_on_observations_that_load():
     assert data["torch_threads"] == 1 and data["rounds"] >= 20
     size = sum(p.stat().st_size for p in BASELINE.iterdir())
     assert size < 200_000, f"the baseline folder grew to {size} bytes"
+
+
+def _strings(value):
+    if isinstance(value, dict):
+        return [s for v in value.values() for s in _strings(v)]
+    if isinstance(value, list):
+        return [s for v in value for s in _strings(v)]
+    return [value] if isinstance(value, str) else []
+
+
+def test_the_committed_replay_file_names_no_machine_path():
+    from tests.test_gate import BASELINE
+
+    data = load_replay(BASELINE)
+    assert not [s for s in _strings(data) if Path(s).is_absolute()]
+    assert {c["policy_params"]["checkpoint"] for c in data["configurations"]} == {"metaworld-mt10"}
+
+
+def test_bench_records_a_shipped_checkpoint_by_its_set_name():
+    from types import SimpleNamespace
+
+    from harness.commands.bench import _portable_params
+    from policies.dvla.policy import shipped
+    from policies.registry import get_policy, params_json, parse_params, portable_checkpoint
+
+    fast = get_policy("fast_dvla")
+    run = SimpleNamespace(spec=fast, params_json=params_json(parse_params(fast, {})))
+    assert json.loads(run.params_json)["checkpoint"] == shipped("fast_dvla")  # an absolute path
+    assert _portable_params(run)["checkpoint"] == "metaworld-mt10"
+    # the set name must give back the same file for that policy, else the package path
+    assert portable_checkpoint(get_policy("bidirectional"), shipped("fast_dvla")) == (
+        "policies/checkpoints/metaworld-mt10-fast_dvla.safetensors"
+    )
+    assert portable_checkpoint(fast, "/data/mine.safetensors") == "/data/mine.safetensors"
 
 
 def test_replay_files_are_the_harness_own_so_overwrite_may_replace_them(tmp_path):

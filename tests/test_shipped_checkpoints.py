@@ -129,7 +129,7 @@ def test_the_shipped_chain_set_reads_the_goal_positions_state():
     assert chain["block_diffusion"].meta["init_sha256"] == digest
 
 
-@pytest.mark.skipif(not libero._installed(), reason="needs the libero extra")
+@pytest.mark.skipif(not libero.installed(), reason="needs the libero extra")
 def test_the_chain_set_on_the_language_only_suite_names_the_option(cli, tmp_path):
     out = tmp_path / "r"
     args = "run --suite chains/living_room_scene3 --episodes-per-task 1 --policy bidirectional:checkpoint=chains-tray"

@@ -18,6 +18,7 @@ from policies.base import ChunkBatch
 from results.store import TRACES, RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
 from tests.real_sweep import INTERRUPT_AFTER, SWEEP_ARGS, real_sweep
+from tests.test_plugins import installed_plugin  # noqa: F401  (a fixture)
 
 MT1 = ["--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--quiet"]
 
@@ -216,3 +217,20 @@ def test_resuming_a_finished_sweep_runs_nothing_and_another_grid_is_refused(swee
     args = [a if a != "block_size=4,8" else "block_size=4,16" for a in SWEEP_ARGS]
     code, _, err = cli("sweep", *args, "--out", str(copy), "--resume")
     assert code == 2 and "belongs to a different config" in err
+
+
+@pytest.mark.usefixtures("installed_plugin")  # a sweep of a simulator-free plugin suite
+def test_a_sweeps_summary_names_each_point_by_the_label_its_rows_hold(cli, tmp_path):
+    out = tmp_path / "sweep"
+    code, stdout, _ = cli(
+        "sweep", "--suite", "line/walk", "--policy", "constant", "--grid", "value=0.5,1.0",
+        "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0
+    labels = set(RunDir(out).read_episodes()["config_label"])
+    assert labels == {"constant (value=0.5)", "constant (value=1)"}
+    for label in labels:
+        assert label in stdout
+    assert "constant value=" not in stdout  # the sweep's own `name k=v` format is gone
+    code, shown, _ = cli("show", str(out))
+    assert code == 0 and all(label in shown for label in labels)

@@ -284,7 +284,7 @@ def test_several_demonstration_folders_train_as_one(demos, tmp_path, cli):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from policies.dvla.training import load_demos
+    from policies.dvla.demos import load_demos
 
     one = load_demos(demos, chunk_len=4)
     two = load_demos([demos, demos], chunk_len=4)
@@ -373,7 +373,7 @@ def test_rows_of_noisy_demonstrations_are_scored_on_their_first_action_only(reci
 def test_noisy_targets_follow_the_folders_manifest(demos, tmp_path, cli):
     import shutil
 
-    from policies.dvla.training import load_demos
+    from policies.dvla.demos import load_demos
 
     noisy = tmp_path / "noisy"
     shutil.copytree(demos, noisy)
@@ -419,7 +419,7 @@ def test_relative_state_features_reach_the_checkpoint_and_the_policy(demos, tmp_
     states, and a continued model or a student keeps the choice."""
     import numpy as np
 
-    from policies.dvla.training import load_demos
+    from policies.dvla.demos import load_demos
 
     manifest = json.loads((demos / "manifest.json").read_text())
     assert manifest["state_positions"] == {"reach-v3": [0, 4, 11, 36], "drawer-close-v3": [0, 4, 11, 36]}

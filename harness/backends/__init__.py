@@ -115,7 +115,7 @@ def execute(
 
     execution = execution or Execution()
     if execution.in_process and execution.batch_envs > 1:
-        from harness.batched import execute_batched
+        from harness.batch_runner import execute_batched
 
         execute_batched(resolved, jobs, on_done, traces, envs, execution.batch_envs)
         return

@@ -172,7 +172,7 @@ class Worker:
         heartbeat_s: float | None = None,
     ):
         from harness.backends.schedule import index_jobs
-        from harness.batched import BatchedRunner
+        from harness.batch_runner import BatchedRunner
 
         self.worker_id, self.heartbeat_s = worker_id, heartbeat_s
         self.runner = EpisodeRunner(resolved, traces)

@@ -308,7 +308,7 @@ def _payload(
             {
                 "policy": p.spec.name,
                 "policy_config_id": p.config_id,
-                "policy_params": json.loads(p.params_json),
+                "policy_params": _portable_params(p),
                 "action_tokens_per_chunk": d.action_tokens / n,
                 "nfe_per_chunk": None if d.nfe is None else d.nfe / n,
                 **chunk_figures(rounds[p.config_id]),
@@ -336,6 +336,18 @@ def _payload(
         "configurations": configurations,
         "not_timed": not_timed,
     }
+
+
+def _portable_params(p: Any) -> dict[str, Any]:
+    """The configuration's parameters with a shipped checkpoint by its set name: a bench of
+    a committed baseline then records no folder of the machine it ran on (the figures pair
+    by policy_config_id, so nothing reads this path back)."""
+    from policies.registry import portable_checkpoint
+
+    params = json.loads(p.params_json)
+    if isinstance(params.get("checkpoint"), str):
+        params["checkpoint"] = portable_checkpoint(p.spec, params["checkpoint"])
+    return params
 
 
 def _write(run_dir: Any, own: Path, recorded: Any, payload: dict[str, Any]) -> None:

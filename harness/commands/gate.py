@@ -14,7 +14,8 @@ from rich.table import Table
 from harness.errors import UsageError
 
 if TYPE_CHECKING:  # pandas and the gate load only when the command runs, not for every CLI call
-    from results.gate import GateResult, SpeedDiff, TaskDiff
+    from results.gate import GateResult, TaskDiff
+    from results.gate_speed import SpeedDiff
     from results.replay import ReplaySpeed
 
 DESCRIPTION = """\

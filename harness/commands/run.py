@@ -250,12 +250,14 @@ def print_latency_table(episodes: pd.DataFrame, labels: dict[str, str] | None = 
         console.print(latency_table(latency_summary(episodes), labels))
 
 
-def print_chain_table(episodes: pd.DataFrame) -> None:
+def print_chain_table(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
     """CALVIN's table beneath the summary, for instruction-chain runs (docs/chains.md)."""
     from results.chain_table import chain_summary, chain_table, is_chain_run
 
     if is_chain_run(episodes):
-        print_table(chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)"))
+        print_table(
+            chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)", labels=labels)
+        )
 
 
 def print_speed_warning(run_dir: Any) -> None:
@@ -275,19 +277,17 @@ def print_speed_warning(run_dir: Any) -> None:
         )
 
 
-def execute_run(
-    resolved: Any, args: argparse.Namespace, again: str, labels: dict[str, str] | None = None
-) -> int:
+def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
     """Run `resolved` with the progress bar, print the summary, return the exit status.
 
-    again: the command that continues an interrupted run ({out} is filled in); labels:
-    display names per policy_config_id for the summary (a sweep's grid points).
+    again: the command that continues an interrupted run ({out} is filled in). Every table
+    names a configuration by the config_label its rows hold (a sweep's grid points too).
     """
     from harness.backends.options import execution_from_args
     from harness.device import apply_device
     from harness.runner import run
     from harness.threads import apply_threads
-    from results.labels import config_labels
+    from results.labels import row_labels
     from results.render import summary_table
     from results.summary import summarize
 
@@ -296,7 +296,7 @@ def execute_run(
     apply_device(resolved.policies, args.device, per_worker=getattr(args, "backend", "local") == "ray")
 
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
-    from harness.batched import check_batching
+    from harness.batch_runner import check_batching
 
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
     out = Path(args.out) if args.out else None
@@ -319,19 +319,18 @@ def execute_run(
             execution=execution,
         )
     episodes = report.run_dir.read_episodes()
-    if labels and len(episodes):
-        episodes["policy"] = episodes["policy_config_id"].map(labels).fillna(episodes["policy"])
     if len(episodes):
+        labels = row_labels(episodes)
         print_table(
             summary_table(
                 summarize(episodes),
                 title=f"{resolved.suite.name} - {report.run_dir.path}",  # the name the user typed or was shown
-                labels=config_labels(episodes),
+                labels=labels,
             )
         )
-        print_chain_table(episodes)
-        print_latency_table(episodes, config_labels(episodes))
-        print_out_of_space(episodes, config_labels(episodes))
+        print_chain_table(episodes, labels)
+        print_latency_table(episodes, labels)
+        print_out_of_space(episodes, labels)
     console.print(
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
     )

@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from results.labels import config_labels
+    from results.labels import row_labels
     from results.render import summary_table
     from results.runs import speed_warning
     from results.store import ResultsFileError, RunDir
@@ -52,10 +52,11 @@ def cmd_show(args: argparse.Namespace) -> int:
     if len(episodes):
         from harness.commands.run import print_chain_table, print_latency_table, print_out_of_space
 
-        print_table(summary_table(summarize(episodes), labels=config_labels(episodes)))
-        print_chain_table(episodes)
-        print_latency_table(episodes, config_labels(episodes))
-        print_out_of_space(episodes, config_labels(episodes))
+        labels = row_labels(episodes)  # the names the rows hold, as `run` printed them
+        print_table(summary_table(summarize(episodes), labels=labels))
+        print_chain_table(episodes, labels)
+        print_latency_table(episodes, labels)
+        print_out_of_space(episodes, labels)
     return 0
 
 

@@ -54,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_sweep(args: argparse.Namespace) -> int:
     from harness.commands.run import config_from_args, execute_run, prepare_compute
     from harness.config import load_config_file, resolve
-    from harness.sweep import expand, parse_grid, point_label
+    from harness.sweep import expand, parse_grid
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed only makes sense with --resume")
@@ -64,11 +64,4 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     config = expand(config_from_args(args), grid)
     prepare_compute(args)  # threads and device, before the policies load torch
     resolved = resolve(config)
-    labels = {p.config_id: point_label(p.spec.name, _raw(p.params), grid) for p in resolved.policies}
-    return execute_run(resolved, args, "the same `dvla-harness sweep` command with --resume", labels)
-
-
-def _raw(params: object) -> dict[str, object]:
-    import dataclasses
-
-    return dataclasses.asdict(params)  # type: ignore[call-overload]
+    return execute_run(resolved, args, "the same `dvla-harness sweep` command with --resume")

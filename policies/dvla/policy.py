@@ -181,8 +181,11 @@ class FastDLLMParams:
 
     @staticmethod
     def unused(values: Mapping[str, Any]) -> set[str]:
-        """Decoding by threshold, the fixed-step settings have no effect (labels omit them)."""
-        return {"steps_per_block", "schedule"} if float(values.get("threshold", 0.9)) > 0 else set()
+        """Settings with no effect, which labels and plot axes leave out: decoding by
+        threshold, the fixed-step ones; block_size 0 is no size of its own (the chunk is
+        cut into `blocks`), and a block_size set overrides `blocks`."""
+        unused = {"steps_per_block", "schedule"} if float(values.get("threshold", 0.9)) > 0 else set()
+        return unused | ({"blocks"} if int(values.get("block_size", 0) or 0) else {"block_size"})
 
 
 @dataclass(frozen=True)

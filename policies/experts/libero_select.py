@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
     """A task's BDDL problem and where each entity and goal site sits in the state; in a
     chain suite, the scene's problem with the goal of the subtask in force."""
-    from adapters import libero
+    from adapters import libero, libero_layout
 
     if context.suite.startswith("chains/"):
         from adapters import chains
@@ -43,7 +43,7 @@ def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
 
     key = context.suite.partition(":")[0].removeprefix("libero/")
     problem = libero.suite_task_problem(context.suite, _task_index(key, context.task))
-    return problem, {name: slice(a, b) for name, a, b in libero.state_layout(problem)}
+    return problem, {name: slice(a, b) for name, a, b in libero_layout.state_layout(problem)}
 
 
 def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
@@ -53,7 +53,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
     to grip going to a table region (policies/experts/libero_push.py), a wrist turn for a stove's
     knob (policies/experts/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
     pick-and-place, the experts whose demonstrations are trained on so far."""
-    from adapters import libero
+    from adapters import libero_layout
     from policies.experts.libero_drawer import (
         AJAR,
         CLOSED_PAST,
@@ -68,7 +68,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
     problem, slices = _problem(context)
     _check_privileged_state(context, slices)
     goals = problem["goal_state"]
-    entities = libero.entity_names(problem)
+    entities = libero_layout.entity_names(problem)
     drawer = drawer_plan(slices, entities, goals[0][-1]) if len(goals) == 1 else None
     standing = _standing(problem, slices)
     if drawer is not None and goals[0][0] == "close":  # a chain's authored close
@@ -148,14 +148,14 @@ def _check_privileged_state(context: EpisodeContext, slices: dict[str, slice]) -
 
 def plan_for(context: EpisodeContext) -> PickPlace:
     """The pick-and-place plan of a task, from its BDDL goal and the state layout."""
-    from adapters import libero
+    from adapters import libero_layout
 
     problem, slices = _problem(context)
     goals = problem["goal_state"]
     if len(goals) != 1 or goals[0][0] not in ("on", "in"):
         raise ValueError(f"libero_scripted has no script for the goal {goals} of {context.task!r}")
     _, obj, target = goals[0]
-    entities = libero.entity_names(problem)
+    entities = libero_layout.entity_names(problem)
     entity = target in entities
     holder_name = target.removesuffix("_contain_region")
     container = None
@@ -192,9 +192,9 @@ def _drawer_holder(problem: dict, obj: str, entities: list[str], slices: dict[st
 
 
 def _task_index(key: str, task: str) -> int:
-    from adapters import libero
+    from adapters import libero_sim
 
-    names = [t.name for t in libero.benchmark(key).tasks]
+    names = [t.name for t in libero_sim.benchmark(key).tasks]
     return names.index(task)
 
 

@@ -1,0 +1,182 @@
+"""Speed in the CI gate (results/gate.py): tokens/s judged only relative to a reference
+decoder measured in the same run, never across machines.
+
+Each configuration's tokens/s over the reference's, on the episodes both ran, against
+the same ratio in the other run (SpeedDiff). Which pair is the reference, and why there
+may be none (only one run holds it, it changed, it is ambiguous), is decided here; so
+are the manifests' reasons not to compare speed at all (different torch thread counts)
+and, when both runs were benched, the replay benchmark's verdicts (results/replay.py),
+which then decide speed in place of the closed-loop ratio.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import pandas as pd
+
+from results.gate_measures import side_measures, tokens_per_s
+from results.pairing import PAIR_KEY, ConfigPair
+from results.runs import Run
+
+if TYPE_CHECKING:
+    from results.gate import GateResult
+
+
+@dataclass(frozen=True)
+class SpeedDiff:
+    """tokens/s relative to the in-run reference decoder's, per pair: candidate run vs baseline run."""
+
+    pair: str
+    baseline_tokens_per_s: float
+    candidate_tokens_per_s: float
+    baseline_reference: float  # the reference decoder's tokens/s in the baseline run
+    candidate_reference: float  # ... and in the candidate run, over the same episodes
+    max_slowdown: float
+
+    @property
+    def baseline_ratio(self) -> float:
+        return self.baseline_tokens_per_s / self.baseline_reference
+
+    @property
+    def candidate_ratio(self) -> float:
+        return self.candidate_tokens_per_s / self.candidate_reference
+
+    @property
+    def change(self) -> float:
+        return self.candidate_ratio / self.baseline_ratio - 1.0
+
+    @property
+    def regressed(self) -> bool:
+        return self.change < -self.max_slowdown
+
+
+DEFAULT_REFERENCE = "bidirectional"  # the teacher: every decoder config can run beside it
+
+
+def is_reference(df: pd.DataFrame, reference: str | None) -> pd.Series:
+    return (df["policy"] == reference) | (df["policy_config_id"] == reference)
+
+
+def one_sided_reference(
+    baseline: pd.DataFrame, candidate: pd.DataFrame, reference: str | None
+) -> tuple[str, pd.DataFrame] | None:
+    """(side, its table) when only that side holds the reference decoder, else None."""
+    if not reference:
+        return None
+    held = {
+        side: bool(is_reference(df, reference).any())
+        for side, df in (("baseline", baseline), ("candidate", candidate))
+    }
+    if held["baseline"] == held["candidate"]:
+        return None
+    return ("baseline", baseline) if held["baseline"] else ("candidate", candidate)
+
+
+def reference_pair(
+    pairs: list[ConfigPair], baseline: pd.DataFrame, reference: str | None
+) -> tuple[ConfigPair | None, str]:
+    """The pair of the reference decoder's configurations, or (None, why there is none)."""
+    if not reference:
+        return None, "no reference decoder given"
+    found = list(dict.fromkeys(baseline.loc[is_reference(baseline, reference), "policy_config_id"]))
+    if not found:
+        return None, (
+            f"neither run has {reference} rows to time against (a run needs the reference "
+            "decoder beside the others: docs/ci-gate.md)"
+        )
+    if len(found) > 1:
+        return (
+            None,
+            f"the baseline has {len(found)} configurations of {reference} (pass --reference CONFIG_ID)",
+        )
+    pair = next(p for p in pairs if p.baseline_id == found[0])
+    if pair.rule != "same policy and params":
+        what = pair.changes or f"{pair.baseline} -> {pair.candidate}"
+        return None, f"the reference {reference} differs between the runs ({what})"
+    return pair, ""
+
+
+def pair_speed(
+    pair: ConfigPair, merged: pd.DataFrame, reference: pd.DataFrame, max_slowdown: float
+) -> SpeedDiff | str:
+    """The pair's tokens/s against the reference's over the episodes both ran, or why not."""
+    keys = list(PAIR_KEY)
+    common = merged[keys].merge(reference[keys])
+    if common.empty:
+        return "not comparable: it shares no episodes with the reference"
+    mine, ref = merged.merge(common), reference.merge(common)
+    tps = [tokens_per_s(side_measures(df, side)) for df in (mine, ref) for side in ("b", "c")]
+    if tps[0] is None or tps[1] is None:
+        return "no action tokens decoded on both sides"
+    if tps[2] is None or tps[3] is None:
+        return "not comparable: the reference decoded no tokens on these episodes"
+    return SpeedDiff(pair.label, tps[0], tps[1], tps[2], tps[3], max_slowdown)
+
+
+def torch_threads(manifest: dict[str, Any]) -> int | None:
+    """The torch thread count a run's policies ran with, if its manifest recorded it."""
+    threads = ((manifest or {}).get("calibration") or {}).get("torch_threads")
+    return int(threads) if threads is not None else None
+
+
+def speed_comparable(manifests: dict[str, dict[str, Any]]) -> str:
+    """'' or "not comparable: why" from the manifests (bare tables say nothing: compared)."""
+    threads = {side: torch_threads(m) for side, m in manifests.items()}
+    if None not in threads.values() and len(set(threads.values())) > 1:
+        return (
+            "not comparable: torch threads differ (baseline {baseline}, candidate {candidate}); "
+            "decoders gain unequally from threads, so their ratio moves (run both with "
+            "OMP_NUM_THREADS=1)".format(**threads)
+        )
+    return ""
+
+
+def machine_notes(manifests: dict[str, dict[str, Any]]) -> list[str]:
+    envs = {side: (m or {}).get("environment") or {} for side, m in manifests.items()}
+    cpus = {side: f"{e.get('cpu')} ({e.get('cpu_count')} CPUs)" for side, e in envs.items() if e}
+    if len(cpus) == 2 and len(set(cpus.values())) > 1:
+        return [
+            f"the runs come from different CPUs (baseline {cpus['baseline']}, candidate "
+            f"{cpus['candidate']}): speed is compared only through the in-run reference"
+        ]
+    return []
+
+
+def with_replay(result: GateResult, baseline: Run, candidate: Run, max_slowdown: float) -> GateResult:
+    """The replay benchmark's verdicts (results/replay.py) when both runs were benched
+    against a comparable reference; the result unchanged otherwise."""
+    from results.replay import (
+        load_replay,
+        replay_comparable,
+        replay_notes,
+        replay_verdicts,
+        replay_warnings,
+    )
+
+    benches = [load_replay(run.path) for run in (baseline, candidate)]
+    reference = next((p for p in result.pairs if p.label == result.reference), None)
+    if reference is None or None in benches:
+        if reference is not None and any(benches):
+            side = "baseline" if benches[0] is None else "candidate"
+            note = f"replay: only one run was benched (not the {side}); closed-loop speed decides"
+            return dataclasses.replace(result, notes=(*result.notes, note))
+        return result
+    why = replay_comparable(benches[0], benches[1])
+    if why:
+        return dataclasses.replace(result, notes=(*result.notes, f"replay not comparable: {why}"))
+    speeds, notes = replay_verdicts(result.pairs, reference, benches[0], benches[1], max_slowdown)
+    notes = replay_notes(benches[0], benches[1]) + notes
+    if speeds:
+        notes.append(
+            "speed: judged on the replay benchmark (replay.json); the closed-loop tokens/s ratio is "
+            "reported beside it, not judged"
+        )
+    return dataclasses.replace(
+        result,
+        replay=tuple(speeds),
+        notes=(*result.notes, *notes),
+        warnings=(*result.warnings, *replay_warnings(speeds)),
+    )
