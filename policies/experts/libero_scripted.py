@@ -182,6 +182,8 @@ class PickPlaceExpert:
         pos = obs[self.plan.obj][:3]
         g = self.plan.obj_geom
         point = pos + np.array([0.0, 0.0, g.grip_z])
+        if g.grip_xy != (0.0, 0.0):  # a handle: the grip is off the origin, in the body's frame
+            point[:2] += quat_to_mat(obs[self.plan.obj][3:7])[:2, :2] @ np.asarray(g.grip_xy)
         if g.rim > 0:  # grip the wall on the side of the closing axis farther from the robot base
             # (the robot stands at -x: a bowl gripped across a cabinet, along x, is gripped
             # on its +x side; otherwise the +y side, as the shipped demonstrations were)

@@ -51,7 +51,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
     LIBERO's `Close` threshold for `Close` one, and before
     putting something `In` one (policies/experts/libero_drawer.py), a drag for an object too wide
     to grip going to a table region (policies/experts/libero_push.py), a wrist turn for a stove's
-    knob (policies/experts/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
+    knob (policies/experts/libero_knob.py), turned on or back off, else pick-and-place. `action_noise` (rng) degrades only
     pick-and-place, the experts whose demonstrations are trained on so far."""
     from adapters import libero
     from policies.experts.libero_drawer import (
@@ -62,7 +62,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
         ShutExpert,
         drawer_plan,
     )
-    from policies.experts.libero_knob import KNOBS, Knob, KnobExpert
+    from policies.experts.libero_knob import KNOBS, Knob, KnobExpert, turn_off
     from policies.experts.libero_push import PUSHED, PushExpert, push_plan
 
     problem, slices = _problem(context)
@@ -83,6 +83,10 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
         return _shut_first(expert, slices, entities, params, but=drawer)
     if len(goals) == 1 and goals[0][0] == "turnon" and category(goals[0][1]) in KNOBS:
         return KnobExpert(Knob(body=slices[goals[0][1]]), params)
+    if (
+        len(goals) == 1 and goals[0][0] == "turnoff" and category(goals[0][1]) in KNOBS
+    ):  # a chain's authored off
+        return KnobExpert(turn_off(slices[goals[0][1]]), params)
     if len(goals) == 1 and goals[0][0] == "on" and category(goals[0][1]) in PUSHED:
         _, obj, region = goals[0]
         if region not in entities and problem["regions"].get(region, {}).get("ranges"):
