@@ -178,6 +178,15 @@ class PickPlaceExpert:
         self.spot: np.ndarray | None = None  # revision 4: the free spot chosen in a container
         self.held = 0.0  # the hand's height above the object once lifted
 
+    @property
+    def lowering(self) -> bool:
+        """Whether an object held by its handle is still on its way down: LIBERO counts a
+        moka pot On the stove's cook region ~3 cm above the burner, so a chain's next
+        subtask begins there, and let go there the pot fell and lay on its side, where no
+        handle grip reaches it (chains/kitchen_scene3, chain 5). A chain's handover lets
+        the placement finish (policies/experts/libero_select.py, `lowering`)."""
+        return self.phase == "lower" and self.plan.obj_geom.grip_xy != (0.0, 0.0)
+
     def _grip_point(self, obs: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
         pos = obs[self.plan.obj][:3]
         g = self.plan.obj_geom
