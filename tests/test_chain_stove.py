@@ -69,6 +69,11 @@ def test_turning_the_stove_off_and_taking_a_pot_off_undo_their_pairs_in_the_mode
     assert "right_moka_pot_off_stove" in eligible and "left_moka_pot_on_stove" not in eligible  # one pot
     state = cs.apply(scene8.subtask("right_moka_pot_off_stove"), state)
     assert "left_moka_pot_on_stove" in {s.id for s in cs.eligible(scene8, state)}
+    assert set(complementary_pairs(cs.load_scene("kitchen_scene3"))) == {
+        ("turn_on_stove", "turn_off_stove"),
+        ("moka_pot_on_stove", "moka_pot_off_stove"),
+        ("frying_pan_on_stove", "frying_pan_off_stove"),
+    }
     assert set(complementary_pairs(scene8)) == {
         ("turn_off_stove", "turn_on_stove"),
         ("right_moka_pot_on_stove", "right_moka_pot_off_stove"),
@@ -80,8 +85,8 @@ def test_the_chain_set_has_calvins_breadth():
     scenes = [cs.load_scene(n) for n in cs.scene_names()]
     assert len(scenes) >= 4
     assert sum(len(cs.load_chains(s.name).chains) for s in scenes) == 1000  # CALVIN's NUM_SEQUENCES
-    # a subtask is a goal in a scene: "turn on the stove" in three scenes is three of them
     assert len({(scene.name, s.id) for scene in scenes for s in scene.subtasks}) >= 30
+    assert len({s.instruction for scene in scenes for s in scene.subtasks}) >= 30  # and told apart
     pairs = [(scene.name, *p) for scene in scenes for p in complementary_pairs(scene)]
     assert len(pairs) >= 6
     kinds = {
@@ -124,9 +129,9 @@ def test_the_sampler_never_emits_an_invalid_or_repeated_chain():
 
 
 def test_a_scene_too_small_for_the_count_is_refused():
-    scene = cs.load_scene("kitchen_scene3")  # 4 subtasks: 32 distinct chains
+    scene = cs.load_scene("kitchen_scene3")  # 84 distinct chains of 5
     with pytest.raises(cs.ChainDataError, match="ask for fewer chains"):
-        cs.sample_chains(scene, STARTS["kitchen_scene3"], 40, 0, starts=1)
+        cs.sample_chains(scene, STARTS["kitchen_scene3"], 100, 0, starts=1)
 
 
 @needs_libero

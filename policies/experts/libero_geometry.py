@@ -54,6 +54,9 @@ GEOMETRY: dict[str, Geometry] = {
     # and a handle along +y, 1.4 cm thick, 6 to 9 cm from the origin: gripped by the handle,
     # the fingers closing across it (local x).
     "moka_pot": Geometry(bottom=0.066, top=0.086, grip_z=0.035, align=0, grip_xy=(0.0, 0.074)),
+    # A pan 20 cm across, its handle (2.6 cm wide, 3 cm tall) 13 to 26 cm out along local
+    # +x: gripped across the handle 19 cm out.
+    "chefmate_8_frypan": Geometry(bottom=0.0, top=0.059, grip_z=0.044, align=1, grip_xy=(0.19, 0.0)),
 }
 DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
 
