@@ -6,8 +6,10 @@ turning it on, on the live state, done by the scripted expert."""
 
 from __future__ import annotations
 
+import dataclasses
 import random
 
+import numpy as np
 import pytest
 
 from adapters import chain_scenes as cs
@@ -188,3 +190,46 @@ def test_the_expert_turns_the_stove_off_after_turning_it_on_on_the_live_state():
         assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]
     finally:
         env.close()
+
+
+def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():
+    """A moka pot (8.2 cm across, wider than the open hand) is gripped on its handle, 7.4
+    cm out along the pot's own +y: a pot turned 180 degrees about z has it on world -y."""
+    from policies.experts.libero_geometry import GEOMETRY
+    from policies.experts.libero_scripted import LiberoScriptedParams, PickPlace, PickPlaceExpert
+
+    obs = np.zeros(40)
+    obs[20:27] = [0.1, 0.2, 0.966, 0.0, 0.0, 1.0, 0.0]  # the pot, turned 180 degrees (xyzw)
+    plan = PickPlace(
+        obj=slice(20, 27), obj_geom=GEOMETRY["moka_pot"], target=slice(30, 33), target_geom=None, into=False
+    )
+    expert = PickPlaceExpert(plan, LiberoScriptedParams(), None)
+    point = expert._grip_point(obs, np.array([1.0, 0.0, 0.0]))
+    assert point == pytest.approx([0.1, 0.2 - 0.074, 0.966 + 0.035])
+    expert.phase = "lower"
+    assert expert.lowering  # held by a handle and on its way down: a handover lets it finish
+    bowl = PickPlaceExpert(
+        dataclasses.replace(plan, obj_geom=GEOMETRY["akita_black_bowl"]), LiberoScriptedParams(), None
+    )
+    bowl.phase = "lower"
+    assert not bowl.lowering  # gripped over its centre: let go where LIBERO credits it, as before
+
+
+def test_closing_a_drawer_pushes_one_left_just_ajar():
+    """A drawer 2 cm out (where revision 5 leaves one it shut to clear the hand's way) is
+    out of the way, so clearing leaves it; closing it is a chain's goal, so the close
+    pushes it past LIBERO's `Close`. Before, the close saw nothing out and stopped at once."""
+    from policies.experts.libero_drawer import CLOSED_PAST, HANDLES, SHUT_Y, Drawer, ShutExpert
+    from policies.experts.libero_scripted import LiberoScriptedParams
+
+    obs = np.zeros(40)
+    obs[0:7] = [0.0, 0.0, 1.2, 1.0, 0.0, 0.0, 0.0]  # the hand, fingers down
+    obs[20:27] = [0.0, -0.3, 0.905, 0.0, 0.0, 0.0, 1.0]  # the cabinet
+    obs[27:30] = [0.0, -0.3 + SHUT_Y["wooden_cabinet"] - 0.02, 1.02]  # its drawer 2 cm out
+    drawer = Drawer(slice(20, 27), slice(27, 30), HANDLES["wooden_cabinet"]["top"], "wooden_cabinet")
+    clearing = ShutExpert(drawer, LiberoScriptedParams())
+    clearing.act(obs)
+    assert clearing.done
+    closing = ShutExpert(drawer, LiberoScriptedParams(), shut_to=CLOSED_PAST)
+    closing.act(obs)
+    assert not closing.done and closing.phase == "over"
