@@ -56,7 +56,9 @@ GEOMETRY: dict[str, Geometry] = {
     "moka_pot": Geometry(bottom=0.066, top=0.086, grip_z=0.035, align=0, grip_xy=(0.0, 0.074)),
     # A pan 20 cm across, its handle (2.6 cm wide, 3 cm tall) 13 to 26 cm out along local
     # +x: gripped across the handle 19 cm out.
-    "chefmate_8_frypan": Geometry(bottom=0.0, top=0.059, grip_z=0.044, align=1, grip_xy=(0.19, 0.0)),
+    "chefmate_8_frypan": Geometry(
+        bottom=0.0, top=0.059, grip_z=0.044, align=1, slide=0.05, grip_xy=(0.19, 0.0)
+    ),
 }
 DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
 
