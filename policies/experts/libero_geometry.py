@@ -55,9 +55,11 @@ GEOMETRY: dict[str, Geometry] = {
     # the fingers closing across it (local x).
     "moka_pot": Geometry(bottom=0.066, top=0.086, grip_z=0.035, align=0, grip_xy=(0.0, 0.074)),
     # A pan 20 cm across, its handle (2.6 cm wide, 3 cm tall) 13 to 26 cm out along local
-    # +x: gripped across the handle 19 cm out.
+    # +x: gripped across the handle 16 cm out (19 cm out, the hand carrying it to the
+    # stove's far side stopped 2 cm short of where the pan was over the burner, chain 10),
+    # 3 cm either way along it to keep the hand clear of a neighbour.
     "chefmate_8_frypan": Geometry(
-        bottom=0.0, top=0.059, grip_z=0.044, align=1, slide=0.05, grip_xy=(0.19, 0.0)
+        bottom=0.0, top=0.059, grip_z=0.044, align=1, slide=0.03, grip_xy=(0.16, 0.0)
     ),
 }
 DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
