@@ -64,7 +64,9 @@ def _main(argv: list[str] | None = None) -> int:
         "already hold, and whether a later subtask of the chain has one of them.",
     )
     parser.add_argument("scene", choices=cs.scene_names(), help="the chain scene")
-    parser.add_argument("--chains", type=int, default=cs.CHAINS_PER_SCENE, help="the first N (default 50)")
+    parser.add_argument(
+        "--chains", type=int, default=cs.CHAINS_PER_SCENE, help=f"the first N (default {cs.CHAINS_PER_SCENE})"
+    )
     args = parser.parse_args(argv)
     if args.chains < 1:
         print("error: --chains must be at least 1", file=sys.stderr)
