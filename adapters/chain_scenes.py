@@ -12,7 +12,7 @@ not, in the state the chain has reached.
 The chains (`<scene>.chains.json`) are sampled once and stored, like CALVIN's
 evaluation sequences, so every run and every paper reproducer sees the same ones:
 
-    python -m adapters.chain_scenes generate living_room_scene3 --chains 50 --seed 0
+    python -m adapters.chain_scenes generate living_room_scene3 --chains 200 --seed 0
 
 This module imports neither LIBERO nor a simulator: listing and validating chains is cheap.
 """
@@ -38,8 +38,11 @@ DATA = Path(__file__).resolve().parent / "chain_data"
 # its first failure, no reset between subtasks. shared/notes/dvla-reference.md section 3.
 SUBTASKS_PER_CHAIN = 5
 STEPS_PER_SUBTASK = 360
-# LIBERO's initial-state files hold 50 states per task: chain j starts from state j.
-CHAINS_PER_SCENE = 50
+# CALVIN evaluates NUM_SEQUENCES = 1000 chains: 200 stored per scene over the five scenes.
+CHAINS_PER_SCENE = 200
+# LIBERO's initial-state files hold 50 states per task: chain j starts from state j % 50,
+# so the first 50 chains (the documented smoke prefix) start from 50 different states.
+INITIAL_STATES = 50
 # LIBERO's predicates (libero/libero/envs/predicates/__init__.py VALIDATE_PREDICATE_FN_DICT),
 # with their arity; "printjointstate" and "true"/"false" are not goals.
 PREDICATES = {"in": 2, "on": 2, "up": 1, "open": 1, "close": 1, "turnon": 1, "turnoff": 1}
@@ -236,10 +239,17 @@ def _completable(scene: Scene, state: frozenset[Predicate], remaining: int, memo
     return memo[key]
 
 
-def sample_chains(scene: Scene, start: frozenset[Predicate], n: int, seed: int) -> list[tuple[str, ...]]:
+def sample_chains(
+    scene: Scene, start: frozenset[Predicate], n: int, seed: int, starts: int | None = None
+) -> list[tuple[str, ...]]:
     """`n` chains, each subtask drawn uniformly among the eligible ones from which a chain
     of 5 can still be completed (CALVIN's sampler draws from the tasks whose
-    preconditions hold in the reached state; a dead end is never entered)."""
+    preconditions hold in the reached state; a dead end is never entered).
+
+    With `starts` (chain j starts from initial state j % starts), a chain that repeats one
+    already drawn for the same initial state is drawn again, so no episode counts twice
+    (`check_distinct`). The first `starts` chains are never redrawn, so a longer file with
+    the same seed begins with the chains of a shorter one."""
     rng = random.Random(seed)
     memo: dict = {}
     if not _completable(scene, start, SUBTASKS_PER_CHAIN, memo):
@@ -247,17 +257,36 @@ def sample_chains(scene: Scene, start: frozenset[Predicate], n: int, seed: int) 
             f"scene {scene.name!r}: no chain of {SUBTASKS_PER_CHAIN} subtasks is possible from the "
             "scene's start; add subtasks (or complements that undo others) to the scene file"
         )
-    chains = []
-    for _ in range(n):
-        state, chain = start, []
-        for k in range(SUBTASKS_PER_CHAIN):
-            left = SUBTASKS_PER_CHAIN - k - 1
-            options = [s for s in eligible(scene, state) if _completable(scene, apply(s, state), left, memo)]
-            subtask = rng.choice(options)
-            chain.append(subtask.id)
-            state = apply(subtask, state)
-        chains.append(tuple(chain))
+    chains: list[tuple[str, ...]] = []
+    taken: set[tuple[tuple[str, ...], int]] = set()
+    for j in range(n):
+        for _ in range(MAX_REDRAWS):
+            chain = _draw(scene, start, rng, memo)
+            key = (chain, j % starts if starts else j)
+            if key not in taken:
+                break
+        else:
+            raise ChainDataError(
+                f"scene {scene.name!r}: no chain for initial state {j % (starts or n)} that another "
+                f"chain from it does not repeat after {MAX_REDRAWS} draws; ask for fewer chains"
+            )
+        taken.add(key)
+        chains.append(chain)
     return chains
+
+
+MAX_REDRAWS = 1000  # draws for one chain before the scene is judged too small for the count
+
+
+def _draw(scene: Scene, start: frozenset[Predicate], rng: random.Random, memo: dict) -> tuple[str, ...]:
+    state, chain = start, []
+    for k in range(SUBTASKS_PER_CHAIN):
+        left = SUBTASKS_PER_CHAIN - k - 1
+        options = [s for s in eligible(scene, state) if _completable(scene, apply(s, state), left, memo)]
+        subtask = rng.choice(options)
+        chain.append(subtask.id)
+        state = apply(subtask, state)
+    return tuple(chain)
 
 
 def chains_path(name: str) -> Path:
@@ -319,7 +348,9 @@ def _main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     gen = sub.add_parser("generate", help="sample and write the chains of a scene")
     gen.add_argument("scene", help=f"scene name ({', '.join(scene_names())})")
-    gen.add_argument("--chains", type=int, default=CHAINS_PER_SCENE, help="how many (default 50)")
+    gen.add_argument(
+        "--chains", type=int, default=CHAINS_PER_SCENE, help=f"how many (default {CHAINS_PER_SCENE})"
+    )
     gen.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
     args = parser.parse_args(argv)
     try:
@@ -328,7 +359,7 @@ def _main(argv: list[str] | None = None) -> int:
 
         problem = scene_problem(scene)
         check_scene_names(scene, problem)
-        chains = sample_chains(scene, initial_state(problem), args.chains, args.seed)
+        chains = sample_chains(scene, initial_state(problem), args.chains, args.seed, INITIAL_STATES)
     except ChainDataError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

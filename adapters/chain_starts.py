@@ -5,8 +5,8 @@ when it takes over fails the chain. The precondition model cannot see that for g
 the BDDL's :init does not list (LIBERO's initial states are sampled, and the model knows
 only the :init predicates), so this checks each stored chain's initial state itself:
 after LIBERO's settle steps, which of the scene's goals hold, and which of them a later
-subtask of that chain has (a chain that would fail there, or count differently under the
-two rules, unless an earlier subtask undoes it first):
+subtask of that chain has that no earlier subtask undoes first (in the scene's model: a
+chain that would fail there, or count differently under the two rules):
 
     python -m adapters.chain_starts living_room_scene3 --chains 50
 
@@ -23,8 +23,17 @@ from adapters.chain_credit import Holds, goal_holds
 
 
 def later_goals_holding(scene: cs.Scene, chain: tuple[str, ...], holds: Holds) -> list[tuple[int, str]]:
-    """(position, id) of each subtask after the first whose goal holds in `holds`."""
-    return [(k, sid) for k, sid in enumerate(chain) if k > 0 and goal_holds(scene.subtask(sid), holds)]
+    """(position, id) of each subtask after the first whose goal holds in `holds` and that
+    no earlier subtask of the chain undoes first (removes, in the scene's model): a pot
+    back on its starting region holds at the start, and "take the pot off the stove"
+    comes only after "put the pot on the stove", which undoes it."""
+    found, undone = [], set()
+    for k, sid in enumerate(chain):
+        subtask = scene.subtask(sid)
+        if k > 0 and not set(subtask.goal) & undone and goal_holds(subtask, holds):
+            found.append((k, sid))
+        undone = (undone | set(subtask.removes)) - set(subtask.goal)
+    return found
 
 
 def check_starts(scene_name: str, count: int) -> list[dict]:
@@ -55,7 +64,9 @@ def _main(argv: list[str] | None = None) -> int:
         "already hold, and whether a later subtask of the chain has one of them.",
     )
     parser.add_argument("scene", choices=cs.scene_names(), help="the chain scene")
-    parser.add_argument("--chains", type=int, default=cs.CHAINS_PER_SCENE, help="the first N (default 50)")
+    parser.add_argument(
+        "--chains", type=int, default=cs.CHAINS_PER_SCENE, help=f"the first N (default {cs.CHAINS_PER_SCENE})"
+    )
     args = parser.parse_args(argv)
     if args.chains < 1:
         print("error: --chains must be at least 1", file=sys.stderr)

@@ -9,7 +9,7 @@ LIBERO's BDDL predicates evaluated by LIBERO's own predicate code on the live si
 state. It is CALVIN's protocol and metrics on LIBERO scenes, not CALVIN (docs/chains.md).
 
 Episode j of a scene is chain j of its stored chain file (adapters/chain_data), started
-from initial state j of the scene's LIBERO task, with LIBERO's seeding and 10 settle
+from initial state j % 50 of the scene's LIBERO task, with LIBERO's seeding and 10 settle
 steps once at the start (adapters/libero.py). The env reports the instruction in force
 in `info["instruction"]`; the runner gives it to the policy (policies/base.py,
 "Instruction chains").

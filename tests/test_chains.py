@@ -34,7 +34,8 @@ SCENE = "living_room_scene3"
 def test_protocol_constants_are_calvins():
     assert cs.SUBTASKS_PER_CHAIN == 5  # CALVIN evaluate_policy.py: chains of 5
     assert cs.STEPS_PER_SUBTASK == 360  # CALVIN EP_LEN
-    assert cs.CHAINS_PER_SCENE == lb.EPISODES_PER_TASK == 50  # one chain per LIBERO initial state
+    assert cs.CHAINS_PER_SCENE * len(cs.scene_names()) == 1000  # CALVIN's NUM_SEQUENCES
+    assert cs.INITIAL_STATES == lb.EPISODES_PER_TASK == 50  # chain j from LIBERO's initial state j % 50
     assert lb.SETTLE_STEPS == 10 and lb.ACTION_DIM == 7  # LIBERO's, once at the chain's start
 
 
@@ -255,13 +256,15 @@ def test_the_suite_is_the_stored_chains_from_the_scene_tasks_initial_states():
     suite = chains.load_suite(f"chains/{SCENE}")
     (task,) = suite.tasks
     stored = cs.load_chains(SCENE)
-    assert [e.chain for e in task.episodes] == list(stored.chains) and len(stored.chains) == 50
-    assert [e.init_state_id for e in task.episodes] == list(range(50))
+    assert [e.chain for e in task.episodes] == list(stored.chains) and len(stored.chains) == 200
+    assert [e.init_state_id for e in task.episodes] == [j % 50 for j in range(200)]
     assert task.max_steps == 5 * 360 and suite.name == f"chains/{SCENE}:seeding=openvla"
     # The stored chains are what their recorded command samples.
     scene = cs.load_scene(SCENE)
     start = cs.initial_state(chains.scene_problem(scene))
-    assert cs.sample_chains(scene, start, len(stored.chains), stored.seed) == list(stored.chains)
+    assert cs.sample_chains(scene, start, len(stored.chains), stored.seed, cs.INITIAL_STATES) == list(
+        stored.chains
+    )
     assert [s.name for s in chains.load_suite("chains/all").tasks] == cs.scene_names()
 
 

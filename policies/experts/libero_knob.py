@@ -1,4 +1,4 @@
-"""Scripted knob turning for LIBERO goals `TurnOn OBJ` (the flat stove's knob).
+"""Scripted knob turning for LIBERO goals `TurnOn OBJ` and `TurnOff OBJ` (the flat stove's knob).
 
 The knob is a hinge about the vertical axis through the stove's origin, with a bar
 across its top; LIBERO counts the stove as on once the hinge passes 0.5 rad
@@ -6,6 +6,13 @@ across its top; LIBERO counts the stove as on once the hinge passes 0.5 rad
 fingertip stalls (the finger rides onto the bar and the knob's arms), so the expert
 grips the bar over the axis and turns its wrist: the knob turns with the hand. It reads
 the stove's pose from the state vector and the goal from the BDDL, like the other experts.
+
+Turning it off (a chain's authored complement of turning it on) is the same motion
+backwards: LIBERO counts the stove as off only below 0.0 rad, the knob's stop being at
+-0.005, so the bar is turned back past where it started. The knob's angle is not among
+the poses the experts read, so the hand comes down turned as the turn-on left the bar
+(TURN_TO) and closing the fingers lines the bar up with them; then it turns OFF_PAST
+beyond the start, against the stop.
 """
 
 from __future__ import annotations
@@ -28,11 +35,19 @@ GRIP_HEIGHT = 0.04  # the knob's bar, gripped this far above the stove's origin 
 KNOBS = ("flat_stove",)  # categories whose `TurnOn` is this knob
 TURN_TO = 1.0  # wrist turn (rad, counter-clockwise: the hinge's positive direction)
 TURN_RATE = 0.1  # rad per control step
+OFF_PAST = 0.3  # turning off: the wrist turns this far (rad) past the knob's start, into its stop
 
 
 @dataclass(frozen=True)
 class Knob:
     body: slice  # pose of the object whose knob turns (its origin is on the hinge axis)
+    turn_from: float = 0.0  # wrist turn (rad, from the start orientation) at which the bar is gripped
+    turn_to: float = TURN_TO  # and to which it is turned: below turn_from turns the stove off
+
+
+def turn_off(body: slice) -> Knob:
+    """The knob turned back from where the turn-on leaves it to past its start."""
+    return Knob(body=body, turn_from=TURN_TO, turn_to=-OFF_PAST)
 
 
 class KnobExpert:
@@ -49,7 +64,8 @@ class KnobExpert:
             self.home_rot = rot
         self.count += 1
         grip_point = obs[self.plan.body][:3] + np.array([0.0, 0.0, GRIP_HEIGHT])
-        target, grip, want = grip_point, OPEN, self.home_rot
+        start, end = self.plan.turn_from, self.plan.turn_to
+        target, grip, want = grip_point, OPEN, yaw_matrix(start) @ self.home_rot
         if self.phase == "approach":
             target = grip_point + np.array([0.0, 0.0, 0.08])
             if np.linalg.norm(target - eef) < 0.01 or self.count > 80:
@@ -63,7 +79,8 @@ class KnobExpert:
                 self._next("turn")
         elif self.phase == "turn":
             grip = CLOSE
-            want = yaw_matrix(min(TURN_TO, TURN_RATE * self.count)) @ self.home_rot
+            turned = min(abs(end - start), TURN_RATE * self.count)
+            want = yaw_matrix(start + np.sign(end - start) * turned) @ self.home_rot
         move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
         turn = np.clip(rotation_error(want, rot) / MAX_DELTA_RAD, -1.0, 1.0)
         return np.concatenate([move, turn, [grip]]).astype(np.float32)

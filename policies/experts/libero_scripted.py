@@ -89,6 +89,10 @@ DROPPED = 0.04
 # Revision 5 (chains/libero_goal) also changes the drawer expert (libero_drawer.py: the
 # line-up from above, a drawer in the way shut first), the drag's descent
 # (libero_push.py) and the handover (libero_select.py); docs/libero.md, "Revisions".
+# An object carried by its handle (Geometry.grip_xy: a moka pot, a frying pan) is lifted
+# HANDLE_LIFT (m) higher: at the usual height the pan, 20 cm across, swept the moka pot
+# standing between it and the stove off the table (chains/kitchen_scene3, chain 13).
+HANDLE_LIFT = 0.08
 REVISIONS = (1, 2, 3, 4, 5)
 
 
@@ -178,10 +182,21 @@ class PickPlaceExpert:
         self.spot: np.ndarray | None = None  # revision 4: the free spot chosen in a container
         self.held = 0.0  # the hand's height above the object once lifted
 
+    @property
+    def lowering(self) -> bool:
+        """Whether an object held by its handle is still on its way down: LIBERO counts a
+        moka pot On the stove's cook region ~3 cm above the burner, so a chain's next
+        subtask begins there, and let go there the pot fell and lay on its side, where no
+        handle grip reaches it (chains/kitchen_scene3, chain 5). A chain's handover lets
+        the placement finish (policies/experts/libero_select.py, `lowering`)."""
+        return self.phase == "lower" and self.plan.obj_geom.grip_xy != (0.0, 0.0)
+
     def _grip_point(self, obs: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
         pos = obs[self.plan.obj][:3]
         g = self.plan.obj_geom
         point = pos + np.array([0.0, 0.0, g.grip_z])
+        if g.grip_xy != (0.0, 0.0):  # a handle: the grip is off the origin, in the body's frame
+            point[:2] += quat_to_mat(obs[self.plan.obj][3:7])[:2, :2] @ np.asarray(g.grip_xy)
         if g.rim > 0:  # grip the wall on the side of the closing axis farther from the robot base
             # (the robot stands at -x: a bowl gripped across a cabinet, along x, is gripped
             # on its +x side; otherwise the +y side, as the shipped demonstrations were)
@@ -348,6 +363,8 @@ class PickPlaceExpert:
             if self.count >= 12 or (p.revision >= 2 and self._grip_settled(float(obs[7]))):
                 self.lift_z = max(self._place_point(obs)[2], obj[2]) + self.plan.obj_geom.bottom + p.lift
                 self.lift_z += self.grip_point[2] - obj[2]
+                if self.plan.obj_geom.grip_xy != (0.0, 0.0):
+                    self.lift_z += HANDLE_LIFT
                 self.obj_z0 = obj[2]
                 self._next("lift")
                 if p.revision >= 2:

@@ -51,7 +51,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
     LIBERO's `Close` threshold for `Close` one, and before
     putting something `In` one (policies/experts/libero_drawer.py), a drag for an object too wide
     to grip going to a table region (policies/experts/libero_push.py), a wrist turn for a stove's
-    knob (policies/experts/libero_knob.py), else pick-and-place. `action_noise` (rng) degrades only
+    knob (policies/experts/libero_knob.py), turned on or back off, else pick-and-place. `action_noise` (rng) degrades only
     pick-and-place, the experts whose demonstrations are trained on so far."""
     from adapters import libero_layout
     from policies.experts.libero_drawer import (
@@ -62,7 +62,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
         ShutExpert,
         drawer_plan,
     )
-    from policies.experts.libero_knob import KNOBS, Knob, KnobExpert
+    from policies.experts.libero_knob import KNOBS, Knob, KnobExpert, turn_off
     from policies.experts.libero_push import PUSHED, PushExpert, push_plan
 
     problem, slices = _problem(context)
@@ -83,6 +83,10 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
         return _shut_first(expert, slices, entities, params, but=drawer)
     if len(goals) == 1 and goals[0][0] == "turnon" and category(goals[0][1]) in KNOBS:
         return KnobExpert(Knob(body=slices[goals[0][1]]), params)
+    if (
+        len(goals) == 1 and goals[0][0] == "turnoff" and category(goals[0][1]) in KNOBS
+    ):  # a chain's authored off
+        return KnobExpert(turn_off(slices[goals[0][1]]), params)
     if len(goals) == 1 and goals[0][0] == "on" and category(goals[0][1]) in PUSHED:
         _, obj, region = goals[0]
         if region not in entities and problem["regions"].get(region, {}).get("ranges"):
@@ -245,28 +249,31 @@ def _unwrapped(expert: object) -> object:
     return expert
 
 
-def lowering(expert: object) -> OpenThenExpert | None:
+def lowering(expert: object) -> OpenThenExpert | PickPlaceExpert | None:
     """The drawer placement (OpenThenExpert) still lowering its object, if `expert` is
     one: LIBERO counts a bowl In the top drawer ~5 cm above the drawer's floor, so a
     chain's next subtask begins while it is still on its way down. Let go there (revision
     5 at first), the bowl fell onto the drawer's front wall and wedged under the
     cabinet's top; the handover lets the placement finish first (PLACE_Y_DEEPER in
-    policies/experts/libero_drawer.py says why it then fits)."""
+    policies/experts/libero_drawer.py says why it then fits). Likewise a pot held by its
+    handle (`PickPlaceExpert.lowering`)."""
     from policies.experts.libero_drawer import OpenThenExpert
 
     expert = _unwrapped(expert)
-    return expert if isinstance(expert, OpenThenExpert) and expert.lowering else None
+    return expert if isinstance(expert, OpenThenExpert | PickPlaceExpert) and expert.lowering else None
 
 
 def placed(expert: object) -> bool:
     """Whether a chain's last subtask put something into a drawer or on a piece of
-    furniture's top: revision 5 lets go of it in place and rises first. (Into a tray it
+    furniture's top, or put down something held by its handle (the opening fingers drag
+    a handle): revision 5 lets go of it in place and rises first. (Into a tray it
     moves at once, as revisions 1-4 did: opening in place there lost 1 of 20 tray chains.)"""
     from policies.experts.libero_drawer import OpenThenExpert
 
     expert = _unwrapped(expert)
     return isinstance(expert, OpenThenExpert) or (
-        isinstance(expert, PickPlaceExpert) and expert.plan.surface is not None
+        isinstance(expert, PickPlaceExpert)
+        and (expert.plan.surface is not None or expert.plan.obj_geom.grip_xy != (0.0, 0.0))
     )
 
 
@@ -291,7 +298,7 @@ class Handover:
         gain: float,
         open_first: bool = False,
         unbend: bool = False,
-        finish: OpenThenExpert | None = None,
+        finish: OpenThenExpert | PickPlaceExpert | None = None,
     ):
         from policies.experts.libero_drawer import ShutFirst
 
@@ -305,7 +312,7 @@ class Handover:
         self.rising = RISE_STEPS if open_first else 0  # and then to rise
         self.anchor: np.ndarray | None = None  # where the hand was when the subtask began
         self.bending = BEND_STEPS if unbend else 0  # revision 5: steps left to bend the elbow
-        self.finish = finish  # revision 5: a drawer placement to finish first (`lowering`)
+        self.finish = finish  # revision 5: a placement to finish first (`lowering`)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         if self.finish is not None and self.finish.lowering:
