@@ -14,15 +14,21 @@ evaluation sequences, so every run and every paper reproducer sees the same ones
 
     python -m adapters.chain_scenes generate living_room_scene3 --chains 200 --seed 0
 
+The generator records each chain file's sha256 in `chain_data/chains.sha256` (sha256sum's
+format), and loading a chain file refuses one whose bytes no longer match: an edited or
+damaged file would otherwise change the protocol while the suite keeps its name and version.
+
 This module imports neither LIBERO nor a simulator: listing and validating chains is cheap.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import random
+import re
 import sys
 import tomllib
 from dataclasses import dataclass
@@ -95,6 +101,7 @@ class ChainSet:
     seed: int
     command: str
     chains: tuple[tuple[str, ...], ...]
+    sha256: str  # of the file's bytes, as recorded in HASHES (the run manifest carries it)
 
 
 def scene_names() -> list[str]:
@@ -311,12 +318,74 @@ def load_chains(name: str) -> ChainSet:
             f"{path}: no chains for scene {name!r}; make them with "
             f"python -m adapters.chain_scenes generate {name}"
         )
+    raw = path.read_bytes()  # hashed and parsed from one read: what is checked is what runs
+    sha256 = check_chains_hash(name, raw)
     try:
-        data = json.loads(path.read_text(), object_pairs_hook=_unique_keys)
+        data = json.loads(raw.decode(), object_pairs_hook=_unique_keys)
         chains = tuple(tuple(c) for c in data["chains"])
-        return ChainSet(scene=data["scene"], seed=int(data["seed"]), command=data["command"], chains=chains)
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        return ChainSet(
+            scene=data["scene"], seed=int(data["seed"]), command=data["command"], chains=chains, sha256=sha256
+        )
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
         raise ChainDataError(f"{path}: not a chain file ({type(exc).__name__}: {exc})") from None
+
+
+# The recorded sha256 of every chain file, one line each in sha256sum's format
+# ("<64 hex>  <scene>.chains.json"), so `sha256sum -c chains.sha256` in the folder checks
+# them without the harness. Written by the generator only, never by hand.
+HASHES = "chains.sha256"
+_HASH_LINE = re.compile(r"([0-9a-f]{64})  (\S+\.chains\.json)")
+
+
+def recorded_hashes() -> dict[str, str]:
+    """Chain file name -> its recorded sha256 (hex)."""
+    path = DATA / HASHES
+    if not path.is_file():
+        return {}
+    hashes: dict[str, str] = {}
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        match = _HASH_LINE.fullmatch(line)
+        if match is None or match[2] in hashes:
+            raise ChainDataError(
+                f"{path} line {i}: expected one '<sha256 hex>  <scene>.chains.json' per chain file, "
+                f"got {line!r}; restore the file from git (git checkout -- adapters/chain_data/{HASHES})"
+            )
+        hashes[match[2]] = match[1]
+    return hashes
+
+
+def check_chains_hash(name: str, raw: bytes) -> str:
+    """The sha256 of a chain file's bytes, refused unless it is the recorded one: the
+    chains are the protocol, so a changed file is a different suite, not a quiet edit."""
+    path = chains_path(name)
+    actual = hashlib.sha256(raw).hexdigest()
+    expected = recorded_hashes().get(path.name)
+    regenerate = f"python -m adapters.chain_scenes generate {name}"
+    if expected is None:
+        raise ChainDataError(
+            f"{path}: no sha256 recorded for it in {DATA / HASHES}; the generator records it "
+            f"({regenerate}), so regenerate the chains rather than edit the list"
+        )
+    if actual != expected:
+        raise ChainDataError(
+            f"{path}: sha256 {actual} is not the {expected} recorded in {DATA / HASHES}, so these "
+            f"are not the suite's fixed chains; restore the file (git checkout -- "
+            f"adapters/chain_data/{path.name}), or, for a deliberate change, regenerate it "
+            f"({regenerate}), which records the new hash, and bump SUITE_VERSION in adapters/chains.py"
+        )
+    return actual
+
+
+def record_chains_hash(name: str) -> str:
+    """Record the chain file's current sha256 (the generator's last step), keeping the
+    other scenes' lines; written whole or not at all."""
+    actual = hashlib.sha256(chains_path(name).read_bytes()).hexdigest()
+    hashes = recorded_hashes() | {chains_path(name).name: actual}
+    path = DATA / HASHES
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text("".join(f"{h}  {f}\n" for f, h in sorted(hashes.items())))
+    os.replace(temporary, path)
+    return actual
 
 
 def initial_state(problem: dict) -> frozenset[Predicate]:
@@ -342,8 +411,9 @@ def check_scene_names(scene: Scene, problem: dict) -> None:
 def _main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m adapters.chain_scenes",
-        description="Sample a chain scene's fixed evaluation chains from its precondition model "
-        "and write adapters/chain_data/<scene>.chains.json (needs the libero extra for the BDDL).",
+        description="Sample a chain scene's fixed evaluation chains from its precondition model, "
+        "write adapters/chain_data/<scene>.chains.json and record its sha256 in "
+        f"adapters/chain_data/{HASHES} (needs the libero extra for the BDDL).",
     )
     sub = parser.add_subparsers(dest="command", required=True)
     gen = sub.add_parser("generate", help="sample and write the chains of a scene")
@@ -374,7 +444,8 @@ def _main(argv: list[str] | None = None) -> int:
     temporary = path.with_name(path.name + ".tmp")
     temporary.write_text(text + "\n")
     os.replace(temporary, path)  # a killed generator leaves the old file, never half a new one
-    print(f"wrote {len(chains)} chains to {chains_path(args.scene)}")
+    sha256 = record_chains_hash(args.scene)
+    print(f"wrote {len(chains)} chains to {path} (sha256 {sha256}, recorded in {DATA / HASHES})")
     return 0
 
 

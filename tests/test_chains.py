@@ -163,6 +163,8 @@ def _scene_dir(tmp_path, monkeypatch, edit=None, chains=None):
         data["chains"] = chains
         path.write_text(json.dumps(data))
     monkeypatch.setattr(cs, "DATA", tmp_path)
+    if chains is not None:  # a deliberate edit, its hash recorded: the checks behind the hash see it
+        cs.record_chains_hash(SCENE)
     cs.load_scene.cache_clear()
     cs.load_chains.cache_clear()
 

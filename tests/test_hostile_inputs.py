@@ -326,8 +326,13 @@ CHAIN_SCENE = "living_room_scene3"
 
 
 def _chain_file(folder, edit):
+    """Edit the chain file and record its new hash, as a deliberate change would, so the
+    checks behind the hash (adapters/chain_scenes.check_chains_hash) see the edit."""
+    from adapters import chain_scenes as cs
+
     path = folder / f"{CHAIN_SCENE}.chains.json"
     path.write_text(edit(json.loads(path.read_text()), path.read_text()))
+    cs.record_chains_hash(CHAIN_SCENE)
 
 
 @pytest.mark.parametrize(
