@@ -15,7 +15,7 @@ import pytest
 from adapters import chain_scenes as cs
 from adapters import libero as lb
 
-needs_libero = pytest.mark.skipif(not lb._installed(), reason="needs the libero extra")
+needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 STOVE = ("turnon", "flat_stove_1"), ("turnoff", "flat_stove_1")
 # The BDDL's :init of each stove scene (what adapters.chains.scene_problem reads).
 STARTS = {
