@@ -20,6 +20,24 @@ def cli(capsys):
     return invoke
 
 
+@pytest.fixture
+def chain_data(tmp_path, monkeypatch):
+    """A copy of the shipped chain data (scenes, chain files, their hashes) that the chain
+    loaders read instead, so a test can edit it; the loaders' caches cleared around it."""
+    from adapters import chain_scenes as cs
+
+    folder = tmp_path / "chain_data"
+    folder.mkdir()
+    for path in cs.DATA.iterdir():
+        (folder / path.name).write_bytes(path.read_bytes())
+    monkeypatch.setattr(cs, "DATA", folder)
+    cs.load_scene.cache_clear()
+    cs.load_chains.cache_clear()
+    yield folder
+    cs.load_scene.cache_clear()
+    cs.load_chains.cache_clear()
+
+
 @pytest.fixture(scope="session")
 def demos(tmp_path_factory):
     """Tiny Meta-World demonstrations (2 tasks x 2 episodes) for training tests."""

@@ -16,21 +16,6 @@ needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero e
 SCENE = "living_room_scene3"
 
 
-@pytest.fixture
-def data(tmp_path, monkeypatch):
-    """A copy of the shipped chain data that the loaders read instead."""
-    folder = tmp_path / "chain_data"
-    folder.mkdir()
-    for path in cs.DATA.iterdir():
-        (folder / path.name).write_bytes(path.read_bytes())
-    monkeypatch.setattr(cs, "DATA", folder)
-    cs.load_scene.cache_clear()
-    cs.load_chains.cache_clear()
-    yield folder
-    cs.load_scene.cache_clear()
-    cs.load_chains.cache_clear()
-
-
 def _swap_first_two_chains(folder) -> str:
     """A plausible edit: every chain still valid, the protocol's order changed."""
     path = folder / f"{SCENE}.chains.json"
@@ -48,13 +33,13 @@ def test_every_shipped_chain_file_matches_its_recorded_hash():
         assert recorded[f"{scene}.chains.json"] == digest == cs.load_chains(scene).sha256, scene
 
 
-def test_a_changed_chain_file_is_refused_naming_the_file_both_hashes_and_the_way_out(data):
+def test_a_changed_chain_file_is_refused_naming_the_file_both_hashes_and_the_way_out(chain_data):
     expected = cs.recorded_hashes()[f"{SCENE}.chains.json"]
-    actual = _swap_first_two_chains(data)
+    actual = _swap_first_two_chains(chain_data)
     with pytest.raises(cs.ChainDataError) as caught:
         cs.load_chains(SCENE)
     message = str(caught.value)
-    assert str(data / f"{SCENE}.chains.json") in message
+    assert str(chain_data / f"{SCENE}.chains.json") in message
     assert expected in message and actual in message and expected != actual
     assert f"git checkout -- adapters/chain_data/{SCENE}.chains.json" in message
     assert f"python -m adapters.chain_scenes generate {SCENE}" in message and "SUITE_VERSION" in message
@@ -69,16 +54,16 @@ def test_a_changed_chain_file_is_refused_naming_the_file_both_hashes_and_the_way
         (lambda lines: [lines[0].replace("  ", " ", 1), *lines[1:]], "line 1: expected one"),
     ],
 )
-def test_a_missing_or_malformed_hash_list_is_refused(data, edit, needle):
-    path = data / cs.HASHES
+def test_a_missing_or_malformed_hash_list_is_refused(chain_data, edit, needle):
+    path = chain_data / cs.HASHES
     path.write_text("".join(f"{x}\n" for x in edit(path.read_text().splitlines())))
     with pytest.raises(cs.ChainDataError, match=needle):
         cs.load_chains(SCENE)
 
 
 @needs_libero
-def test_the_suite_refuses_a_changed_chain_file_with_exit_2_and_writes_nothing(cli, tmp_path, data):
-    actual = _swap_first_two_chains(data)
+def test_the_suite_refuses_a_changed_chain_file_with_exit_2_and_writes_nothing(cli, tmp_path, chain_data):
+    actual = _swap_first_two_chains(chain_data)
     out = tmp_path / "run"
     code, _, err = cli(
         "run", "--suite", f"chains/{SCENE}", "--policy", "libero_scripted", "--episodes-per-task", "1",
@@ -89,21 +74,21 @@ def test_the_suite_refuses_a_changed_chain_file_with_exit_2_and_writes_nothing(c
 
 
 @needs_libero
-def test_the_generator_records_the_hash_of_what_it_writes(data, capsys):
-    shipped = {p.name: p.read_bytes() for p in data.iterdir()}
+def test_the_generator_records_the_hash_of_what_it_writes(chain_data, capsys):
+    shipped = {p.name: p.read_bytes() for p in chain_data.iterdir()}
     assert cs._main(["generate", SCENE, "--chains", "60", "--seed", "3"]) == 0
     assert f"sha256 {cs.recorded_hashes()[f'{SCENE}.chains.json']}" in capsys.readouterr().out
     cs.load_chains.cache_clear()
     regenerated = cs.load_chains(SCENE)  # its new hash recorded: it loads
     assert len(regenerated.chains) == 60 and regenerated.seed == 3
-    lines = (data / cs.HASHES).read_text().splitlines()
+    lines = (chain_data / cs.HASHES).read_text().splitlines()
     assert [x for x in lines if SCENE not in x] == [
         x for x in shipped[cs.HASHES].decode().splitlines() if SCENE not in x
     ]  # the other scenes' hashes are kept
     # The documented command rewrites the shipped file byte for byte, and its shipped hash.
     assert cs._main(["generate", SCENE]) == 0
-    assert (data / f"{SCENE}.chains.json").read_bytes() == shipped[f"{SCENE}.chains.json"]
-    assert (data / cs.HASHES).read_bytes() == shipped[cs.HASHES]
+    assert (chain_data / f"{SCENE}.chains.json").read_bytes() == shipped[f"{SCENE}.chains.json"]
+    assert (chain_data / cs.HASHES).read_bytes() == shipped[cs.HASHES]
 
 
 @needs_libero

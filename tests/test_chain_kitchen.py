@@ -8,6 +8,7 @@ import pytest
 
 from adapters import chain_scenes as cs
 from adapters import libero as lb
+from tests.chain_live import expert_plays_a_pair
 
 needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 SCENE = "kitchen_scene1"
@@ -81,42 +82,10 @@ def test_the_expert_closes_what_it_opened_on_the_live_state():
     """The scripted expert opens the top drawer (LIBERO-90's task), then closes it (the
     authored complement): LIBERO's predicates on the live state say the close undid the
     open, as the model's `removes` says, and both subtasks are credited."""
-    from adapters import chains
-    from adapters.base import EpisodeSpec
-    from policies.base import EpisodeContext
-    from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams
-
-    suite = chains.load_suite(f"chains/{SCENE}")
-    task = suite.tasks[0]
-    env = suite.make_env(task)
     chain = ("open_top_drawer", "close_top_drawer", "bowl_on_plate", "bowl_on_cabinet", "bowl_on_plate")
     opened, closed = ("open", "wooden_cabinet_1_top_region"), ("close", "wooden_cabinet_1_top_region")
-    try:
-        obs, info = env.reset(options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=0, chain=chain)})
-        assert not env.holds(opened)
-        expert = LiberoScripted(LiberoScriptedParams())
-
-        def follow(info):
-            k = info["subtask_index"]
-            ctx = EpisodeContext(
-                suite.name, task.name, info["instruction"], env.action_space, env.observation_space, 360, k
-            )
-            expert.reset([ctx])
-
-        follow(info)
-        seen = []
-        for _ in range(2 * cs.STEPS_PER_SUBTASK):
-            k = info["subtask_index"]
-            obs, _, terminated, _, info = env.step(expert.act([obs]).actions[0, 0])
-            if info["subtask_index"] != k:
-                seen.append((env.holds(opened), env.holds(closed)))
-                if info["subtask_index"] == 2:
-                    break
-                follow(info)
-            assert not terminated, info["subtasks"][:2]
-        assert seen == [(True, False), (False, True)]  # opened, then closed: undone
-        first, second = info["subtasks"][:2]
-        assert first["outcome"] == second["outcome"] == "completed"
-        assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]
-    finally:
-        env.close()
+    at_start, seen, first, second = expert_plays_a_pair(SCENE, chain, opened, closed)
+    assert not at_start[0]
+    assert seen == [(True, False), (False, True)]  # opened, then closed: undone
+    assert first["outcome"] == second["outcome"] == "completed"
+    assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]

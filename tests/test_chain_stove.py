@@ -14,6 +14,7 @@ import pytest
 
 from adapters import chain_scenes as cs
 from adapters import libero as lb
+from tests.chain_live import expert_plays_a_pair
 
 needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 STOVE = ("turnon", "flat_stove_1"), ("turnoff", "flat_stove_1")
@@ -152,44 +153,12 @@ def test_the_expert_turns_the_stove_off_after_turning_it_on_on_the_live_state():
     """The scripted expert turns the stove on (LIBERO-90's task), then off (the authored
     complement): LIBERO's predicates on the live state say the off undid the on, and
     both subtasks are credited under CALVIN's rule."""
-    from adapters import chains
-    from adapters.base import EpisodeSpec
-    from policies.base import EpisodeContext
-    from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams
-
-    suite = chains.load_suite("chains/kitchen_scene3")
-    task = suite.tasks[0]
-    env = suite.make_env(task)
     chain = ("turn_on_stove", "turn_off_stove", "turn_on_stove", "turn_off_stove", "turn_on_stove")
-    try:
-        obs, info = env.reset(options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=0, chain=chain)})
-        assert not env.holds(STOVE[0]) and not env.holds(STOVE[1])  # the knob at rest: neither
-        expert = LiberoScripted(LiberoScriptedParams())
-
-        def follow(info):
-            ctx = EpisodeContext(
-                suite.name, task.name, info["instruction"], env.action_space, env.observation_space,
-                cs.STEPS_PER_SUBTASK, 0, subtask_index=info["subtask_index"],
-            )  # fmt: skip
-            expert.reset([ctx])
-
-        follow(info)
-        seen = []
-        for _ in range(2 * cs.STEPS_PER_SUBTASK):
-            k = info["subtask_index"]
-            obs, _, terminated, _, info = env.step(expert.act([obs]).actions[0, 0])
-            if info["subtask_index"] != k:
-                seen.append((env.holds(STOVE[0]), env.holds(STOVE[1])))
-                if info["subtask_index"] == 2:
-                    break
-                follow(info)
-            assert not terminated, info["subtasks"][:2]
-        assert seen == [(True, False), (False, True)]  # on, then off: undone
-        first, second = info["subtasks"][:2]
-        assert first["outcome"] == second["outcome"] == "completed"
-        assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]
-    finally:
-        env.close()
+    at_start, seen, first, second = expert_plays_a_pair("kitchen_scene3", chain, *STOVE)
+    assert at_start == (False, False)  # the knob at rest: neither
+    assert seen == [(True, False), (False, True)]  # on, then off: undone
+    assert first["outcome"] == second["outcome"] == "completed"
+    assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]
 
 
 def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():

@@ -305,23 +305,6 @@ def test_an_empty_flag_value_is_refused_not_read_as_the_default(cli, tmp_path):
 # --- chain files -------------------------------------------------------------------------
 
 
-@pytest.fixture
-def chain_data(tmp_path, monkeypatch):
-    """A copy of the shipped chain data, its chain file replaced by `write(text)`."""
-    from adapters import chain_scenes as cs
-
-    folder = tmp_path / "chain_data"
-    folder.mkdir()
-    for path in cs.DATA.iterdir():
-        (folder / path.name).write_bytes(path.read_bytes())
-    monkeypatch.setattr(cs, "DATA", folder)
-    cs.load_scene.cache_clear()
-    cs.load_chains.cache_clear()
-    yield folder
-    cs.load_scene.cache_clear()
-    cs.load_chains.cache_clear()
-
-
 CHAIN_SCENE = "living_room_scene3"
 
 

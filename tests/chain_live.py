@@ -1,0 +1,55 @@
+"""The scripted expert carrying out a chain's first two subtasks on LIBERO's live state,
+shared by each scene's test that an authored complement undoes its pair."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from adapters import chain_scenes as cs
+
+Predicate = tuple[str, ...]
+
+
+def expert_plays_a_pair(
+    scene: str, chain: tuple[str, ...], done: Predicate, undone: Predicate
+) -> tuple[tuple[bool, bool], list[tuple[bool, bool]], dict[str, Any], dict[str, Any]]:
+    """Run `chain` in `scene` with the expert until its second subtask ends.
+
+    Returns what LIBERO's predicates say of (`done`, `undone`) at the reset and at the end of
+    each of the first two subtasks, and the two subtasks' records. Fails the calling test
+    when the chain ends first (a failed subtask)."""
+    from adapters import chains
+    from adapters.base import EpisodeSpec
+    from policies.base import EpisodeContext
+    from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams
+
+    suite = chains.load_suite(f"chains/{scene}")
+    task = suite.tasks[0]
+    env = suite.make_env(task)
+    try:
+        obs, info = env.reset(options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=0, chain=chain)})
+        at_start = (env.holds(done), env.holds(undone))
+        expert = LiberoScripted(LiberoScriptedParams())
+
+        def follow(info: dict[str, Any]) -> None:
+            ctx = EpisodeContext(
+                suite.name, task.name, info["instruction"], env.action_space, env.observation_space,
+                cs.STEPS_PER_SUBTASK, 0, subtask_index=info["subtask_index"],
+            )  # fmt: skip
+            expert.reset([ctx])
+
+        follow(info)
+        seen = []
+        for _ in range(2 * cs.STEPS_PER_SUBTASK):
+            k = info["subtask_index"]
+            obs, _, terminated, _, info = env.step(expert.act([obs]).actions[0, 0])
+            if info["subtask_index"] != k:
+                seen.append((env.holds(done), env.holds(undone)))
+                if info["subtask_index"] == 2:
+                    break
+                follow(info)
+            assert not terminated, info["subtasks"][:2]
+        first, second = info["subtasks"][:2]
+        return at_start, seen, first, second
+    finally:
+        env.close()
