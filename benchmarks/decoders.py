@@ -33,9 +33,11 @@ into what caching the prefix buys (the reference over bidirectional) and what th
 decoder buys beyond it (the "vs cached" column: fewer passes, fewer positions per pass).
 Beside the time the table prints what explains it, counted from the passes' shapes
 (decoder_traces.Chunk.counts): passes, positions run, keys/values attended, query-key
-scores. On this CPU time follows positions run (compute-bound); on a GPU at batch 1 a
-pass over 312 positions costs little more than one over 56, so there time follows the
-pass count, and prefix caching buys less than here (run with --device cuda to see).
+scores. On this CPU time follows positions run (compute-bound). On an H100 at batch 1
+and this shape every pass costs about the same whatever it runs (launch-bound), so time
+follows the pass count and caching buys nothing; a full pass becomes compute-bound
+only at about a billion parameters (`--width 2048 --layers 24`), where caching the
+prefix pays again (docs/measurements.md, "On a GPU").
 
 All decoders run in one process on one set of weights per attention pattern, taking
 turns within each round (the order rotates); each round times every decoder on its own
@@ -43,6 +45,7 @@ chunks, so the speedups are per-round ratios measured side by side, reported as 
 and 95% Student t interval over the rounds.
 
     python benchmarks/decoders.py [--rounds 10] [--chunks 2] [--threads 1] [--kernels default] [--json PATH]
+    python benchmarks/decoders.py --device cuda --width 2048 --layers 24 --heads 16 --ffn 8192
     python benchmarks/decoders.py --extract runs/traces-spatial   # rebuild the trace file
 
 CPU decoding uses oneDNN-prepacked linear weights, as the policies do (policies/dvla/kernels.py);
@@ -221,7 +224,10 @@ def build(shape: dict, device: str) -> tuple[dict, tuple, dict]:
     models = {}
     for kind, options in MODELS.items():
         torch.manual_seed(0)
-        models[kind] = ActionTokenModel(ModelConfig(**shape, **options)).eval().to(device)
+        # built where it runs: a billion-parameter shape initialised on one CPU thread
+        # would take minutes before the first timed pass
+        with torch.device(device):
+            models[kind] = ActionTokenModel(ModelConfig(**shape, **options)).eval()
     linears = sum(isinstance(m, torch.nn.Linear) for m in models["bidirectional"].modules())
     packed = 0
     for model in models.values():
@@ -233,6 +239,8 @@ def build(shape: dict, device: str) -> tuple[dict, tuple, dict]:
     info = {
         "linear_kernels": describe() if device == "cpu" else "cuda",
         "packed_linears": f"{packed} of {linears}",
+        "shape": dict(shape),
+        "parameters": sum(p.numel() for p in models["bidirectional"].parameters()),
     }
     return models, (words, state), info
 
@@ -352,8 +360,9 @@ def _speed(r: dict, key: str, ci: str) -> str:
 def report(result: dict) -> None:
     threads = result["threads"]
     print(
-        f"paper-like shapes ({result['prefix_len']} prefix + {result['action_tokens']} action tokens, "
-        f"width {SHAPE['width']}, {SHAPE['layers']} layers); device {result['device']}, {threads} CPU "
+        f"{result['prefix_len']} prefix + {result['action_tokens']} action tokens, "
+        f"width {result['shape']['width']}, {result['shape']['layers']} layers, "
+        f"{result['parameters'] / 1e6:.1f}M parameters; device {result['device']}, {threads} CPU "
         f"thread{'s' * (threads != 1)}, linear kernels: {result['linear_kernels']} "
         f"({result['packed_linears']} layers packed)"
     )
@@ -425,6 +434,14 @@ def main() -> None:
         "(policies/dvla/kernels.py), or torch's default, to see what packing is worth",
     )
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0 = torch's default)")
+    for key in ("width", "layers", "heads", "ffn"):
+        parser.add_argument(
+            f"--{key}",
+            type=int,
+            default=SHAPE[key],
+            help=f"model {key} (default {SHAPE[key]}, the paper-like shape); larger shapes show "
+            "where a pass stops being launch-bound on a GPU",
+        )
     parser.add_argument(
         "--extract", metavar="RUN_DIR", help="write --traces from this run's traces.jsonl and exit"
     )
@@ -443,9 +460,13 @@ def main() -> None:
 
         os.environ[ENV] = "0"
     load_before = os.getloadavg()
+    shape = SHAPE | {key: getattr(args, key) for key in ("width", "layers", "heads", "ffn")}
+    if shape["width"] % shape["heads"]:
+        parser.error(f"--width {shape['width']} is not a multiple of --heads {shape['heads']}")
     result = measure(
         args.rounds,
         args.chunks,
+        shape=shape,
         traces=args.traces,
         device=args.device,
         progress=lambda s: print(s, file=sys.stderr),
@@ -457,7 +478,6 @@ def main() -> None:
         "rounds": args.rounds,
         "chunks_per_round": args.chunks,
         "traces": {"file": os.path.relpath(args.traces, ROOT), "commands": [RECORD, EXTRACT]},
-        "shape": SHAPE,
         "machine": {
             "cpu": platform.processor() or platform.machine(),
             "load_before": load_before,

@@ -178,6 +178,8 @@ def test_worker_times_every_decoder_side_by_side(bench, capsys):
             torch.set_grad_enabled(grad)
     rows = {r["decoder"]: r for r in result["rows"]}
     assert list(rows) == list(bench.DECODERS) and result["device"] == "cpu"
+    # the shape timed is the one asked for (--width/--layers/...), recorded with its size
+    assert result["shape"] == TINY and 0 < result["parameters"] < 10**6
     assert rows["bidirectional"]["nfe"] == 12 and rows["bidirectional"]["cached_read"] == 0
     assert rows["bidirectional"]["speedup_vs_bidirectional"] == pytest.approx(1.0)
     p, a = result["prefix_len"], result["action_tokens"]
@@ -199,6 +201,7 @@ def test_worker_times_every_decoder_side_by_side(bench, capsys):
     table = capsys.readouterr().out
     assert "bidirectional_cached" in table and "vs cached" in table and "kv attended" in table
     assert "caching the prefix alone buys" in table and "  fast_dvla: " in table
+    assert f"width {TINY['width']}, {TINY['layers']} layers" in table
     assert rows["autoregressive"]["nfe"] == 56 and rows["autoregressive"]["query_tokens"] == 56
     assert rows["block_diffusion"]["nfe"] == 32
     # autoregressive pass i reads the prefix and tokens 0..i-1

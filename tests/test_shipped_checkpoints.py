@@ -36,6 +36,26 @@ def test_shipped_checkpoints_load_with_their_provenance():
     assert teacher.meta["tokenizer_round_trip_error"] < 0.005
 
 
+def test_the_paper_recipe_student_is_the_shipped_teachers_distilled_with_d2f_noise():
+    """`metaworld-mt10-d2f` is a set of one file: the student a `fast_dvla` policy gets by
+    set name, distilled from the shipped teacher (by content) under D2F's schedule, on the
+    data the shipped student saw (the same steps; its folders' combined hash differs)."""
+    from policies.registry import get_policy, parse_params
+
+    path = SHIPPED / "metaworld-mt10-d2f-fast_dvla.safetensors"
+    params = parse_params(get_policy("fast_dvla"), {"checkpoint": "metaworld-mt10-d2f"})
+    assert params.checkpoint == str(path)
+    student, shipped = load(path), load(SHIPPED / "metaworld-mt10-fast_dvla.safetensors")
+    config = student.meta["train_config"]
+    assert (config["recipe"], config["noise_schedule"]) == ("distill", "d2f")
+    assert config["noise_schedule"] != shipped.meta["train_config"]["noise_schedule"]
+    for key in ("steps", "batch_size", "lr", "seed", "width", "layers"):
+        assert config[key] == shipped.meta["train_config"][key], key
+    teacher = SHIPPED / "metaworld-mt10-bidirectional.safetensors"
+    assert student.meta["teacher_sha256"] == hashlib.sha256(teacher.read_bytes()).hexdigest()
+    assert student.model.cfg.pattern == "block_causal" and student.vocab == shipped.vocab
+
+
 @pytest.mark.parametrize("policy", ["bidirectional", "fast_dvla"])
 def test_shipped_policy_solves_easy_mt10_tasks_with_no_arguments(cli, tmp_path, policy):
     code, _, err = cli(
