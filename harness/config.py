@@ -11,7 +11,9 @@ import hashlib
 import importlib.util
 import json
 import tomllib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -299,7 +301,7 @@ def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
         )
     digest = sha256_file(checkpoint) if checkpoint else ""
     pjson = params_json(params)
-    config_id = hashlib.sha256(f"{spec.name}|{pjson}|{digest}".encode()).hexdigest()[:12]
+    config_id = policy_config_id(spec.name, pjson, digest)
     try:
         policy = spec.build(params)
     except (ValueError, OSError) as exc:
@@ -307,6 +309,38 @@ def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
     if checkpoint:  # what was loaded is what was hashed: the file did not change meanwhile
         check_checkpoints(((spec.name, checkpoint, digest),))
     return PolicyRun(spec, params, pjson, checkpoint, digest, config_id, policy)
+
+
+def policy_config_id(name: str, pjson: str, digest: str) -> str:
+    """A policy configuration's id: its name, validated parameters and checkpoint content."""
+    return hashlib.sha256(f"{name}|{pjson}|{digest}".encode()).hexdigest()[:12]
+
+
+def readopted(rebuild: Callable[[], ResolvedRun], adopted: dict[str, tuple[str, str]]) -> ResolvedRun:
+    """A worker's rebuilt run with the parameters and config ids that --resume adopted
+    from the recorded rows (harness/resume.py), keyed by the id the config resolves to:
+    the worker finds each episode it is sent by that id."""
+    resolved = rebuild()
+    for p in resolved.policies:
+        if p.config_id in adopted:
+            p.params_json, p.config_id = adopted[p.config_id]
+    return resolved
+
+
+def worker_rebuild(rebuild: Callable[[], ResolvedRun], resolved: ResolvedRun) -> Callable[[], ResolvedRun]:
+    """`rebuild`, applying what this run adopted on --resume (none: `rebuild` itself)."""
+    adopted = {}
+    for p in resolved.policies:
+        try:
+            resolved_as = params_json(p.params)
+        except (TypeError, ValueError):
+            continue  # not a registry's parameters (a test's stand-in): nothing was adopted
+        if resolved_as != p.params_json:
+            adopted[policy_config_id(p.spec.name, resolved_as, p.checkpoint_sha256)] = (
+                p.params_json,
+                p.config_id,
+            )
+    return partial(readopted, rebuild, adopted) if adopted else rebuild
 
 
 class CheckpointChanged(HarnessError):

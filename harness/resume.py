@@ -21,6 +21,12 @@ Two differences are not refused:
 - A policy that gained a parameter since the rows were recorded (a package upgrade),
   at that parameter's default: the rows are taken as made at the default, which is what
   a defaulted parameter promises, instead of running every episode again.
+- A checkpoint that the same config resolves to another path (a shipped checkpoint, or
+  a set name such as `checkpoint=metaworld-mt10`, in a clone at another folder: run
+  folders move between machines, CI clones to temporary folders): with the same file
+  name and the same content (sha256) the rows are that model's, and the run continues
+  under the recorded parameters and config id. With other content it is refused, since
+  the rows would not be one model's (`adopt_moved_checkpoints`).
 """
 
 from __future__ import annotations
@@ -36,7 +42,14 @@ import pandas as pd
 from harness.action_space import DEFAULT_OUT_OF_SPACE
 from harness.config import ResolvedRun, build_config
 from harness.errors import UsageError
-from policies.registry import PolicyParamError, UnknownPolicyError, get_policy, params_json, parse_params
+from policies.registry import (
+    SHIPPED_CHECKPOINTS,
+    PolicyParamError,
+    UnknownPolicyError,
+    get_policy,
+    params_json,
+    parse_params,
+)
 from results.store import ResultsFileError, RunDir
 
 # Failure reasons that say the machinery failed, not the policy: a worker process or Ray
@@ -259,3 +272,135 @@ def changed_checkpoints(
                 f"and now has {(p.checkpoint_sha256 or 'none')[:12]}"
             )
     return changes
+
+
+def _recorded_sets(
+    manifest: Mapping[str, Any], recorded: pd.DataFrame
+) -> dict[str, dict[str, tuple[str, set[str]]]]:
+    """policy -> recorded params JSON -> (its config id, the checkpoint sha256s recorded
+    with it), from the manifest's policies and the rows."""
+    seen: dict[str, dict[str, tuple[str, set[str]]]] = {}
+    for p in manifest.get("policies") or []:
+        if isinstance(p.get("params"), str):
+            entry = seen.setdefault(str(p.get("name")), {}).setdefault(
+                p["params"], (str(p.get("config_id") or ""), set())
+            )
+            if p.get("checkpoint_sha256"):
+                entry[1].add(str(p["checkpoint_sha256"]))
+    if len(recorded):
+        cols = ["policy", "policy_params", "policy_config_id", "checkpoint_sha256"]
+        for name, params, config_id, digest in recorded[cols].drop_duplicates().itertuples(index=False):
+            entry = seen.setdefault(name, {}).setdefault(params, (config_id, set()))
+            if isinstance(digest, str) and digest:
+                entry[1].add(digest)
+    return seen
+
+
+def _other_checkpoint(recorded: str, current: str) -> str | None:
+    """The recorded `checkpoint` when the two parameter sets differ in it alone; else None."""
+    try:
+        old, new = json.loads(recorded), json.loads(current)
+    except (ValueError, TypeError):
+        return None
+    if not isinstance(old, dict) or not isinstance(new, dict) or set(old) != set(new):
+        return None
+    if "checkpoint" not in old or old["checkpoint"] == new["checkpoint"]:
+        return None
+    if any(old[k] != new[k] for k in old if k != "checkpoint"):
+        return None
+    return str(old["checkpoint"])
+
+
+def _shipped_elsewhere(recorded: str, current: str) -> bool:
+    """Whether `recorded` is this checkout's shipped checkpoint `current` in another
+    checkout: the same file name under another folder's policies/checkpoints/."""
+    old, new = Path(recorded), Path(current)
+    return (
+        new.parent == SHIPPED_CHECKPOINTS
+        and old.name == new.name
+        and old.parent.parts[-2:] == (SHIPPED_CHECKPOINTS.parent.name, SHIPPED_CHECKPOINTS.name)
+    )
+
+
+def adopt_moved_checkpoints(
+    manifest: Mapping[str, Any], recorded: pd.DataFrame, resolved: ResolvedRun
+) -> list[str]:
+    """Match rows whose checkpoint the same config resolved to another path; returns one
+    notice per such policy, or refuses (UsageError) when the rows cannot be matched.
+
+    A row's key holds the checkpoint's path, and a shipped checkpoint (the decoders'
+    default, or a set name) resolves to an absolute path inside the clone, so a run
+    folder resumed from a clone at another folder would otherwise start every policy
+    again as a new configuration beside its recorded rows. The config was already found
+    equal (config_changes), so a path that differs is where this install keeps the file;
+    with the same file name and the same sha256 the rows are this model's, and the run
+    continues under the recorded parameters and config id. Any other recorded set that
+    differs from a policy of this run in `checkpoint` alone, and that no policy of this
+    run matches, is refused naming both files: running it again would put a second
+    configuration of one policy beside the first."""
+    seen = _recorded_sets(manifest, recorded)
+    claimed = {(run.spec.name, run.params_json) for run in resolved.policies}
+    notices = []
+    for run in resolved.policies:
+        known = seen.get(run.spec.name, {})
+        if run.params_json in known or not run.checkpoint:
+            continue
+        for params, (config_id, digests) in known.items():
+            path = _other_checkpoint(params, run.params_json)
+            if (
+                (run.spec.name, params) in claimed
+                or path is None
+                or Path(path).name != Path(run.checkpoint).name
+            ):
+                continue
+            if digests != {run.checkpoint_sha256}:
+                continue
+            what = "shipped checkpoint" if _shipped_elsewhere(path, run.checkpoint) else "checkpoint file"
+            notices.append(
+                f"--resume: policy {run.spec.name!r}: its rows were recorded with the same {what} "
+                f"(sha256 {run.checkpoint_sha256[:12]}) at another path, {path}; this run loads "
+                f"{run.checkpoint} and keeps the recorded parameters (policy_config_id {config_id})"
+            )
+            claimed.add((run.spec.name, params))
+            run.params_json, run.config_id = params, config_id
+            break
+    refusals = []
+    for run in resolved.policies:
+        known = seen.get(run.spec.name, {})
+        if run.params_json in known:
+            continue
+        for params, (_config_id, digests) in known.items():
+            path = _other_checkpoint(params, run.params_json)
+            if (run.spec.name, params) not in claimed and path is not None:
+                refusals.append(_unmatched(run, path, digests, manifest))
+                claimed.add((run.spec.name, params))
+                break
+    if refusals:
+        raise UsageError("--resume: " + "; ".join(refusals))
+    return notices
+
+
+def _unmatched(run: Any, path: str, digests: set[str], manifest: Mapping[str, Any]) -> str:
+    """Why rows recorded with checkpoint `path` are not this run's, and what to do."""
+    old = ", ".join(sorted(d[:12] for d in digests)) or "none recorded"
+    now = (run.checkpoint_sha256 or "none")[:12]
+    said = (
+        f"policy {run.spec.name!r}: its rows were recorded with checkpoint {path} (sha256 {old}) "
+        f"and this run resolves it to {run.checkpoint} (sha256 {now})"
+    )
+    if _shipped_elsewhere(path, run.checkpoint):
+        commit = (manifest.get("environment") or {}).get("git_commit")
+        at = (
+            f" ({commit[:12]}, the manifest's environment.git_commit)"
+            if isinstance(commit, str) and commit
+            else ""
+        )
+        return (
+            f"{said}: the shipped checkpoint changed between the checkout that recorded the rows and "
+            f"this one, so resuming would put two models' rows under one configuration. Resume from a "
+            f"checkout of the commit that recorded them{at}, or start a new --out"
+        )
+    return (
+        f"{said}: resuming would start it again as a new configuration beside its rows. Resume "
+        f"where the config resolves to the recorded file, or start a new --out"
+    )

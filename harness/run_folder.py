@@ -22,7 +22,13 @@ import pandas as pd
 from harness.config import ResolvedRun, build_config
 from harness.errors import HarnessError, UsageError
 from harness.manifest import build_manifest, now
-from harness.resume import adopt_recorded_params, changed_checkpoints, config_changes, config_data
+from harness.resume import (
+    adopt_moved_checkpoints,
+    adopt_recorded_params,
+    changed_checkpoints,
+    config_changes,
+    config_data,
+)
 from results.lock import RunLock, RunLockedError
 from results.manifest_check import RESUME_FIELDS
 from results.store import ResultsFileError, RunDir
@@ -137,6 +143,7 @@ def open_run(
                 "mix the two. Name the old one in --suite, or use another --out"
             )
         notices = adopt_recorded_params(manifest, recorded, resolved)
+        moved = adopt_moved_checkpoints(manifest, recorded, resolved)
         changed = changed_checkpoints(manifest, recorded, resolved)
         if changed:
             raise UsageError(
@@ -154,6 +161,9 @@ def open_run(
         for notice in notices:
             _say(notice)
             run_dir.log_event("policy_params_matched_at_defaults", notice=notice)
+        for notice in moved:
+            _say(notice)
+            run_dir.log_event("checkpoint_matched_at_another_path", notice=notice)
         return run_dir, manifest["run_id"], recorded
     if overwrite and not run_dir.is_empty():
         run_dir.remove_recorded()  # only what the harness wrote: check_output refused others

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from harness.backends.local import HOST, Worker
 from harness.backends.schedule import Event, JobId
-from harness.config import CheckpointPin, check_checkpoints, checkpoint_pins
+from harness.config import CheckpointPin, check_checkpoints, checkpoint_pins, worker_rebuild
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -140,7 +140,9 @@ class ProcessWorkers:
 
     def __init__(self, resolved: ResolvedRun, execution: Execution, traces: bool):
         self.context = get_context("spawn")
-        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.rebuild = worker_rebuild(
+            execution.rebuild or partial(rebuild_from_config, resolved.config), resolved
+        )
         self.device = execution.device
         self.pins = checkpoint_pins(resolved)
         self.threads, self.asked = worker_threads(execution), execution.threads

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from harness.backends.pool import heartbeat_interval, rebuild_from_config, worker_threads
 from harness.backends.schedule import Event, JobId
-from harness.config import checkpoint_pins
+from harness.config import checkpoint_pins, worker_rebuild
 from harness.errors import UsageError
 from harness.plugins import install_hint
 
@@ -284,7 +284,9 @@ class RayWorkers:
         self.ray = ray
         self.owns_ray = execution.ray_address is None
         self.threads, self.asked = worker_threads(execution), execution.threads
-        self.rebuild = execution.rebuild or partial(rebuild_from_config, resolved.config)
+        self.rebuild = worker_rebuild(
+            execution.rebuild or partial(rebuild_from_config, resolved.config), resolved
+        )
         self.device = execution.device  # each actor resolves it on its node
         self.pins = checkpoint_pins(resolved)
         self.workers, self.traces = execution.workers, traces
