@@ -397,8 +397,8 @@ def _unmatched(run: Any, path: str, digests: set[str], manifest: Mapping[str, An
         )
         return (
             f"{said}: the shipped checkpoint changed between the checkout that recorded the rows and "
-            f"this one, so resuming would put two models' rows under one configuration. Resume from a "
-            f"checkout of the commit that recorded them{at}, or start a new --out"
+            f"this one, so the rows are another model's. Resume from a checkout of the commit that "
+            f"recorded them{at}, or start a new --out"
         )
     return (
         f"{said}: resuming would start it again as a new configuration beside its rows. Resume "
