@@ -296,19 +296,21 @@ def _recorded_sets(
     return seen
 
 
-def _other_checkpoint(recorded: str, current: str) -> str | None:
-    """The recorded `checkpoint` when the two parameter sets differ in it alone; else None."""
+def _other_checkpoint(recorded: str, current: str, params_cls: type) -> tuple[str, dict[str, Any]] | None:
+    """(the recorded `checkpoint`, the parameters the recorded set predates) when the two
+    sets differ in `checkpoint` alone, or in it and parameters added at their defaults
+    (_added_at_default: a package upgraded as well as moved); else None."""
     try:
         old, new = json.loads(recorded), json.loads(current)
     except (ValueError, TypeError):
         return None
-    if not isinstance(old, dict) or not isinstance(new, dict) or set(old) != set(new):
+    if not isinstance(old, dict) or not isinstance(new, dict) or "checkpoint" not in old:
         return None
-    if "checkpoint" not in old or old["checkpoint"] == new["checkpoint"]:
+    if "checkpoint" not in new or old["checkpoint"] == new["checkpoint"]:
         return None
-    if any(old[k] != new[k] for k in old if k != "checkpoint"):
-        return None
-    return str(old["checkpoint"])
+    here = old | {"checkpoint": new["checkpoint"]}
+    added = {} if here == new else _added_at_default(json.dumps(here), current, params_cls)
+    return (str(old["checkpoint"]), added) if here == new or added else None
 
 
 def _shipped_elsewhere(recorded: str, current: str) -> bool:
@@ -346,12 +348,11 @@ def adopt_moved_checkpoints(
         if run.params_json in known or not run.checkpoint:
             continue
         for params, (config_id, digests) in known.items():
-            path = _other_checkpoint(params, run.params_json)
-            if (
-                (run.spec.name, params) in claimed
-                or path is None
-                or Path(path).name != Path(run.checkpoint).name
-            ):
+            other = _other_checkpoint(params, run.params_json, run.spec.params)
+            if (run.spec.name, params) in claimed or other is None:
+                continue
+            path, added = other
+            if Path(path).name != Path(run.checkpoint).name:
                 continue
             if digests != {run.checkpoint_sha256}:
                 continue
@@ -360,6 +361,12 @@ def adopt_moved_checkpoints(
                 f"--resume: policy {run.spec.name!r}: its rows were recorded with the same {what} "
                 f"(sha256 {run.checkpoint_sha256[:12]}) at another path, {path}; this run loads "
                 f"{run.checkpoint} and keeps the recorded parameters (policy_config_id {config_id})"
+                + (
+                    f"; parameters the rows predate are at their defaults "
+                    f"({', '.join(f'{k}={v!r}' for k, v in added.items())})"
+                    if added
+                    else ""
+                )
             )
             claimed.add((run.spec.name, params))
             run.params_json, run.config_id = params, config_id
@@ -370,9 +377,9 @@ def adopt_moved_checkpoints(
         if run.params_json in known:
             continue
         for params, (_config_id, digests) in known.items():
-            path = _other_checkpoint(params, run.params_json)
-            if (run.spec.name, params) not in claimed and path is not None:
-                refusals.append(_unmatched(run, path, digests, manifest))
+            other = _other_checkpoint(params, run.params_json, run.spec.params)
+            if (run.spec.name, params) not in claimed and other is not None:
+                refusals.append(_unmatched(run, other[0], digests, manifest))
                 claimed.add((run.spec.name, params))
                 break
     if refusals:

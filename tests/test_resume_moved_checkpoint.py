@@ -157,3 +157,19 @@ def test_a_user_checkpoint_of_the_same_name_and_content_elsewhere_is_continued_a
         resolved.policies = [run_]
         with pytest.raises(UsageError, match="resuming would start it again as a new configuration"):
             adopt_moved_checkpoints({}, _rows((pjson, config_id, digest or run_.checkpoint_sha256)), resolved)
+
+
+def test_rows_both_moved_and_predating_a_defaulted_parameter_are_continued(tmp_path):
+    """A clone at another folder on an older package: the recorded set lacks `seed` (at
+    its default now) as well as naming the other path."""
+    run_ = decoder({})
+    values = json.loads(run_.params_json) | {
+        "checkpoint": str(tmp_path / "policies/checkpoints" / SHIPPED_FILE)
+    }
+    del values["seed"]
+    pjson = json.dumps(values, sort_keys=True, separators=(",", ":"))
+    resolved = fake_resolved(ChunkPolicy())
+    resolved.policies = [run_]
+    notices = adopt_moved_checkpoints({}, _rows((pjson, "recorded0001", run_.checkpoint_sha256)), resolved)
+    assert "the same shipped checkpoint" in notices[0] and "at their defaults (seed=0)" in notices[0]
+    assert (run_.params_json, run_.config_id) == (pjson, "recorded0001")
