@@ -11,7 +11,8 @@ import pytest
 from adapters import libero as lb
 from adapters import libero_states
 
-pytestmark = pytest.mark.libero
+# one worker under pytest-xdist (--dist loadgroup): the module's LIBERO env is built once
+pytestmark = [pytest.mark.libero, pytest.mark.xdist_group("libero-states")]
 needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 TASK = 3  # spatial: a bowl, a plate, a ramekin, cookies, a cabinet and a stove
 
