@@ -6,8 +6,8 @@ blocks of 4 and 8, two easy MT10 tasks, two episodes each, with decode traces. I
 interrupted after 3 of its 8 episodes and finished by `dvla-harness sweep --resume`,
 so every test that reads it also relies on resume.
 
-Under pytest-xdist the cache is per worker process: both modules carry SAME_WORKER
-(tox.ini runs --dist loadgroup), so the sweep is made once, not once on every worker.
+Under pytest-xdist (tox.ini: --dist loadfile) the cache is per worker: made once for
+each of the two modules when they run on different workers.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ SWEEP_ARGS = [
     "--traces", "--quiet",
 ]  # fmt: skip
 INTERRUPT_AFTER = 3
-SAME_WORKER = pytest.mark.xdist_group("real-sweep")
 
 
 @dataclass(frozen=True)

@@ -30,10 +30,10 @@ from tests.fakes import FakeBuild
 REPO = Path(__file__).resolve().parent.parent
 HAS_RAY = importlib.util.find_spec("ray") is not None
 NEEDS_RAY = pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
-# Under pytest-xdist (tox.ini: --dist loadgroup) the tests that start a local Ray cluster run
-# on one worker, one after another: each cluster claims every core (num_cpus), and two at
-# once starve the other's actors past these tests' episode timeouts.
-ONE_RAY_AT_A_TIME = pytest.mark.xdist_group("local-ray")
+# Every test that starts a local Ray cluster stays in this file: tox.ini runs the suite with
+# pytest-xdist's --dist loadfile (a file on one worker), so one cluster runs at a time; each
+# claims every core (num_cpus), and two at once slow each other's actors towards these
+# tests' episode timeouts.
 
 
 def _rows(report):
@@ -103,7 +103,7 @@ def test_a_task_is_split_into_episode_ranges_only_when_workers_would_idle():
     assert not units_by_task([], workers=4)
 
 
-@pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=[NEEDS_RAY, ONE_RAY_AT_A_TIME])])
+@pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=NEEDS_RAY)])
 def test_a_one_task_suite_runs_on_every_worker_with_the_rows_of_one_process(tmp_path, backend):
     build = FakeBuild(episodes=4, delay=0.5)  # slow enough for both workers to start
     alone = run(build(), tmp_path / "one")
@@ -357,7 +357,7 @@ def _running(pid: int) -> bool:
     return "State:\tZ" not in status
 
 
-@pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=[NEEDS_RAY, ONE_RAY_AT_A_TIME])])
+@pytest.mark.parametrize("backend", ["local", pytest.param("ray", marks=NEEDS_RAY)])
 def test_parent_sigkill_then_resume_records_each_episode_once(tmp_path, backend):
     out = tmp_path / "r"
     script = tmp_path / "go.py"
@@ -497,7 +497,6 @@ def test_ray_actor_death_reason_is_one_line_of_at_most_300_characters():
 
 
 @NEEDS_RAY
-@ONE_RAY_AT_A_TIME
 def test_ray_actors_give_the_same_rows_survive_faults_and_say_where_they_decoded(tmp_path):
     # in each task: 1 is killed once (its retry passes), 2 hangs; 3 kills its actor every
     # time, by a segfault in one task and os._exit in the other: retried, then a failure row
@@ -527,7 +526,6 @@ def test_ray_actors_give_the_same_rows_survive_faults_and_say_where_they_decoded
 
 
 @NEEDS_RAY
-@ONE_RAY_AT_A_TIME
 def test_ray_actors_run_batches_and_rerun_a_lost_batch_alone(tmp_path):
     # in each task, 3-5 are in flight when episode 4's first decode kills the actor (once)
     build = FakeBuild(faults=((4, "sigkill:once"),), marks=str(tmp_path), episodes=6, tasks=2, batch=True)
@@ -583,7 +581,6 @@ def test_bad_backend_flags_exit_2_and_write_nothing(cli, tmp_path, monkeypatch, 
 
 
 @NEEDS_RAY
-@ONE_RAY_AT_A_TIME
 def test_ray_workers_asking_for_gpus_this_machine_lacks_exit_2_and_write_nothing(cli, tmp_path, monkeypatch):
     import torch
 

@@ -11,8 +11,7 @@ import pytest
 from adapters import libero as lb
 from adapters import libero_states
 
-# one worker under pytest-xdist (--dist loadgroup): the module's LIBERO env is built once
-pytestmark = [pytest.mark.libero, pytest.mark.xdist_group("libero-states")]
+pytestmark = pytest.mark.libero
 needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 TASK = 3  # spatial: a bowl, a plate, a ramekin, cookies, a cabinet and a stove
 

@@ -1,5 +1,4 @@
-"""The suite's own run: on every core (pytest-xdist), with the tests that must share a
-worker kept together, and the docs naming the groups the tests use.
+"""The suite's own run: on every core (pytest-xdist), each test file on one worker.
 
 The project's rule is a test suite under 15 minutes on an idle 2-core machine; serially
 it took over 16, so the parallel run is part of the README's test command, not an option.
@@ -14,7 +13,6 @@ import tomllib
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-GROUP = re.compile(r"xdist_group\(\"([\w-]+)\"\)")
 
 
 def _pytest_command() -> list[str]:
@@ -25,20 +23,20 @@ def _pytest_command() -> list[str]:
     return shlex.split(command)
 
 
-def test_tox_runs_the_suite_on_every_core_and_keeps_each_group_on_one_worker():
+def test_tox_runs_the_suite_on_every_core_and_each_file_on_one_worker():
     argv = _pytest_command()
     assert argv[argv.index("-n") + 1] == "auto"
-    assert argv[argv.index("--dist") + 1] == "loadgroup"  # any other mode ignores xdist_group
+    # a file on one worker: test_backends.py's local Ray clusters one at a time, module fixtures once
+    assert argv[argv.index("--dist") + 1] == "loadfile"
     # the user's arguments come last, so `tox -e test -- -n 0` runs serially
     assert argv[-1] == "{posargs}"
     extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     assert any(re.match(r"pytest-xdist\b", requirement) for requirement in extras["dev"])
 
 
-def test_the_groups_the_docs_explain_are_the_groups_the_tests_use():
-    used = {g for path in (REPO / "tests").glob("*.py") for g in GROUP.findall(path.read_text())}
-    text = (REPO / "docs" / "architecture.md").read_text()
-    section = text[text.index("## The test suite in parallel") :]
-    documented = set(re.findall(r"^\| `([\w-]+)` \|", section, re.M))
-    assert used == documented
-    assert {"local-ray", "real-sweep"} <= used
+def test_no_test_relies_on_an_xdist_group():
+    """pytest 9.2 drops loadgroup's grouping silently (the group rides on a node id pytest
+    no longer lets xdist change): a test that needs company goes in the same file instead."""
+    others = [p for p in (REPO / "tests").glob("*.py") if p.name != Path(__file__).name]
+    assert len(others) > 50
+    assert [p.name for p in others if "xdist_group(" in p.read_text()] == []

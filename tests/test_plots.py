@@ -13,11 +13,9 @@ from matplotlib.figure import Figure
 
 from results import plots
 from results.store import TRACES, RunDir
-from tests.real_sweep import SAME_WORKER, real_sweep
+from tests.real_sweep import real_sweep
 
 PNG = b"\x89PNG\r\n\x1a\n"
-
-pytestmark = SAME_WORKER  # one worker runs these, so the real sweep is made once (tests/real_sweep.py)
 
 
 @pytest.fixture(scope="module")

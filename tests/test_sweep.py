@@ -17,10 +17,8 @@ from harness.sweep import expand, parse_grid
 from policies.base import ChunkBatch
 from results.store import TRACES, RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
-from tests.real_sweep import INTERRUPT_AFTER, SAME_WORKER, SWEEP_ARGS, real_sweep
+from tests.real_sweep import INTERRUPT_AFTER, SWEEP_ARGS, real_sweep
 from tests.test_plugins import installed_plugin  # noqa: F401  (a fixture)
-
-pytestmark = SAME_WORKER  # one worker runs these, so the real sweep is made once (tests/real_sweep.py)
 
 MT1 = ["--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--quiet"]
 
