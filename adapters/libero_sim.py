@@ -62,7 +62,11 @@ def configure_libero() -> None:
     config = folder / "config.yaml"
     text = "\n".join(lines) + "\n"
     if not config.is_file() or config.read_text() != text:
-        config.write_text(text)
+        # whole or not at all: another process (a second test worker, a parallel run) may be
+        # importing LIBERO from this file right now
+        partial = config.with_name(f"config.yaml.tmp{os.getpid()}")
+        partial.write_text(text)
+        partial.replace(config)
     os.environ["LIBERO_CONFIG_PATH"] = str(folder)
     # robosuite warns at import that it has no private macro file; it is optional.
     import logging

@@ -5,6 +5,9 @@ shipped fast_dvla checkpoint (32 action tokens, trained with blocks of 4) decode
 blocks of 4 and 8, two easy MT10 tasks, two episodes each, with decode traces. It is
 interrupted after 3 of its 8 episodes and finished by `dvla-harness sweep --resume`,
 so every test that reads it also relies on resume.
+
+Under pytest-xdist (tox.ini: --dist loadfile) the cache is per worker: made once for
+each of the two modules when they run on different workers.
 """
 
 from __future__ import annotations

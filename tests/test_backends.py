@@ -30,6 +30,10 @@ from tests.fakes import FakeBuild
 REPO = Path(__file__).resolve().parent.parent
 HAS_RAY = importlib.util.find_spec("ray") is not None
 NEEDS_RAY = pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
+# Every test that starts a local Ray cluster stays in this file: tox.ini runs the suite with
+# pytest-xdist's --dist loadfile (a file on one worker), so one cluster runs at a time; each
+# claims every core (num_cpus), and two at once slow each other's actors towards these
+# tests' episode timeouts.
 
 
 def _rows(report):

@@ -50,15 +50,16 @@ def test_success_stops_mid_chunk():
 
 
 def test_timing_columns_add_up_and_measure_each_side():
-    env, policy = CountdownEnv(succeed_at=12, step_delay=0.004), ChunkPolicy(chunk=4, delay=0.01)
+    # each side sleeps 0.12 s in all: the margin a sleep may overrun on a busy CPU (parallel tests)
+    env, policy = CountdownEnv(succeed_at=12, step_delay=0.01), ChunkPolicy(chunk=4, delay=0.04)
     out = _run(env, policy)
     total = out.policy_time_s + out.env_time_s + (out.wall_clock_s - out.policy_time_s - out.env_time_s)
     assert math.isclose(total, out.wall_clock_s, rel_tol=0.05)
     # Each side carries its own sleeps and not the other's.
-    assert out.env_time_s >= 12 * 0.004
-    assert out.policy_time_s >= 3 * 0.01
-    assert out.env_time_s < 12 * 0.004 + 3 * 0.01
-    assert out.policy_time_s < 3 * 0.01 + 12 * 0.004
+    assert out.env_time_s >= 12 * 0.01
+    assert out.policy_time_s >= 3 * 0.04
+    assert out.env_time_s < 12 * 0.01 + 3 * 0.04
+    assert out.policy_time_s < 3 * 0.04 + 12 * 0.01
     overhead = out.wall_clock_s - out.policy_time_s - out.env_time_s
     assert 0 <= overhead < 0.05 * out.wall_clock_s
 
