@@ -201,20 +201,13 @@ def adopt_recorded_params(
     recorded parameter set lacks only keys whose current value is their default, this
     run continues under the recorded parameters and config id (its new rows join the
     old ones as one configuration)."""
-    seen: dict[str, dict[str, str]] = {}  # policy -> recorded params JSON -> config id
-    for p in manifest.get("policies") or []:
-        if isinstance(p.get("params"), str):
-            seen.setdefault(str(p.get("name")), {})[p["params"]] = str(p.get("config_id") or "")
-    if len(recorded):
-        cols = ["policy", "policy_params", "policy_config_id"]
-        for name, params, config_id in recorded[cols].drop_duplicates().itertuples(index=False):
-            seen.setdefault(name, {}).setdefault(params, config_id)
+    seen = _recorded_sets(manifest, recorded)
     notices = []
     for run in resolved.policies:
         known = seen.get(run.spec.name, {})
         if not known or run.params_json in known:
             continue
-        for params, config_id in known.items():
+        for params, (config_id, _digests) in known.items():
             added = _added_at_default(params, run.params_json, run.spec.params)
             if added:
                 notices.append(
@@ -254,18 +247,11 @@ def changed_checkpoints(
     The config names a checkpoint by path; what was evaluated is its content, so a file
     replaced at the same path is another model, and resuming would put two models' rows
     under one policy label."""
-    known: dict[tuple[str, str], set[str]] = {}
-    for p in manifest.get("policies") or []:
-        if p.get("checkpoint_sha256"):
-            known.setdefault((p.get("name"), p.get("params")), set()).add(p["checkpoint_sha256"])
-    if len(recorded):
-        cols = ["policy", "policy_params", "checkpoint_sha256"]
-        for name, params, digest in recorded[cols].drop_duplicates().itertuples(index=False):
-            if isinstance(digest, str) and digest:
-                known.setdefault((name, params), set()).add(digest)
+    seen = _recorded_sets(manifest, recorded)
     changes = []
     for p in resolved.policies:
-        old = sorted(known.get((p.spec.name, p.params_json), set()) - {p.checkpoint_sha256})
+        _, digests = seen.get(p.spec.name, {}).get(p.params_json, ("", set()))
+        old = sorted(digests - {p.checkpoint_sha256})
         if old:
             changes.append(
                 f"policy {p.spec.name}: checkpoint {p.checkpoint!r} had sha256 {old[0][:12]} "
