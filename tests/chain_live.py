@@ -11,12 +11,13 @@ Predicate = tuple[str, ...]
 
 
 def expert_plays_a_pair(
-    scene: str, chain: tuple[str, ...], done: Predicate, undone: Predicate
+    scene: str, chain: tuple[str, ...], done: Predicate, undone: Predicate, init_state_id: int = 0
 ) -> tuple[tuple[bool, bool], list[tuple[bool, bool]], dict[str, Any], dict[str, Any]]:
     """Run `chain` in `scene` with the expert until its second subtask ends.
 
     Returns what LIBERO's predicates say of (`done`, `undone`) at the reset and at the end of
-    each of the first two subtasks, and the two subtasks' records. Fails the calling test
+    each of the first two subtasks, and the two subtasks' records (from LIBERO's initial
+    state `init_state_id` of the scene's task). Fails the calling test
     when the chain ends first (a failed subtask)."""
     from adapters import chains
     from adapters.base import EpisodeSpec
@@ -27,7 +28,9 @@ def expert_plays_a_pair(
     task = suite.tasks[0]
     env = suite.make_env(task)
     try:
-        obs, info = env.reset(options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=0, chain=chain)})
+        obs, info = env.reset(
+            options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=init_state_id, chain=chain)}
+        )
         at_start = (env.holds(done), env.holds(undone))
         expert = LiberoScripted(LiberoScriptedParams())
 

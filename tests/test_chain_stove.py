@@ -161,6 +161,46 @@ def test_the_expert_turns_the_stove_off_after_turning_it_on_on_the_live_state():
     assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]
 
 
+@needs_libero
+def test_the_expert_turns_off_a_knob_the_initial_state_left_near_the_top_of_its_range():
+    """KITCHEN_SCENE8's initial state 4 has the knob at 2.09 rad, where the bar slips out
+    of fingers closed at 1.0 rad partway round; the expert grips again and the stove is
+    off (it timed out there before the retry)."""
+    chain = ("turn_off_stove", "turn_on_stove", "turn_off_stove", "turn_on_stove", "turn_off_stove")
+    at_start, seen, first, second = expert_plays_a_pair("kitchen_scene8", chain, *STOVE, init_state_id=4)
+    assert at_start == (True, False)
+    assert seen == [(False, True), (True, False)]
+    assert first["outcome"] == second["outcome"] == "completed"
+
+
+def test_a_turn_off_grips_again_only_while_the_stove_is_still_on():
+    """The off expert lets go and grips again once its turn has been held; the on expert
+    (a knob at rest lines up with the hand) never does, so LIBERO's single tasks act as
+    before."""
+    from policies.experts.libero_knob import RETRY_OFF, Knob, KnobExpert, turn_off
+    from policies.experts.libero_scripted import OPEN, LiberoScriptedParams
+
+    obs = np.zeros(20)
+    obs[0:7] = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]  # the hand, already at the bar
+    obs[10:17] = [0.0, 0.0, 0.96, 0.0, 0.0, 0.0, 1.0]  # the stove
+
+    def phases(expert: KnobExpert, steps: int) -> list[str]:
+        seen = []
+        for _ in range(steps):
+            action = expert.act(obs)
+            seen.append(expert.phase)
+            if expert.phase == "release" and 1 <= expert.count <= 8:
+                assert action[6] == OPEN and np.allclose(action[:3], 0.0)  # lets go in place
+        return seen
+
+    off = KnobExpert(turn_off(slice(10, 17)), LiberoScriptedParams())
+    seen = phases(off, 1000)
+    assert seen.count("release") == 36 * (RETRY_OFF - 1) and off.grips == RETRY_OFF
+    assert seen[-1] == "turn"  # the last grip holds its turn
+    on = KnobExpert(Knob(body=slice(10, 17)), LiberoScriptedParams())
+    assert "release" not in phases(on, 1000)
+
+
 def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():
     """A moka pot (8.2 cm across, wider than the open hand) is gripped on its handle, 7.4
     cm out along the pot's own +y: a pot turned 180 degrees about z has it on world -y."""
@@ -182,6 +222,49 @@ def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():
     )
     bowl.phase = "lower"
     assert not bowl.lowering  # gripped over its centre: let go where LIBERO credits it, as before
+
+
+def test_the_pan_grasp_keeps_the_hand_clear_of_a_moka_pots_handle():
+    """The hand (21 cm along its closing axis) across the pan's handle must keep clear of a
+    moka pot's handle, which stands 7.4 cm out from the pot's origin: the origin alone (a
+    3.5 cm disc) looks clear, the handle does not (kitchen_scene3, chain 9: the pan was
+    never lifted)."""
+    from policies.experts import libero_scripted as ls
+    from policies.experts.libero_geometry import GEOMETRY
+
+    obs = np.zeros(40)
+    obs[3:7] = [1.0, 0.0, 0.0, 0.0]  # the hand, fingers down, closing along world y
+    obs[20:27] = [0.0, 0.0, 0.9, 0.0, 0.0, 0.0, 1.0]  # the pan, its handle along +x: gripped at (0.16, 0)
+    obs[27:34] = [
+        0.16,
+        0.2,
+        0.97,
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+    ]  # a pot turned 180 degrees: its handle at (0.16, 0.126)
+    plan = ls.PickPlace(
+        obj=slice(20, 27), obj_geom=GEOMETRY["chefmate_8_frypan"], target=slice(35, 38), target_geom=None,
+        into=False, others=(slice(27, 34),),
+    )  # fmt: skip
+    handle = np.array([0.16, 0.126])
+
+    def handle_gap(plan: ls.PickPlace) -> float:
+        """How far the chosen grasp's hand footprint stays from the pot's handle (m)."""
+        expert = ls.PickPlaceExpert(plan, ls.LiberoScriptedParams(), None)
+        expert.home_rot = np.diag([1.0, -1.0, -1.0])
+        rot, point = expert._grasp(obs)
+        closing = rot[:2, 1] / np.linalg.norm(rot[:2, 1])
+        rel = handle - point[:2]
+        u, v = abs(rel @ closing), abs(rel @ np.array([-closing[1], closing[0]]))
+        return float(np.hypot(max(u - ls.HAND_HALF[0], 0.0), max(v - ls.HAND_HALF[1], 0.0)))
+
+    blind = handle_gap(plan)  # the pot's origin is 20 cm away: the straight grip looks clear
+    seeing = handle_gap(
+        dataclasses.replace(plan, other_handles=((slice(27, 34), GEOMETRY["moka_pot"].grip_xy),))
+    )
+    assert blind < ls.OBSTACLE_RADIUS + ls.HAND_CLEARANCE <= seeing
 
 
 def test_closing_a_drawer_pushes_one_left_just_ajar():

@@ -12,7 +12,12 @@ backwards: LIBERO counts the stove as off only below 0.0 rad, the knob's stop be
 -0.005, so the bar is turned back past where it started. The knob's angle is not among
 the poses the experts read, so the hand comes down turned as the turn-on left the bar
 (TURN_TO) and closing the fingers lines the bar up with them; then it turns OFF_PAST
-beyond the start, against the stop.
+beyond the start, against the stop. KITCHEN_SCENE8's initial states draw the knob
+anywhere in LIBERO's on range (0.5-2.1 rad); from past ~2.0 the bar slips out of fingers
+closed at 1.0 rad partway round (traced: 2.09 to 0.80), so a turn-off that ends with the
+stove still on lets go, rises and grips again from TURN_TO (RETRY_OFF): the bar is then
+within reach of the fingers. A chain's subtask ends the step its goal holds, so a retry
+only ever follows a turn that failed.
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ KNOBS = ("flat_stove",)  # categories whose `TurnOn` is this knob
 TURN_TO = 1.0  # wrist turn (rad, counter-clockwise: the hinge's positive direction)
 TURN_RATE = 0.1  # rad per control step
 OFF_PAST = 0.3  # turning off: the wrist turns this far (rad) past the knob's start, into its stop
+RETRY_OFF = 3  # turning off: grips in all, each after the last turn ended with the stove still on
+HOLD_TURNED = 10  # steps the turned wrist is held before a turn-off lets go to grip again
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,7 @@ class KnobExpert:
         self.plan, self.params = plan, params
         self.phase, self.count = "approach", 0
         self.home_rot: np.ndarray | None = None
+        self.grips = 1
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         eef, rot = obs[0:3], quat_to_mat(obs[3:7])
@@ -81,6 +89,16 @@ class KnobExpert:
             grip = CLOSE
             turned = min(abs(end - start), TURN_RATE * self.count)
             want = yaw_matrix(start + np.sign(end - start) * turned) @ self.home_rot
+            held = self.count - abs(end - start) / TURN_RATE
+            if end < start and self.grips < RETRY_OFF and held > HOLD_TURNED:
+                self.grips += 1
+                self._next("release")
+        elif self.phase == "release":  # open in place, rise, turn back, then grip again
+            above = grip_point + np.array([0.0, 0.0, 0.08])
+            target = eef if self.count <= 8 else above
+            want = yaw_matrix(end if self.count <= 20 else start) @ self.home_rot
+            if self.count > 35:
+                self._next("approach")
         move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
         turn = np.clip(rotation_error(want, rot) / MAX_DELTA_RAD, -1.0, 1.0)
         return np.concatenate([move, turn, [grip]]).astype(np.float32)
