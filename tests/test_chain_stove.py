@@ -224,49 +224,6 @@ def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():
     assert not bowl.lowering  # gripped over its centre: let go where LIBERO credits it, as before
 
 
-def test_the_pan_grasp_keeps_the_hand_clear_of_a_moka_pots_handle():
-    """The hand (21 cm along its closing axis) across the pan's handle must keep clear of a
-    moka pot's handle, which stands 7.4 cm out from the pot's origin: the origin alone (a
-    3.5 cm disc) looks clear, the handle does not (kitchen_scene3, chain 9: the pan was
-    never lifted)."""
-    from policies.experts import libero_scripted as ls
-    from policies.experts.libero_geometry import GEOMETRY
-
-    obs = np.zeros(40)
-    obs[3:7] = [1.0, 0.0, 0.0, 0.0]  # the hand, fingers down, closing along world y
-    obs[20:27] = [0.0, 0.0, 0.9, 0.0, 0.0, 0.0, 1.0]  # the pan, its handle along +x: gripped at (0.16, 0)
-    obs[27:34] = [
-        0.16,
-        0.2,
-        0.97,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-    ]  # a pot turned 180 degrees: its handle at (0.16, 0.126)
-    plan = ls.PickPlace(
-        obj=slice(20, 27), obj_geom=GEOMETRY["chefmate_8_frypan"], target=slice(35, 38), target_geom=None,
-        into=False, others=(slice(27, 34),),
-    )  # fmt: skip
-    handle = np.array([0.16, 0.126])
-
-    def handle_gap(plan: ls.PickPlace) -> float:
-        """How far the chosen grasp's hand footprint stays from the pot's handle (m)."""
-        expert = ls.PickPlaceExpert(plan, ls.LiberoScriptedParams(), None)
-        expert.home_rot = np.diag([1.0, -1.0, -1.0])
-        rot, point = expert._grasp(obs)
-        closing = rot[:2, 1] / np.linalg.norm(rot[:2, 1])
-        rel = handle - point[:2]
-        u, v = abs(rel @ closing), abs(rel @ np.array([-closing[1], closing[0]]))
-        return float(np.hypot(max(u - ls.HAND_HALF[0], 0.0), max(v - ls.HAND_HALF[1], 0.0)))
-
-    blind = handle_gap(plan)  # the pot's origin is 20 cm away: the straight grip looks clear
-    seeing = handle_gap(
-        dataclasses.replace(plan, other_handles=((slice(27, 34), GEOMETRY["moka_pot"].grip_xy),))
-    )
-    assert blind < ls.OBSTACLE_RADIUS + ls.HAND_CLEARANCE <= seeing
-
-
 def test_closing_a_drawer_pushes_one_left_just_ajar():
     """A drawer 2 cm out (where revision 5 leaves one it shut to clear the hand's way) is
     out of the way, so clearing leaves it; closing it is a chain's goal, so the close

@@ -157,9 +157,6 @@ class PickPlace:
     # one going into that cabinet's drawer, where the hand's length along y would hit it.
     across: slice | None = None
     others: tuple[slice, ...] = ()  # poses of the other objects (obstacles for the hand)
-    # handles of other objects (their pose and Geometry.grip_xy), obstacles as well: a moka
-    # pot's handle stands 7.4 cm out from the origin the `others` disc is centred on
-    other_handles: tuple[tuple[slice, tuple[float, float]], ...] = ()
     # `In` a region of a container with a known floor (Geometry.inner): its pose and geometry
     container: slice | None = None
     container_geom: Geometry | None = None
@@ -244,11 +241,7 @@ class PickPlaceExpert:
         g = self.plan.obj_geom
         if g.align < 0 or g.slide <= 0 or not self.plan.others:
             return rot, point
-        handles = [
-            obs[s][:2] + quat_to_mat(obs[s][3:7])[:2, :2] @ np.asarray(xy)
-            for s, xy in self.plan.other_handles
-        ]
-        obstacles = np.array([obs[s][:2] for s in self.plan.others] + handles)
+        obstacles = np.array([obs[s][:2] for s in self.plan.others])
         best, best_clearance = (rot, point), -np.inf
         for yaw, shift in GRASP_CANDIDATES:
             turned = yaw_matrix(yaw) @ rot

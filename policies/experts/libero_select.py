@@ -178,12 +178,6 @@ def plan_for(context: EpisodeContext) -> PickPlace:
         others=tuple(
             slices[n] for names in problem["objects"].values() for n in names if n not in (obj, target)
         ),
-        other_handles=tuple(
-            (slices[n], geometry(n).grip_xy)
-            for names in problem["objects"].values()
-            for n in names
-            if n not in (obj, target) and geometry(n).grip_xy != (0.0, 0.0)
-        ),
         container=slices[container] if container else None,
         container_geom=geometry(container) if container else None,
         surface=slices[furniture] if furniture else None,
