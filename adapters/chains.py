@@ -36,7 +36,7 @@ SUITE_VERSION = "2"
 PREFIX = "chains/"
 ALL = "all"
 # A chain-only suite option (the rest are LIBERO's): `goal_positions=on` appends the
-# positions of the subtask's goal arguments to the state (docs/chains.md, "Goal positions").
+# positions of the subtask's goal arguments to the state (docs/chains-policies.md, "Goal positions").
 GOAL_POSITIONS = "goal_positions"
 
 

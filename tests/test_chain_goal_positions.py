@@ -1,6 +1,6 @@
 """`goal_positions=on`, the chain suites' one option of their own: the state gains the
 positions of the goal arguments of the subtask in force, read from the state itself,
-and switching with the instruction (docs/chains.md, "Goal positions")."""
+and switching with the instruction (docs/chains-policies.md, "Goal positions")."""
 
 from __future__ import annotations
 

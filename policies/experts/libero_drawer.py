@@ -64,7 +64,7 @@ PLACE_Y = {"wooden_cabinet": -0.142}
 # fell in tilted and wedged under the cabinet's top, the drawer stuck ~5 cm out (10 of
 # the 13 chains revision 5 lost at first). Here its flank meets the wall's top edge and,
 # lowered on (Handover finishes the placement), pushes the drawer out to ~-0.12 m, where
-# it fits and rests on the floor (docs/chains.md, "The scripted expert").
+# it fits and rests on the floor (docs/chains-expert.md).
 PLACE_Y_DEEPER = {"wooden_cabinet": -0.135}
 FRONT = 0.06  # line up this far in front of the handle before going in (m)
 BACK_OFF = 0.06  # after letting go, back off to this far in front of the handle (m)
