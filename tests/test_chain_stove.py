@@ -177,7 +177,7 @@ def test_a_turn_off_grips_again_only_while_the_stove_is_still_on():
     """The off expert lets go and grips again once its turn has been held; the on expert
     (a knob at rest lines up with the hand) never does, so LIBERO's single tasks act as
     before."""
-    from policies.experts.libero_knob import RETRY_OFF, Knob, KnobExpert, turn_off
+    from policies.experts.libero_knob import LET_GO, RELEASE, RETRY_OFF, Knob, KnobExpert, turn_off
     from policies.experts.libero_scripted import OPEN, LiberoScriptedParams
 
     obs = np.zeros(20)
@@ -189,13 +189,13 @@ def test_a_turn_off_grips_again_only_while_the_stove_is_still_on():
         for _ in range(steps):
             action = expert.act(obs)
             seen.append(expert.phase)
-            if expert.phase == "release" and 1 <= expert.count <= 8:
+            if expert.phase == "release" and 1 <= expert.count <= LET_GO:
                 assert action[6] == OPEN and np.allclose(action[:3], 0.0)  # lets go in place
         return seen
 
     off = KnobExpert(turn_off(slice(10, 17)), LiberoScriptedParams())
     seen = phases(off, 1000)
-    assert seen.count("release") == 36 * (RETRY_OFF - 1) and off.grips == RETRY_OFF
+    assert seen.count("release") == (RELEASE + 1) * (RETRY_OFF - 1) and off.grips == RETRY_OFF
     assert seen[-1] == "turn"  # the last grip holds its turn
     on = KnobExpert(Knob(body=slice(10, 17)), LiberoScriptedParams())
     assert "release" not in phases(on, 1000)

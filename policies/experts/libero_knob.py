@@ -43,6 +43,9 @@ TURN_RATE = 0.1  # rad per control step
 OFF_PAST = 0.3  # turning off: the wrist turns this far (rad) past the knob's start, into its stop
 RETRY_OFF = 3  # turning off: grips in all, each after the last turn ended with the stove still on
 HOLD_TURNED = 10  # steps the turned wrist is held before a turn-off lets go to grip again
+# Letting go to grip again (steps into the release): open in place until LET_GO, rise
+# with the wrist as turned until TURN_BACK, then turn back and approach after RELEASE.
+LET_GO, TURN_BACK, RELEASE = 8, 20, 35
 
 
 @dataclass(frozen=True)
@@ -95,9 +98,9 @@ class KnobExpert:
                 self._next("release")
         elif self.phase == "release":  # open in place, rise, turn back, then grip again
             above = grip_point + np.array([0.0, 0.0, 0.08])
-            target = eef if self.count <= 8 else above
-            want = yaw_matrix(end if self.count <= 20 else start) @ self.home_rot
-            if self.count > 35:
+            target = eef if self.count <= LET_GO else above
+            want = yaw_matrix(end if self.count <= TURN_BACK else start) @ self.home_rot
+            if self.count > RELEASE:
                 self._next("approach")
         move = np.clip((target - eef) * self.params.gain, -1.0, 1.0)
         turn = np.clip(rotation_error(want, rot) / MAX_DELTA_RAD, -1.0, 1.0)
