@@ -97,7 +97,7 @@ def parse_perturb(value: str) -> tuple[str, ...]:
     if combo not in ALLOWED:  # only task with another is left out
         raise SuiteOptionError(
             f"suite option perturb={value!r}: task perturbation combines with nothing (LIBERO-PRO's "
-            "BDDLCombinedPerturbator refuses it; docs/libero.md, 'Combinations'); "
+            "BDDLCombinedPerturbator refuses it; docs/libero-pro.md, 'Combinations'); "
             f"allowed: {allowed_text()}"
         )
     return combo

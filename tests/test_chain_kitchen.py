@@ -79,13 +79,42 @@ def test_the_suite_loads_and_re_checks_the_chains_from_the_bddl():
 
 @needs_libero
 def test_the_expert_closes_what_it_opened_on_the_live_state():
-    """The scripted expert opens the top drawer (LIBERO-90's task), then closes it (the
-    authored complement): LIBERO's predicates on the live state say the close undid the
-    open, as the model's `removes` says, and both subtasks are credited."""
-    chain = ("open_top_drawer", "close_top_drawer", "bowl_on_plate", "bowl_on_cabinet", "bowl_on_plate")
-    opened, closed = ("open", "wooden_cabinet_1_top_region"), ("close", "wooden_cabinet_1_top_region")
+    """The scripted expert opens the bottom drawer (LIBERO-90's task; its bar is too low
+    to pinch, so it presses on the bar and pulls), then closes it (the authored
+    complement): LIBERO's predicates on the live state say the close undid the open, as
+    the model's `removes` says, and both subtasks are credited."""
+    chain = ("open_bottom_drawer", "close_bottom_drawer", "bowl_on_plate", "bowl_on_cabinet", "bowl_on_plate")
+    region = "wooden_cabinet_1_bottom_region"
+    opened, closed = ("open", region), ("close", region)
     at_start, seen, first, second = expert_plays_a_pair(SCENE, chain, opened, closed)
     assert not at_start[0]
     assert seen == [(True, False), (False, True)]  # opened, then closed: undone
     assert first["outcome"] == second["outcome"] == "completed"
     assert second["start_step"] == first["end_step"] and not second["goal_held_at_start"]
+
+
+@needs_libero
+@pytest.mark.parametrize(("level", "kind"), [("top", "DrawerExpert"), ("bottom", "PressPullExpert")])
+def test_the_bottom_drawer_is_pressed_open_and_the_others_pinched(level, kind):
+    """Which opening the expert picks from the subtask's goal: the pitched pinch reaches
+    the top and middle bars, not the bottom one, 4 cm above the table."""
+    from adapters import chains
+    from policies.base import EpisodeContext
+    from policies.experts.libero_scripted import LiberoScriptedParams
+    from policies.experts.libero_select import expert_for
+
+    suite = chains.load_suite(f"chains/{SCENE}")
+    scene = cs.load_scene(SCENE)
+    instruction = next(s.instruction for s in scene.subtasks if s.id == f"open_{level}_drawer")
+    env = suite.make_env(suite.tasks[0])
+    try:
+        ctx = EpisodeContext(
+            suite.name, suite.tasks[0].name, instruction, env.action_space, env.observation_space,
+            cs.STEPS_PER_SUBTASK, 0,
+        )  # fmt: skip
+        expert = expert_for(ctx, LiberoScriptedParams(), None)
+    finally:
+        env.close()
+    opener = getattr(expert, "then", expert)  # ShutFirst wraps it when other drawers are in the state
+    assert type(opener).__name__ == kind
+    assert opener.plan.level == level

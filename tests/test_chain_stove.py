@@ -224,6 +224,44 @@ def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():
     assert not bowl.lowering  # gripped over its centre: let go where LIBERO credits it, as before
 
 
+def test_a_pan_grip_slides_along_its_handle_clear_of_the_moka_pots_handle_and_never_turns():
+    """The frying pan is gripped across its handle; where the moka pot's handle (7.4 cm
+    out from the pot's origin, which the obstacle disc does not cover) lies under the
+    hand, the grip slides along the pan's handle until the hand clears it, and keeps the
+    hand square to the handle: turned, the 20 cm pan turned in the hand as it came up."""
+    from policies.experts.libero_geometry import GEOMETRY
+    from policies.experts.libero_scripted import (
+        LiberoScriptedParams,
+        PickPlace,
+        PickPlaceExpert,
+        quat_to_mat,
+    )
+
+    s45 = np.sqrt(0.5)
+    obs = np.zeros(40)
+    obs[3:7] = [1.0, 0.0, 0.0, 0.0]  # the hand pointing down (xyzw)
+    obs[20:27] = [0.0, 0.0, 0.9, 0.0, 0.0, s45, s45]  # the pan turned 90 degrees: handle along +y
+    obs[27:34] = [0.09, 0.289, 0.966, 0.0, 0.0, 1.0, 0.0]  # the pot turned 180: its handle at y 0.215
+    pan = PickPlace(
+        obj=slice(20, 27), obj_geom=GEOMETRY["chefmate_8_frypan"], target=slice(35, 38), target_geom=None,
+        into=False, others=(slice(27, 34),),
+    )  # fmt: skip
+
+    def grasp(plan: PickPlace) -> tuple[np.ndarray, np.ndarray]:
+        expert = PickPlaceExpert(plan, LiberoScriptedParams(), None)
+        expert.home_rot = quat_to_mat(obs[3:7])
+        return expert._grasp(obs)
+
+    blind_rot, blind = grasp(pan)  # the pot's body alone is far enough: 16 cm out, square
+    assert blind[:2] == pytest.approx([0.0, 0.16])
+    rot, grip = grasp(
+        dataclasses.replace(pan, other_handles=((slice(27, 34), GEOMETRY["moka_pot"].grip_xy),))
+    )
+    assert rot == pytest.approx(blind_rot)  # never turned
+    assert grip[0] == pytest.approx(0.0) and grip[1] == pytest.approx(0.145)  # 1.5 cm further in
+    assert grip[2] == pytest.approx(blind[2])
+
+
 def test_closing_a_drawer_pushes_one_left_just_ajar():
     """A drawer 2 cm out (where revision 5 leaves one it shut to clear the hand's way) is
     out of the way, so clearing leaves it; closing it is a chain's goal, so the close

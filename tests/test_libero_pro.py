@@ -40,7 +40,7 @@ def test_perturbations_parse_into_libero_pros_order(text, combo):
     ("text", "needle"),
     [
         ("task+lan", "task perturbation combines with nothing"),
-        ("swap+object+task", "docs/libero.md, 'Combinations'"),
+        ("swap+object+task", "docs/libero-pro.md, 'Combinations'"),
         ("colour", "perturbations are"),
         ("swap+swap", "perturbations are"),
     ],

@@ -26,7 +26,7 @@ warnings. An instruction-chain suite (chains/...) is laid out as CALVIN's table:
 chains reaching 1/5 ... 5/5 and the average length (docs/chains.md). Runs of a LIBERO
 suite and its LIBERO-PRO perturbations (libero/spatial:perturb=swap) add a table of
 generalization gaps: the drop from the standard suite with a 95% interval, paired by
-task and episode where they match (docs/libero.md). See docs/reports.md.
+task and episode where they match (docs/libero-pro.md). See docs/reports.md.
 """
 
 

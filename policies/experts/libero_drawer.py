@@ -117,6 +117,7 @@ class Drawer:
     region: slice  # world position of the drawer's region site
     handle: tuple[float, float, float]  # HANDLES entry of this drawer
     category: str  # of its cabinet
+    level: str = ""  # its HANDLES key: "top", "middle", "bottom"
 
 
 class _DrawerHand:
@@ -425,14 +426,14 @@ def drawer_state(plan: Drawer, obs: np.ndarray) -> tuple[np.ndarray, float]:
     return handle, out - SHUT_Y[plan.category]
 
 
-def leaning_out(rot: np.ndarray, pull: np.ndarray) -> np.ndarray:
+def leaning_out(rot: np.ndarray, pull: np.ndarray, lean: float = LEAN) -> np.ndarray:
     """`rot` turned LEAN about its closing axis so the fingers point down and into the
     cabinet and the hand leans out: upright, the hand (3 cm thick, 9 cm tall above the
     fingers) met the top drawer's handle 2 cm before the middle drawer was shut."""
     axis = rot[:, 1] / np.linalg.norm(rot[:, 1])
     best = rot
     for sign in (1.0, -1.0):
-        a = sign * LEAN
+        a = sign * lean
         k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
         turned = (np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * k @ k) @ rot
         if turned[:, 2] @ pull < 0:  # the approach axis (fingers) points into the cabinet
@@ -468,7 +469,7 @@ def drawers_in_state(slices: dict[str, slice], entities: list[str]) -> list[Draw
         for level, handle in HANDLES.get(category(name), {}).items():
             region = f"{name}_{level}_region"
             if region in slices:
-                found.append(Drawer(slices[name], slices[region], handle, category(name)))
+                found.append(Drawer(slices[name], slices[region], handle, category(name), level))
     return found
 
 
@@ -479,5 +480,5 @@ def drawer_plan(slices: dict[str, slice], entities: list[str], region: str) -> D
         handles = HANDLES.get(category(name), {})
         level = region.removeprefix(name + "_").removesuffix("_region")
         if region.startswith(name + "_") and level in handles and region in slices:
-            return Drawer(slices[name], slices[region], handles[level], category(name))
+            return Drawer(slices[name], slices[region], handles[level], category(name), level)
     return None

@@ -47,7 +47,8 @@ def _problem(context: EpisodeContext) -> tuple[dict, dict[str, slice]]:
 
 
 def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.random.Generator | None):
-    """The expert for a task's goal: a drawer pull for `Open` a drawer, a push past
+    """The expert for a task's goal: a drawer pull for `Open` a drawer (a press-and-pull
+    where its bar is too low to pinch, policies/experts/libero_drawer_low.py), a push past
     LIBERO's `Close` threshold for `Close` one, and before
     putting something `In` one (policies/experts/libero_drawer.py), a drag for an object too wide
     to grip going to a table region (policies/experts/libero_push.py), a wrist turn for a stove's
@@ -62,6 +63,7 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
         ShutExpert,
         drawer_plan,
     )
+    from policies.experts.libero_drawer_low import PressPullExpert, pressed
     from policies.experts.libero_knob import KNOBS, Knob, KnobExpert, turn_off
     from policies.experts.libero_push import PUSHED, PushExpert, push_plan
 
@@ -73,6 +75,8 @@ def expert_for(context: EpisodeContext, params: LiberoScriptedParams, rng: np.ra
     standing = _standing(problem, slices)
     if drawer is not None and goals[0][0] == "close":  # a chain's authored close
         return ShutExpert(drawer, params, shut_to=CLOSED_PAST)
+    if drawer is not None and goals[0][0] == "open" and pressed(drawer):  # a bar too low to pinch
+        return _shut_first(PressPullExpert(drawer, params), slices, entities, params, but=drawer)
     if drawer is not None and goals[0][0] == "open":
         expert = DrawerExpert(drawer, params, obstacles=standing)
         return _shut_first(expert, slices, entities, params, but=drawer)
@@ -177,6 +181,12 @@ def plan_for(context: EpisodeContext) -> PickPlace:
         holder=_drawer_holder(problem, obj, entities, slices),
         others=tuple(
             slices[n] for names in problem["objects"].values() for n in names if n not in (obj, target)
+        ),
+        other_handles=tuple(
+            (slices[n], geometry(n).grip_xy)
+            for names in problem["objects"].values()
+            for n in names
+            if n not in (obj, target) and geometry(n).grip_xy != (0.0, 0.0)
         ),
         container=slices[container] if container else None,
         container_geom=geometry(container) if container else None,
