@@ -8,11 +8,13 @@ object (Obj.), position/swap (Pos.), language (Sem.), task and environment (Env.
 
 The drop is standard minus perturbed success (positive: the policy got worse). Episodes
 pair when both sides ran exactly the same (task, episode index) keys: episode j of a task
-runs initial state j under the same seed on both, so one policy's two outcomes on a key
-are correlated (a hard layout stays hard) and the paired interval is the narrower, honest
-one: Newcombe's score interval for paired proportions (Statistics in Medicine 17:2635,
-1998, method 10), and the cell gives McNemar's discordant counts (standard-only
-successes / perturbed-only successes), what the drop is made of. Where the keys differ
+runs initial state j of its own suite under the same seed on both. Every LIBERO-PRO
+folder, `_lan` included, ships its own draw of initial states, so a pair shares task,
+seed and index, not the layout: Newcombe's score interval for paired proportions
+(Statistics in Medicine 17:2635, 1998, method 10) estimates the pairs' correlation from
+the outcomes, so it is narrower than the unpaired one only as far as the outcomes are
+correlated, and the cell gives McNemar's discordant counts (standard-only successes /
+perturbed-only successes), what the drop is made of. Where the keys differ
 (other episode counts, a subset of tasks) the episodes are treated as independent and the
 interval is Newcombe's hybrid score interval for a difference of proportions (method 10),
 built from the two Wilson intervals. Each cell says which it used.

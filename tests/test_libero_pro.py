@@ -284,6 +284,35 @@ def test_the_expert_follows_the_task_perturbations_new_goal(env_cache):
 
 
 @needs_libero
+def test_the_expert_reads_a_stand_in_asset_as_the_one_it_replaces(cli, tmp_path):
+    """Under `object` the new assets keep their originals' collision geoms (only the look
+    changes), so the expert grips a `black_bowl` as the akita bowl, opens a
+    `yellow_cabinet`'s drawer by the wooden cabinet's handles, and solves the episode."""
+    from policies.experts.libero_drawer import DrawerExpert
+    from policies.experts.libero_geometry import GEOMETRY, geometry
+    from policies.experts.libero_scripted import LiberoScriptedParams
+    from policies.experts.libero_select import expert_for, plan_for
+    from results.store import RunDir
+
+    spatial = _expert_context("libero/spatial:perturb=object,seeding=openvla", 0)
+    assert plan_for(spatial).obj_geom == GEOMETRY["akita_black_bowl"]
+    assert geometry("yellow_plate_1") == GEOMETRY["plate"] and geometry(
+        "bigger_alphabet_soup_1"
+    ) != GEOMETRY.get("alphabet_soup")  # a can 1.5x as wide is not the small one
+    drawer = expert_for(
+        _expert_context("libero/goal:perturb=object,seeding=openvla", 0), LiberoScriptedParams(), None
+    )
+    assert isinstance(drawer, DrawerExpert) and drawer.plan.category == "wooden_cabinet"
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", "libero/spatial:perturb=object", "--tasks", "0", "--policy", "libero_scripted",
+        "--episodes-per-task", "1", "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    assert RunDir(out).read_episodes()["success"].tolist() == [True]
+
+
+@needs_libero
 def test_missing_perturbation_files_are_refused_when_the_suite_loads(tmp_path, monkeypatch):
     monkeypatch.setattr(lp, "_root", lambda: tmp_path)
     with pytest.raises(SuiteOptionError, match=r"LIBERO-PRO file missing: .*libero_object_swap"):
