@@ -303,13 +303,19 @@ def test_the_expert_reads_a_stand_in_asset_as_the_one_it_replaces(cli, tmp_path)
         _expert_context("libero/goal:perturb=object,seeding=openvla", 0), LiberoScriptedParams(), None
     )
     assert isinstance(drawer, DrawerExpert) and drawer.plan.category == "wooden_cabinet"
+    out = _expert_run(cli, tmp_path, "libero/spatial:perturb=object")
+    assert RunDir(out).read_episodes()["success"].tolist() == [True]
+
+
+def _expert_run(cli, tmp_path, suite: str):
+    """The scripted expert on task 0 of `suite`, one episode; the run folder."""
     out = tmp_path / "run"
     code, _, err = cli(
-        "run", "--suite", "libero/spatial:perturb=object", "--tasks", "0", "--policy", "libero_scripted",
+        "run", "--suite", suite, "--tasks", "0", "--policy", "libero_scripted",
         "--episodes-per-task", "1", "--out", str(out), "--quiet",
     )  # fmt: skip
     assert code == 0, err
-    assert RunDir(out).read_episodes()["success"].tolist() == [True]
+    return out
 
 
 @needs_libero
@@ -329,12 +335,7 @@ def test_a_perturbed_run_records_the_paraphrase_and_its_version(cli, tmp_path, m
     seen: list[EpisodeContext] = []
     problem = libero_select._problem
     monkeypatch.setattr(libero_select, "_problem", lambda context: seen.append(context) or problem(context))
-    out = tmp_path / "run"
-    code, _, err = cli(
-        "run", "--suite", "libero/spatial:perturb=lan", "--tasks", "0", "--policy", "libero_scripted",
-        "--episodes-per-task", "1", "--out", str(out), "--quiet",
-    )  # fmt: skip
-    assert code == 0, err
+    out = _expert_run(cli, tmp_path, "libero/spatial:perturb=lan")
     row = pq.read_table(out / "episodes.parquet").to_pylist()[0]
     paraphrase = lb.load_suite("libero/spatial:perturb=lan").tasks[0].instruction
     assert seen and seen[0].instruction == paraphrase == row["instruction"]  # what the policy was given
