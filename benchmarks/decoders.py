@@ -37,7 +37,7 @@ scores. On this CPU time follows positions run (compute-bound). On an H100 at ba
 and this shape every pass costs about the same whatever it runs (launch-bound), so time
 follows the pass count and caching buys nothing; a full pass becomes compute-bound
 only at about a billion parameters (`--width 2048 --layers 24`), where caching the
-prefix pays again (docs/measurements.md, "On a GPU").
+prefix pays again (docs/measurements-speed.md, "On a GPU").
 
 All decoders run in one process on one set of weights per attention pattern, taking
 turns within each round (the order rotates); each round times every decoder on its own
