@@ -44,6 +44,9 @@ GEOMETRY: dict[str, Geometry] = {
     "ketchup": Geometry(bottom=0.072, top=0.074, grip_z=0.045),
     "bbq_sauce": Geometry(bottom=0.055, top=0.052, grip_z=0.03),
     "wine_bottle": Geometry(bottom=0.0, top=0.157, grip_z=0.11),
+    # A book standing on its edge, 2.9 cm thick, 11 cm long and 13.7 cm tall: gripped from
+    # above across its thickness (local x), near its top.
+    "black_book": Geometry(bottom=0.0, top=0.137, grip_z=0.11, align=0),
     "basket": Geometry(bottom=0.0, top=0.146),
     # The contain_region site of wooden_tray.xml: a box 0.271 x 0.157 m inside its walls.
     "wooden_tray": Geometry(bottom=0.0, top=0.08, inner=(0.135, 0.078)),
