@@ -48,6 +48,10 @@ GEOMETRY: dict[str, Geometry] = {
     # above across its thickness (local x), near its top.
     "black_book": Geometry(bottom=0.0, top=0.137, grip_z=0.11, align=0),
     "basket": Geometry(bottom=0.0, top=0.146),
+    # Two assets LIBERO-PRO's object perturbation scales up 1.5x: the bowl (16 cm across,
+    # 7.8 cm tall) is gripped at its wall like the small one; the soup can (9.4 cm across)
+    # is wider than the open hand (8 cm), has no entry and fails (docs/libero-pro.md).
+    "bigger_akita_black_bowl": Geometry(bottom=0.0, top=0.078, grip_z=0.06, rim=0.0675),
     # The contain_region site of wooden_tray.xml: a box 0.271 x 0.157 m inside its walls.
     "wooden_tray": Geometry(bottom=0.0, top=0.08, inner=(0.135, 0.078)),
     # The top_side site of wooden_cabinet.xml: a box 0.251 x 0.189 m on the cabinet's top.
@@ -71,7 +75,6 @@ GEOMETRY: dict[str, Geometry] = {
 # and footprint equal to the millimetre), so they share its geometry and handles.
 SAME_COLLISION = {
     "yellow_cabinet": "wooden_cabinet",
-    "white_cabinet": "wooden_cabinet",
     "yellow_stove": "flat_stove",
     "black_bowl": "akita_black_bowl",
     "yellow_plate": "plate",
@@ -87,10 +90,6 @@ SAME_COLLISION = {
     "yellow_moka_pot": "moka_pot",
     "white_bottle": "wine_bottle",
 }
-# The two assets it scales up 1.5x: the bowl (16 cm across, 7.8 cm tall) is gripped at its
-# wall like the small one; the soup can (9.4 cm across) is wider than the open hand (8 cm)
-# and keeps the default, which fails (docs/libero-pro.md, "The scripted expert").
-GEOMETRY["bigger_akita_black_bowl"] = Geometry(bottom=0.0, top=0.078, grip_z=0.06, rim=0.0675)
 DEFAULT_GEOMETRY = Geometry(bottom=0.02, top=0.04, grip_z=0.0)
 
 
