@@ -193,6 +193,23 @@ def test_combined_scene_states_match_the_recorded_checksums(tmp_path, monkeypatc
     assert states.shape[0] == lp.STATES_PER_TASK and lp.states_sha256(states) == want
 
 
+@needs_libero
+def test_every_generated_scene_of_every_task_has_a_recorded_checksum():
+    """A machine that draws other states for any task is told so, not only for task 0: the
+    data file records env and each scene combination for every task of the four suites,
+    and nothing else (a stale key would check nothing)."""
+    recorded = lp.recorded_checksums()
+    scenes = ("env", "swap+env", "swap+object", "env+object", "swap+env+object")
+    want = {
+        lp.checksum_key(key, scene, lb.benchmark(key).get_task(i).name)
+        for key in lp.SUITES
+        for scene in scenes
+        for i in range(lb.benchmark(key).get_num_tasks())
+    }
+    assert set(recorded) == want and len(want) == 5 * 40
+    assert all(len(digest) == 64 for digest in recorded.values())
+
+
 @pytest.fixture(scope="module")
 def env_cache(tmp_path_factory):
     """Generated files go to a temporary cache, shared by the module's tests, not the user's."""
