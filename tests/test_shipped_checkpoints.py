@@ -22,8 +22,8 @@ EXPECTED = {
 def test_shipped_checkpoints_load_with_their_provenance():
     files = {name: SHIPPED / f"metaworld-mt10-{name}.safetensors" for name in EXPECTED}
     # Everything shipped, every suite's set together, stays small enough to commit (the
-    # chain set's four files, 192 wide and 6 deep, are 11.7 MB each; the others 3.7-4.1).
-    assert sum(f.stat().st_size for f in SHIPPED.glob("*.safetensors")) < 112 * 2**20
+    # tray chain set's four files, 192 wide and 6 deep, are 11.7 MB each; the others 3.7-4.1).
+    assert sum(f.stat().st_size for f in SHIPPED.glob("*.safetensors")) < 128 * 2**20
     for name, path in files.items():
         ckpt = load(path)
         assert ckpt.model.cfg.pattern == EXPECTED[name]
@@ -147,6 +147,33 @@ def test_the_shipped_chain_set_reads_the_goal_positions_state():
     digest = hashlib.sha256((SHIPPED / "chains-tray-bidirectional.safetensors").read_bytes()).hexdigest()
     assert chain["fast_dvla"].meta["teacher_sha256"] == digest
     assert chain["block_diffusion"].meta["init_sha256"] == digest
+
+
+def test_the_language_only_chain_set_reads_the_instruction_and_the_scene_only():
+    """The libero_goal set is CALVIN's protocol: the instruction and the scene's state,
+    no goal positions; all four recipes read the same state and vocabulary, the student
+    and block diffusion name the shipped teacher by content."""
+    chain = {name: load(SHIPPED / f"chains-goal-{name}.safetensors") for name in EXPECTED}
+    teacher = chain["bidirectional"]
+    for name, ckpt in chain.items():
+        assert ckpt.model.cfg.pattern == EXPECTED[name] and ckpt.state_features == "relative"
+        suites = {s["suite"] for s in ckpt.meta["data_sources"]}
+        assert suites and all(s.startswith("chains/libero_goal:") for s in suites)
+        assert not any("goal_positions" in s for s in suites), suites
+        assert ckpt.raw_state_dim == teacher.raw_state_dim and ckpt.vocab == teacher.vocab
+    digest = hashlib.sha256((SHIPPED / "chains-goal-bidirectional.safetensors").read_bytes()).hexdigest()
+    assert chain["fast_dvla"].meta["teacher_sha256"] == digest
+    assert chain["block_diffusion"].meta["init_sha256"] == digest
+
+
+@pytest.mark.skipif(not libero.installed(), reason="needs the libero extra")
+def test_the_language_only_chain_set_is_refused_on_the_goal_positions_suite(cli, tmp_path):
+    out = tmp_path / "r"
+    suite = "chains/libero_goal:goal_positions=on"
+    args = f"run --suite {suite} --episodes-per-task 1 --policy fast_dvla:checkpoint=chains-goal"
+    code, _, err = cli(*args.split(), "--out", str(out), "--quiet")
+    assert code == 2 and "chains/libero_goal" in err and "trained on" in err, err
+    assert not out.exists()
 
 
 @pytest.mark.skipif(not libero.installed(), reason="needs the libero extra")
