@@ -123,6 +123,9 @@ def generated(scene: str) -> bool:
     return scene == "env" or "+" in scene
 
 
+GENERATED_SCENES = tuple(dict.fromkeys(s for s in map(scene_of, ALLOWED) if generated(s)))
+
+
 def _root() -> Path:
     return Path(importlib.util.find_spec("libero").submodule_search_locations[0]) / "libero"
 
@@ -358,10 +361,11 @@ def instruction(key: str, combo: tuple[str, ...], bddl_file: str, states_file: s
     return bddl_language(bddl.read_text())
 
 
-def record(keys: tuple[str, ...] = SUITES, scenes: tuple[str, ...] = ("env",)) -> dict[str, str]:
+def record(keys: tuple[str, ...] = SUITES, scenes: tuple[str, ...] = GENERATED_SCENES) -> dict[str, str]:
     """Generate every task's states of the given scenes and write their checksums to the
-    project's data file (`python -m adapters.libero_pro spatial goal --scenes env swap+object`):
-    what other machines are checked against."""
+    project's data file (`python -m adapters.libero_pro`, or a part of it:
+    `python -m adapters.libero_pro spatial goal --scenes env swap+object`): what other
+    machines are checked against."""
     from adapters.libero_sim import benchmark, task_files
 
     path = DATA / "env_states.json"
@@ -388,4 +392,4 @@ if __name__ == "__main__":
 
     args = sys.argv[1:]
     cut = args.index("--scenes") if "--scenes" in args else len(args)
-    record(tuple(args[:cut]) or SUITES, tuple(args[cut + 1 :]) or ("env",))
+    record(tuple(args[:cut]) or SUITES, tuple(args[cut + 1 :]) or GENERATED_SCENES)

@@ -185,62 +185,184 @@ def collect(
     overwrite: bool = False,
     tick: Callable[[bool], None] | None = None,
     action_noise: float = 0.0,
+    workers: int = 1,
 ) -> CollectReport:
+    """Collect, on `workers` processes: the folder is byte for byte the one a single
+    process writes (episodes are merged in the suite's order; noise is seeded per episode)."""
     check_demos_out(out, overwrite)
     if not 0.0 <= action_noise <= 1.0:
         raise UsageError(
             f"--action-noise must be in [0, 1] (a fraction of the action range), got {action_noise}"
         )
+    if workers < 1:
+        raise UsageError(f"--workers must be at least 1, got {workers}")
+    jobs = _jobs(resolved, workers)
+    if workers == 1:
+        done = [_collect_job(resolved, job, action_noise, tick) for job in jobs]
+    else:
+        done = _collect_in_processes(resolved, jobs, action_noise, tick, workers)
+    return _merge_and_write(resolved, out, done, action_noise)
+
+
+@dataclass
+class EpisodeDemo:
+    """One attempted episode, as the process that ran it hands it back."""
+
+    task: str
+    success: bool
+    subtasks_completed: int | None
+    start: dict[str, Any]
+    rows: dict[str, list[Any]]  # the kept steps' columns, episode_id left to the merge
+
+
+@dataclass
+class JobResult:
+    task: str
+    cameras: list[str]
+    state_positions: list[int]
+    proprio_dim: int
+    episodes: list[EpisodeDemo]
+
+
+Job = tuple[int, int, int]  # task's position, first and end position in its episode list
+
+
+def _jobs(resolved: ResolvedRun, workers: int) -> list[Job]:
+    """Episode ranges in the suite's order: each task whole on one process, or cut into
+    about 4 ranges per worker (a chain scene is one task of 100 chains), so progress
+    moves and a slow range does not hold the others back. Every range builds its env once."""
+    jobs: list[Job] = []
+    for i, task in enumerate(resolved.tasks):
+        n = len(resolved.episodes(task))
+        size = n if workers == 1 else max(1, -(-n // (4 * workers)))
+        jobs += [(i, a, min(n, a + size)) for a in range(0, n, size)]
+    return jobs
+
+
+def _collect_job(
+    resolved: ResolvedRun, job: Job, action_noise: float, tick: Callable[[bool], None] | None
+) -> JobResult:
+    """Run one range of a task's episodes on one env, keeping what each episode shows."""
+    task_index, first, end = job
+    task = resolved.tasks[task_index]
     policy_run = resolved.policies[0]
     counter = NFECounter(policy_run.policy)
-    rows: dict[str, list[Any]] = {name: [] for name in DEMO_COLUMNS.names}
+    env = resolved.suite.make_env(task)
+    try:  # closed whatever happens, a refused --action-noise included
+        if action_noise > 0:
+            env = NoisyActions(env, action_noise, task.name)
+        env = RecordingEnv(env)
+        result = JobResult(task.name, env.cameras, _state_positions(env), _proprio_dim(env), [])
+        for spec in resolved.episodes(task)[first:end]:
+            context = episode_context(resolved.suite.name, task, spec, env)
+            outcome = run_episode(
+                env,
+                policy_run.policy,
+                counter,
+                context,
+                spec,
+                resolved.config.replan_every,
+                out_of_space=resolved.config.out_of_space,
+            )
+            if env.refused is not None:
+                raise UsageError(f"{task.name}: {env.refused}; nothing was written")
+            rows: dict[str, list[Any]] = {}
+            keep = _kept_steps(outcome, env)
+            if keep:
+                _episode_rows(rows, env, task, spec, result.cameras, keep)
+            demo = EpisodeDemo(task.name, outcome.success, outcome.subtasks_completed, dict(env.start), rows)
+            result.episodes.append(demo)
+            if tick:
+                tick(outcome.success)
+        return result
+    finally:
+        env.close()
+        counter.close()
+
+
+_WORKER_RUN: ResolvedRun | None = None
+
+
+def _start_worker(config: Any, workers: int) -> None:
+    """A collection worker (a fresh `spawn` interpreter) builds its own policy and suite."""
+    global _WORKER_RUN
+    from harness.config import resolve
+    from harness.threads import apply_threads
+
+    apply_threads(None, workers)
+    _WORKER_RUN = resolve(config)
+    apply_threads(None, workers)  # again with torch loaded
+
+
+def _worker_job(job: Job, action_noise: float) -> JobResult:
+    assert _WORKER_RUN is not None
+    return _collect_job(_WORKER_RUN, job, action_noise, None)
+
+
+def _collect_in_processes(
+    resolved: ResolvedRun,
+    jobs: list[Job],
+    action_noise: float,
+    tick: Callable[[bool], None] | None,
+    workers: int,
+) -> list[JobResult]:
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+    from multiprocessing import get_context
+
+    results: list[JobResult | None] = [None] * len(jobs)
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=get_context("spawn"),
+        initializer=_start_worker,
+        initargs=(resolved.config, workers),
+    )
+    try:
+        pending = {pool.submit(_worker_job, job, action_noise): n for n, job in enumerate(jobs)}
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_EXCEPTION)
+            for future in finished:
+                n = pending.pop(future)
+                results[n] = future.result()  # a job's error stops the collection here
+                for demo in results[n].episodes:
+                    if tick:
+                        tick(demo.success)
+    finally:  # an error or Ctrl-C: queued ranges are dropped, nothing is written
+        pool.shutdown(wait=True, cancel_futures=True)
+    return [r for r in results if r is not None]
+
+
+def _merge_and_write(
+    resolved: ResolvedRun, out: Path, done: list[JobResult], action_noise: float
+) -> CollectReport:
+    """Every job's episodes in the suite's order, numbered and written once."""
     report = CollectReport()
-    episode_id = 0
+    rows: dict[str, list[Any]] = {name: [] for name in DEMO_COLUMNS.names}
     cameras: list[str] | None = None
-    for task in resolved.tasks:
-        env = resolved.suite.make_env(task)
-        try:  # closed whatever happens, a refused --action-noise included
-            if action_noise > 0:
-                env = NoisyActions(env, action_noise, task.name)
-            env = RecordingEnv(env)
-            if cameras is None:
-                cameras = env.cameras
-                rows.update({f"image_{cam}": [] for cam in cameras})
-            report.attempted[task.name] = report.kept[task.name] = 0
-            positions = _state_positions(env)
-            if positions:
-                report.state_positions[task.name] = positions
-            proprio = _proprio_dim(env)
-            if proprio:
-                report.proprio_dims[task.name] = proprio
-            for spec in resolved.episodes(task):
-                context = episode_context(resolved.suite.name, task, spec, env)
-                outcome = run_episode(
-                    env,
-                    policy_run.policy,
-                    counter,
-                    context,
-                    spec,
-                    resolved.config.replan_every,
-                    out_of_space=resolved.config.out_of_space,
-                )
-                if env.refused is not None:
-                    raise UsageError(f"{task.name}: {env.refused}; nothing was written")
-                _note_start(report, task.name, env.start)
-                report.attempted[task.name] += 1
-                keep = _kept_steps(outcome, env)
-                if keep:
-                    report.kept[task.name] += 1
-                    report.steps += _append_episode(rows, env, task, spec, episode_id, cameras or [], keep)
-                    episode_id += 1
-                if outcome.subtasks_completed is not None:
-                    completed = report.subtasks_kept.get(task.name, 0) + outcome.subtasks_completed
-                    report.subtasks_kept[task.name] = completed
-                if tick:
-                    tick(outcome.success)
-        finally:
-            env.close()
-    counter.close()
+    episode_id = 0
+    for result in done:
+        if cameras is None:
+            cameras = result.cameras
+            rows.update({f"image_{cam}": [] for cam in cameras})
+        task = result.task
+        report.attempted.setdefault(task, 0)
+        report.kept.setdefault(task, 0)
+        if result.state_positions:
+            report.state_positions[task] = result.state_positions
+        if result.proprio_dim:
+            report.proprio_dims[task] = result.proprio_dim
+        for demo in result.episodes:
+            _note_start(report, task, demo.start)
+            report.attempted[task] += 1
+            if demo.rows:
+                keep = len(demo.rows["step"])
+                report.kept[task] += 1
+                report.steps += keep
+                rows["episode_id"] += [episode_id] * keep
+                for name, values in demo.rows.items():
+                    rows.setdefault(name, []).extend(values)
+                episode_id += 1
+            if demo.subtasks_completed is not None:
+                report.subtasks_kept[task] = report.subtasks_kept.get(task, 0) + demo.subtasks_completed
     if episode_id == 0:
         raise UsageError("no episode succeeded, so there is nothing to save; nothing was written")
     schema = DEMO_COLUMNS
@@ -293,20 +415,19 @@ def _proprio_dim(env: gym.Env) -> int:
         return 0
 
 
-def _append_episode(
+def _episode_rows(
     rows: dict[str, list[Any]],
     env: RecordingEnv,
     task: TaskSpec,
     spec: EpisodeSpec,
-    episode_id: int,
     cameras: list[str],
     keep: int,
-) -> int:
-    """The first `keep` steps of an episode onto the column lists; returns `keep`."""
+) -> None:
+    """The first `keep` steps of an episode as columns (all but episode_id, which the
+    merge numbers in the suite's order)."""
     steps = zip(env.observations[:keep], env.actions[:keep], env.instructions[:keep], strict=True)
     for step, (obs, action, instruction) in enumerate(steps):
         for name, value in (
-            ("episode_id", episode_id),
             ("task", task.name),
             ("instruction", instruction or task.instruction),
             ("episode_index", spec.index),
@@ -316,14 +437,13 @@ def _append_episode(
             ("observation", obs.tolist()),
             ("action", action.tolist()),
         ):
-            rows[name].append(value)
+            rows.setdefault(name, []).append(value)
     for name in START_COLUMNS:
         if name in env.start:
             rows.setdefault(name, []).extend([env.start[name]] * keep)
     for frames in env.images[:keep]:
         for cam, data in zip(cameras, frames, strict=True):
-            rows[f"image_{cam}"].append(data)
-    return keep
+            rows.setdefault(f"image_{cam}", []).append(data)
 
 
 def _write(

@@ -53,6 +53,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the demonstrator's own action is recorded, so the demonstrations show recoveries "
         "(default 0: none; try 0.1)",
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="worker processes on this machine (default 1); the folder is the same for any N, "
+        "since episodes are merged in the suite's order and noise is seeded per episode",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="demonstrations folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing demonstrations folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -79,7 +87,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
     progress, start = episode_progress(args.quiet)
     total = sum(len(resolved.episodes(t)) for t in resolved.tasks)
     with progress:
-        report = collect(resolved, out, args.overwrite, start(total, 0), args.action_noise)
+        report = collect(resolved, out, args.overwrite, start(total, 0), args.action_noise, args.workers)
     chains = bool(report.subtasks_kept)
     columns = ["task", "kept / attempted", *(["subtasks kept"] if chains else [])]
     table = Table(*columns, title=f"demonstrations in {out}")
