@@ -41,9 +41,9 @@ import pyarrow.parquet as pq
 from adapters.base import EpisodeSpec, TaskSpec
 from adapters.libero_states import InitialStateOverlap
 from harness.backends.local import episode_context
-from harness.config import ResolvedRun
+from harness.config import CheckpointPin, ResolvedRun, check_checkpoints, checkpoint_pins
 from harness.episode import EpisodeOutcome, run_episode
-from harness.errors import UsageError
+from harness.errors import HarnessError, UsageError
 from harness.manifest import environment, now
 from harness.nfe import NFECounter
 from policies.observations import cameras_of, png, unpng
@@ -283,19 +283,21 @@ def _collect_job(
 _WORKER_RUN: ResolvedRun | None = None
 
 
-def _start_worker(config: Any, workers: int) -> None:
-    """A collection worker (a fresh `spawn` interpreter) builds its own policy and suite."""
+def _worker_job(job: Job, action_noise: float, config: Any, pins: tuple[CheckpointPin, ...]) -> JobResult:
+    """A collection worker (a fresh `spawn` interpreter) builds its policy and suite on its
+    first range, from the checkpoint bytes the parent hashed (`check_checkpoints`, as run's
+    workers do): a file swapped mid-collection stops it instead of mixing two models' data.
+    Built here, not in the pool's initializer, so its errors reach the parent whole."""
     global _WORKER_RUN
-    from harness.config import resolve
-    from harness.threads import apply_threads
+    if _WORKER_RUN is None:
+        from harness.config import resolve
+        from harness.threads import apply_threads
 
-    apply_threads(None, workers)
-    _WORKER_RUN = resolve(config)
-    apply_threads(None, workers)  # again with torch loaded
-
-
-def _worker_job(job: Job, action_noise: float) -> JobResult:
-    assert _WORKER_RUN is not None
+        apply_threads(None)
+        check_checkpoints(pins)
+        _WORKER_RUN = resolve(config)
+        check_checkpoints(pins, _WORKER_RUN)
+        apply_threads(None)  # again with torch loaded
     return _collect_job(_WORKER_RUN, job, action_noise, None)
 
 
@@ -307,17 +309,17 @@ def _collect_in_processes(
     workers: int,
 ) -> list[JobResult]:
     from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
     from multiprocessing import get_context
 
     results: list[JobResult | None] = [None] * len(jobs)
-    pool = ProcessPoolExecutor(
-        workers,
-        mp_context=get_context("spawn"),
-        initializer=_start_worker,
-        initargs=(resolved.config, workers),
-    )
+    pins = checkpoint_pins(resolved)
+    pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
     try:
-        pending = {pool.submit(_worker_job, job, action_noise): n for n, job in enumerate(jobs)}
+        pending = {
+            pool.submit(_worker_job, job, action_noise, resolved.config, pins): n
+            for n, job in enumerate(jobs)
+        }
         while pending:
             finished, _ = wait(pending, return_when=FIRST_EXCEPTION)
             for future in finished:
@@ -326,6 +328,11 @@ def _collect_in_processes(
                 for demo in results[n].episodes:
                     if tick:
                         tick(demo.success)
+    except BrokenProcessPool as exc:
+        raise HarnessError(
+            f"a collection worker process died ({exc}; the out-of-memory killer, a kill, or a "
+            "crash); nothing was written"
+        ) from None
     finally:  # an error or Ctrl-C: queued ranges are dropped, nothing is written
         pool.shutdown(wait=True, cancel_futures=True)
     return [r for r in results if r is not None]
