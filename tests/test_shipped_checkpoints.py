@@ -95,6 +95,20 @@ def test_shipped_libero_sets_are_a_teacher_its_student_and_an_ar_baseline(name):
     assert student.meta["teacher_sha256"] == digest
 
 
+def test_the_spatial_block_diffusion_file_is_the_shipped_teacher_fine_tuned_on_its_data():
+    """The set's fifth decoder (docs/latency.md's LIBERO rows): fine-tuned from the
+    shipped teacher by content, on the very demonstrations the teacher saw, so its rows
+    differ from the teacher's by the block-causal recipe alone."""
+    teacher = load(SHIPPED / "libero-spatial-bidirectional.safetensors")
+    bd = load(SHIPPED / "libero-spatial-block_diffusion.safetensors")
+    assert bd.model.cfg.pattern == "block_causal" and bd.meta["recipe"] == "block_diffusion"
+    digest = hashlib.sha256((SHIPPED / "libero-spatial-bidirectional.safetensors").read_bytes()).hexdigest()
+    assert bd.meta["init_sha256"] == digest
+    assert bd.meta["data_sha256"] == teacher.meta["data_sha256"]
+    assert bd.vocab == teacher.vocab and bd.meta["state_dims"] == teacher.meta["state_dims"]
+    assert all(source["fresh_initial_states"] for source in bd.meta["data_sources"])
+
+
 def test_shipped_simpler_sets_are_state_and_camera_policies_with_their_teachers():
     state = {name: load(SHIPPED / f"simpler-state-{name}.safetensors") for name in EXPECTED}
     for name, ckpt in state.items():
