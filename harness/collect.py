@@ -281,6 +281,7 @@ def _collect_job(
 
 
 _WORKER_RUN: ResolvedRun | None = None
+COLLECT_ADVICE = "nothing was written; put the original back, or collect again for the new file"
 
 
 def _worker_job(job: Job, action_noise: float, config: Any, pins: tuple[CheckpointPin, ...]) -> JobResult:
@@ -294,9 +295,9 @@ def _worker_job(job: Job, action_noise: float, config: Any, pins: tuple[Checkpoi
         from harness.threads import apply_threads
 
         apply_threads(None)
-        check_checkpoints(pins)
+        check_checkpoints(pins, advice=COLLECT_ADVICE)
         _WORKER_RUN = resolve(config)
-        check_checkpoints(pins, _WORKER_RUN)
+        check_checkpoints(pins, _WORKER_RUN, advice=COLLECT_ADVICE)
         apply_threads(None)  # again with torch loaded
     return _collect_job(_WORKER_RUN, job, action_noise, None)
 

@@ -355,11 +355,17 @@ def checkpoint_pins(resolved: ResolvedRun) -> tuple[CheckpointPin, ...]:
     return tuple((p.spec.name, p.checkpoint, p.checkpoint_sha256) for p in resolved.policies if p.checkpoint)
 
 
-def check_checkpoints(pins: tuple[CheckpointPin, ...], resolved: ResolvedRun | None = None) -> None:
+RESUME_ADVICE = "put the original back and --resume, or start a new run (--out) for the new file"
+
+
+def check_checkpoints(
+    pins: tuple[CheckpointPin, ...], resolved: ResolvedRun | None = None, advice: str = RESUME_ADVICE
+) -> None:
     """Refuse (CheckpointChanged) a checkpoint whose file, or whose copy in `resolved`
     (a worker's rebuilt run), is not the one the run hashed. Rows name a model by its
     sha256; a worker that loaded other bytes would record another model's episodes
-    under it, or (its policy ids no longer matching) lose every episode it is sent."""
+    under it, or (its policy ids no longer matching) lose every episode it is sent.
+    `advice` is what the caller's command can do about it (`collect` has no --resume)."""
     built = {p.checkpoint: p.checkpoint_sha256 for p in resolved.policies} if resolved else {}
     for name, path, digest in pins:
         try:
@@ -369,8 +375,7 @@ def check_checkpoints(pins: tuple[CheckpointPin, ...], resolved: ResolvedRun | N
         if now != digest:
             raise CheckpointChanged(
                 f"policy {name}: checkpoint {path} changed during the run: the run hashed sha256 "
-                f"{digest}, the file now has {now}; put the original back and --resume, or start a "
-                "new run (--out) for the new file"
+                f"{digest}, the file now has {now}; {advice}"
             )
 
 

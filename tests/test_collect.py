@@ -106,9 +106,39 @@ def test_a_collection_worker_refuses_a_checkpoint_swapped_after_the_parent_hashe
     swapped = tmp_path / "model.safetensors"
     swapped.write_bytes(b"another model")
     pins = (("bidirectional", str(swapped), "0" * 64),)
-    with pytest.raises(CheckpointChanged, match="changed during the run"):
+    with pytest.raises(CheckpointChanged, match="changed during the run") as refused:
         hc._worker_job((0, 0, 1), 0.0, None, pins)
     assert hc._WORKER_RUN is None  # nothing was built from the swapped file
+    # the advice is collect's own: it has no --resume to offer
+    assert "collect again" in str(refused.value) and "--resume" not in str(refused.value)
+
+
+class _KillsTheProcessThatUnpicklesIt:
+    """A run config (the real one, to the parent) whose arrival in a worker ends that
+    worker, as the out-of-memory killer or a crashing simulator would, before it has
+    collected anything."""
+
+    def __init__(self, config):
+        self.config = config
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["config"], name)
+
+    def __reduce__(self):
+        from tests.fakes import suffer
+
+        return (suffer, ("exit",))
+
+
+def test_a_dead_collection_worker_stops_the_collection_in_one_line_and_writes_nothing(tmp_path):
+    from harness.errors import HarnessError
+
+    resolved = fake_resolved(ChunkPolicy(chunk=4), episodes=2, succeed_at=6)
+    resolved.config = _KillsTheProcessThatUnpicklesIt(resolved.config)  # type: ignore[assignment]
+    with pytest.raises(HarnessError, match="a collection worker process died") as died:
+        collect(resolved, tmp_path / "demos", workers=2)
+    assert "nothing was written" in str(died.value) and "\n" not in str(died.value)
+    assert not (tmp_path / "demos").exists()
 
 
 class SlowPolicy(ChunkPolicy):
