@@ -14,14 +14,18 @@ seed and index, not the layout: Newcombe's score interval for paired proportions
 (Statistics in Medicine 17:2635, 1998, method 10) estimates the pairs' correlation from
 the outcomes, so it is narrower than the unpaired one only as far as the outcomes are
 correlated, and the cell gives McNemar's discordant counts (standard-only successes /
-perturbed-only successes), what the drop is made of. Where the keys differ
-(other episode counts, a subset of tasks) the episodes are treated as independent and the
-interval is Newcombe's hybrid score interval for a difference of proportions (method 10),
-built from the two Wilson intervals. Each cell says which it used.
+perturbed-only successes), what the drop is made of. Where one side ran a prefix of the
+other's episodes (the usual case: the standard suite at 50 a task, a perturbation at 2),
+the drop pairs on the keys both ran and the cell says how many; the success columns keep
+every episode of their own side. Where neither side's keys contain the other's (other
+tasks) the episodes are treated as independent and the interval is Newcombe's hybrid
+score interval for a difference of proportions (method 10), built from the two Wilson
+intervals. Each cell says which it used.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -64,11 +68,14 @@ class Drop:
     paired: bool
     standard_only: int = 0  # paired: keys the standard suite solved and the perturbed did not
     perturbed_only: int = 0
+    shared: str = ""  # paired on part of one side: "20 of 500 standard episodes"
 
     def text(self) -> str:
         if math.isnan(self.drop):
             return "-"
         how = f"paired, {self.standard_only}/{self.perturbed_only} discordant" if self.paired else "unpaired"
+        if self.shared:
+            how = f"paired on {self.shared}, {self.standard_only}/{self.perturbed_only} discordant"
         return f"{100 * self.drop:+.1f} pts [{100 * self.low:+.0f}, {100 * self.high:+.0f}] ({how})"
 
 
@@ -108,13 +115,19 @@ def paired_drop(standard: np.ndarray, perturbed: np.ndarray) -> Drop:
 
 
 def drop(standard_rows: pd.DataFrame, perturbed_rows: pd.DataFrame) -> Drop:
-    """Paired where both sides ran the same (task, episode index) keys, else unpaired."""
+    """Paired where both sides ran the same (task, episode index) keys, or one side's keys
+    contain the other's (paired on those); else unpaired."""
     keys = ["task", "episode_index"]
     a = standard_rows.drop_duplicates(keys, keep="last").set_index(keys)["success"]
     b = perturbed_rows.drop_duplicates(keys, keep="last").set_index(keys)["success"]
-    if len(a) and set(a.index) == set(b.index):
-        b = b.reindex(a.index)
-        return paired_drop(a.to_numpy(bool), b.to_numpy(bool))
+    keys_a, keys_b = set(a.index), set(b.index)
+    if len(a) and len(b) and (keys_a <= keys_b or keys_b <= keys_a):
+        common = a.index.intersection(b.index)
+        paired = paired_drop(a.loc[common].to_numpy(bool), b.loc[common].to_numpy(bool))
+        if keys_a == keys_b:
+            return paired
+        side, total = ("standard", len(a)) if len(a) > len(b) else ("perturbed", len(b))
+        return dataclasses.replace(paired, shared=f"{len(common)} of {total} {side} episodes")
     return newcombe_drop(_success(standard_rows), _success(perturbed_rows))
 
 
@@ -249,8 +262,9 @@ def gap_tables(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> 
 
 NOTE = (
     "Drop = standard - perturbed success, in points, with a 95% interval: paired (matching "
-    "task and episode index, Newcombe's paired score interval; n/m = pairs only the standard "
-    "/ only the perturbed run solved) or unpaired (Newcombe's score interval). LIBERO-PRO perturbations "
+    "task and episode index, on the episodes both ran when one run has more; Newcombe's paired "
+    "score interval; n/m = pairs only the standard / only the perturbed run solved) or unpaired "
+    "(Newcombe's score interval). LIBERO-PRO perturbations "
     "(Zhou et al., 2025): Obj. appearance, Pos. object positions, Sem. paraphrased "
     "instruction, Task new goals, Env. another table."
 )

@@ -64,15 +64,41 @@ def test_episodes_that_do_not_match_are_unpaired_with_newcombes_interval():
     assert [t.suite for t in tables] == [
         "libero/spatial"
     ]  # other options, another suite; BASE has no perturbed rows
-    object_only = gap_tables(
-        pd.DataFrame(_rows(BASE, [True] * 10) + _rows(f"{BASE},perturb=object", [False] * 6, tasks=2))
-    )
+    # other tasks: neither side's keys contain the other's
+    other_tasks = [
+        dict(r, task="t" + r["task"]) for r in _rows(f"{BASE},perturb=object", [False] * 6, tasks=2)
+    ]
+    object_only = gap_tables(pd.DataFrame(_rows(BASE, [True] * 10) + other_tasks))
     (row,) = object_only[0].rows
     _, d = row.perturbed["object"]
     assert not d.paired and d.drop == pytest.approx(1.0)
     expected = newcombe_drop(Success(10, 10), Success(0, 6))
     assert (d.low, d.high) == (expected.low, expected.high)
     assert "(unpaired)" in object_only[0].cells()[1][0][3].text
+
+
+def test_a_perturbation_run_on_fewer_starts_pairs_on_the_starts_both_ran():
+    """The usual layout (the standard suite at 50 a task, a perturbation at 2): the drop
+    pairs on the perturbed run's starts, where the standard run scored otherwise than on
+    all of its own, and the success column keeps every standard episode."""
+    standard = [True, True, False, False, False] * 2  # per task: starts 0-1 solved, 2-4 not
+    perturbed = [True, False, False] * 2  # per task: starts 0-2; start 1 lost
+    rows = _rows(BASE, standard) + _rows(f"{BASE},perturb=swap", perturbed)
+    (table,) = gap_tables(pd.DataFrame(rows))
+    (row,) = table.rows
+    success, d = row.perturbed["swap"]
+    assert row.standard == Success(4, 10) and success == Success(2, 6)
+    # on the shared starts the standard run solved 4 of 6: a drop of 2/6, not 0.4 - 2/6
+    assert d.paired and d.drop == pytest.approx(2 / 6)
+    assert (d.standard_only, d.perturbed_only) == (2, 0)
+    expected = paired_drop(np.array([True, True, False] * 2), np.array(perturbed))
+    assert (d.low, d.high) == (expected.low, expected.high)
+    assert "paired on 6 of 10 standard episodes, 2/0 discordant" in table.cells()[1][0][3].text
+    # and the other way round: the perturbed run is the larger one
+    (flipped,) = gap_tables(pd.DataFrame(_rows(BASE, perturbed) + _rows(f"{BASE},perturb=swap", standard)))
+    _, d = flipped.rows[0].perturbed["swap"]
+    assert d.paired and d.drop == pytest.approx(-2 / 6)
+    assert d.shared == "6 of 10 perturbed episodes"
 
 
 def test_newcombe_matches_the_published_worked_example():
