@@ -284,7 +284,9 @@ _WORKER_RUN: ResolvedRun | None = None
 COLLECT_ADVICE = "nothing was written; put the original back, or collect again for the new file"
 
 
-def _worker_job(job: Job, action_noise: float, config: Any, pins: tuple[CheckpointPin, ...]) -> JobResult:
+def _worker_job(
+    job: Job, action_noise: float, config: Any, pins: tuple[CheckpointPin, ...], workers: int = 1
+) -> JobResult:
     """A collection worker (a fresh `spawn` interpreter) builds its policy and suite on its
     first range, from the checkpoint bytes the parent hashed (`check_checkpoints`, as run's
     workers do): a file swapped mid-collection stops it instead of mixing two models' data.
@@ -294,11 +296,11 @@ def _worker_job(job: Job, action_noise: float, config: Any, pins: tuple[Checkpoi
         from harness.config import resolve
         from harness.threads import apply_threads
 
-        apply_threads(None)
+        apply_threads(None, workers)  # the worker's share of the cores
         check_checkpoints(pins, advice=COLLECT_ADVICE)
         _WORKER_RUN = resolve(config)
         check_checkpoints(pins, _WORKER_RUN, advice=COLLECT_ADVICE)
-        apply_threads(None)  # again with torch loaded
+        apply_threads(None, workers)  # again with torch loaded
     return _collect_job(_WORKER_RUN, job, action_noise, None)
 
 
@@ -318,7 +320,7 @@ def _collect_in_processes(
     pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
     try:
         pending = {
-            pool.submit(_worker_job, job, action_noise, resolved.config, pins): n
+            pool.submit(_worker_job, job, action_noise, resolved.config, pins, workers): n
             for n, job in enumerate(jobs)
         }
         while pending:
