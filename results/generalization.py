@@ -73,9 +73,12 @@ class Drop:
     def text(self) -> str:
         if math.isnan(self.drop):
             return "-"
-        how = f"paired, {self.standard_only}/{self.perturbed_only} discordant" if self.paired else "unpaired"
-        if self.shared:
-            how = f"paired on {self.shared}, {self.standard_only}/{self.perturbed_only} discordant"
+        on = f" on {self.shared}" if self.shared else ""
+        how = (
+            f"paired{on}, {self.standard_only}/{self.perturbed_only} discordant"
+            if self.paired
+            else "unpaired"
+        )
         return f"{100 * self.drop:+.1f} pts [{100 * self.low:+.0f}, {100 * self.high:+.0f}] ({how})"
 
 
