@@ -275,6 +275,21 @@ def print_table(summary: list[dict[str, Any]]) -> None:
         )
 
 
+def refuse_another_cpu() -> None:
+    """The gate compares speed only on the baseline's CPU model (docs/ci-gate.md), so on
+    another every trial would pass untimed and the rates would mean nothing."""
+    from harness.manifest import cpu_model
+
+    manifest = json.loads((ROOT / BASELINE / "manifest.json").read_text())
+    theirs, ours = (manifest.get("environment") or {}).get("cpu"), cpu_model()
+    if theirs and theirs != ours:
+        raise SystemExit(
+            f"error: this machine's CPU ({ours}) is not the committed baseline's ({theirs}); the gate "
+            "does not compare speed across CPU models, so every trial would pass untimed. Regenerate "
+            "the baseline here first (results/baselines/README.md), and do not commit it"
+        )
+
+
 def choices(text: str, valid: tuple[str, ...], what: str) -> list[str]:
     picked = [c.strip() for c in text.split(",") if c.strip()]
     bad = [c for c in picked if c not in valid]
@@ -314,6 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--n must be at least 1 and --slowdown in (0, 10)")
     conditions = choices(args.conditions, CONDITIONS, "conditions")
     candidates = choices(args.candidates, CANDIDATES, "candidates")
+    refuse_another_cpu()
     results: list[dict[str, Any]] = []
     summary: list[dict[str, Any]] = []
     for condition in conditions:

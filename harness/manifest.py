@@ -57,7 +57,9 @@ def package_version(name: str) -> str | None:
         return None
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU model as the OS names it: the gate compares speed only between runs whose
+    manifests name the same one (results/gate_speed.py)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -137,7 +139,7 @@ def environment() -> dict[str, Any]:
         "git_commit": git_commit(),
         "platform": platform.platform(),
         "host": platform.node(),
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "cpu_count": os.cpu_count(),
         "gpu": _gpu(),
         "mujoco_gl": os.environ.get("MUJOCO_GL"),

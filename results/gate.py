@@ -31,8 +31,10 @@ docs/ci-gate.md explains the rules; in short:
 * tokens/s is compared only as a paired ratio: each configuration's tokens/s over a
   reference decoder's (default `bidirectional`) measured interleaved, episode by
   episode, in the same run, against the same ratio in the other run. A machine that is
-  faster, slower or busier scales both alike, whatever its CPU model; where no such
-  reference exists on both sides the check says "not comparable: <reason>" and passes.
+  faster, slower or busier scales both alike; a different CPU model does not (the ratio
+  moved 13% between two idle CPUs), so runs whose manifests name different CPUs are not
+  compared unless asked. Where no such reference exists on both sides, or the CPUs
+  differ, the check says "not comparable: <reason>" and passes.
 * When both runs were benched (`dvla-harness bench`, replay.json), the replay benchmark
   decides speed instead (results/replay.py): the same ratio round by round, failing only
   when its whole bootstrap interval lies beyond the allowed slowdown, "inconclusive"
@@ -357,9 +359,11 @@ def gate(
 def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
     """`gate` on two loaded runs: thread counts, CPUs, calibration drift and simulator
     versions from their manifests, and the replay benchmark's figures (replay.json) when
-    both runs have them."""
+    both runs have them. Runs from different CPU models have their speed compared only
+    with `speed_across_cpus=True` (success, NFE and counted work always are)."""
     manifests = {"baseline": baseline.manifest, "candidate": candidate.manifest}
-    skipped = options.pop("speed_skipped", "") or speed_comparable(manifests)
+    across = bool(options.pop("speed_across_cpus", False))
+    skipped = options.pop("speed_skipped", "") or speed_comparable(manifests, across)
     result = gate(baseline.episodes, candidate.episodes, speed_skipped=skipped, **options)
     warnings = tuple(
         f"{side} {run.label}: speed figures unreliable: {run.speed_warning}"
@@ -376,7 +380,7 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
             "the passes its batch ran), are compared across batch sizes; run both at one batch size",
         )
     warnings += out_of_space_gate_warnings(baseline.episodes, candidate.episodes)
-    notes = result.notes + tuple(machine_notes(manifests))
+    notes = result.notes + tuple(machine_notes(manifests, across))
     suspect = simulator_suspect(manifests)
     moved = [t for t in result.tasks if t.task == "ALL" and (t.drops or t.gains)]
     if suspect and moved and not any(t.success_regressed for t in result.tasks):

@@ -4,9 +4,14 @@ decoder measured in the same run, never across machines.
 Each configuration's tokens/s over the reference's, on the episodes both ran, against
 the same ratio in the other run (SpeedDiff). Which pair is the reference, and why there
 may be none (only one run holds it, it changed, it is ambiguous), is decided here; so
-are the manifests' reasons not to compare speed at all (different torch thread counts)
-and, when both runs were benched, the replay benchmark's verdicts (results/replay.py),
-which then decide speed in place of the closed-loop ratio.
+are the manifests' reasons not to compare speed at all (different torch thread counts,
+different CPU models) and, when both runs were benched, the replay benchmark's verdicts
+(results/replay.py), which then decide speed in place of the closed-loop ratio.
+
+The ratio cancels a machine's speed and load, not its CPU model: the smoke config's
+fast_dvla / bidirectional replay ratio moved 13% from an AMD EPYC to an Intel Xeon, both
+idle (docs/ci-gate.md), more than a 10% gate allows. So runs from different CPUs are
+compared only when the caller asks (`speed_across_cpus`).
 """
 
 from __future__ import annotations
@@ -122,7 +127,20 @@ def torch_threads(manifest: dict[str, Any]) -> int | None:
     return int(threads) if threads is not None else None
 
 
-def speed_comparable(manifests: dict[str, dict[str, Any]]) -> str:
+def run_cpus(manifests: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """Each side's CPU model and count as its manifest names them (absent: not named)."""
+    envs = {side: (m or {}).get("environment") or {} for side, m in manifests.items()}
+    return {side: f"{e.get('cpu')} ({e.get('cpu_count')} CPUs)" for side, e in envs.items() if e.get("cpu")}
+
+
+def cpus_differ(manifests: dict[str, dict[str, Any]]) -> bool:
+    """Both manifests name a CPU model and the models differ (the count alone does not
+    move a one-thread ratio)."""
+    models = [((m or {}).get("environment") or {}).get("cpu") for m in manifests.values()]
+    return len(models) == 2 and None not in models and models[0] != models[1]
+
+
+def speed_comparable(manifests: dict[str, dict[str, Any]], speed_across_cpus: bool = False) -> str:
     """'' or "not comparable: why" from the manifests (bare tables say nothing: compared)."""
     threads = {side: torch_threads(m) for side, m in manifests.items()}
     if None not in threads.values() and len(set(threads.values())) > 1:
@@ -131,16 +149,24 @@ def speed_comparable(manifests: dict[str, dict[str, Any]]) -> str:
             "decoders gain unequally from threads, so their ratio moves (run both with "
             "OMP_NUM_THREADS=1)".format(**threads)
         )
+    if cpus_differ(manifests) and not speed_across_cpus:
+        cpus = run_cpus(manifests)
+        return (
+            f"not comparable: the runs come from different CPUs (baseline {cpus['baseline']}, "
+            f"candidate {cpus['candidate']}); a decoder's speed over its reference moves with the "
+            "CPU model (docs/ci-gate.md): gate speed against a baseline run on the same runner, "
+            "or pass --speed-across-cpus to judge it anyway"
+        )
     return ""
 
 
-def machine_notes(manifests: dict[str, dict[str, Any]]) -> list[str]:
-    envs = {side: (m or {}).get("environment") or {} for side, m in manifests.items()}
-    cpus = {side: f"{e.get('cpu')} ({e.get('cpu_count')} CPUs)" for side, e in envs.items() if e}
-    if len(cpus) == 2 and len(set(cpus.values())) > 1:
+def machine_notes(manifests: dict[str, dict[str, Any]], speed_across_cpus: bool = False) -> list[str]:
+    if cpus_differ(manifests) and speed_across_cpus:
+        cpus = run_cpus(manifests)
         return [
             f"the runs come from different CPUs (baseline {cpus['baseline']}, candidate "
-            f"{cpus['candidate']}): speed is compared only through the in-run reference"
+            f"{cpus['candidate']}): speed compared anyway (--speed-across-cpus), through the "
+            "in-run reference; the CPU model alone can move that ratio by more than 10%"
         ]
     return []
 

@@ -341,22 +341,59 @@ def test_cli_exit_status_is_the_verdict_and_a_table_is_printed_either_way(cli, t
     assert "not comparable" in out and "speed not comparable: neither run has bidirectional" in out
 
 
-def test_a_baseline_from_another_cpu_passes_on_the_paired_ratio(cli, tmp_path):
-    # As issue 22 found it: the baseline from an AMD EPYC (calibration 4.6k passes/s), the
-    # candidate on an Intel Xeon where the calibration runs 2.5x faster but the decoders
-    # only 1.6x: per calibration that read -36%; against the in-run reference it holds.
+def test_a_baseline_from_another_cpu_gates_success_and_nfe_but_speed_only_when_asked(cli, tmp_path):
+    # Measured: the smoke config's fast_dvla / bidirectional replay ratio read -12.9%
+    # [-13.8%, -11.8%] on an idle Intel Xeon against the committed AMD EPYC baseline, an
+    # unchanged tree failing a 10% gate. The CPU model moves the ratio, so runs from
+    # different CPUs are not compared on speed unless --speed-across-cpus.
     base = write_run(tmp_path / "epyc", with_reference(1400.0, 740.0), calibration=4600.0, cpu="AMD EPYC")
-    xeon = with_reference(2240.0, 1184.0)
-    cand = write_run(tmp_path / "xeon", xeon, calibration=11500.0, cpu="Intel(R) Xeon(R) CPU @ 2.20GHz")
-    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand))
+    xeon = "Intel(R) Xeon(R) CPU @ 2.20GHz"
+    slow = write_run(tmp_path / "slow", with_reference(1500.0, 1184.0), calibration=11500.0, cpu=xeon)
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(slow))
     assert code == 0, out + err
     text = " ".join(out.split())
-    assert "+0.0%" in text and "gate passed" in text
-    assert "different CPUs (baseline AMD EPYC (2 CPUs), candidate Intel(R) Xeon(R)" in text
-    # the same Xeon run with fast_dvla genuinely slower than its reference still fails
-    slow = write_run(tmp_path / "slow", with_reference(1500.0, 1184.0), calibration=11500.0, cpu="Intel Xeon")
-    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(slow))
+    assert "speed not comparable: the runs come from different CPUs (baseline AMD EPYC (2 CPUs), " in text
+    assert "candidate Intel(R) Xeon(R) CPU @ 2.20GHz (2 CPUs))" in text
+    assert "gate passed" in text and "speed not compared (the note above says why)" in text
+    # asked, it is judged through the in-run reference: the same ratio passes, -33% fails
+    same = write_run(tmp_path / "same", with_reference(2240.0, 1184.0), calibration=11500.0, cpu=xeon)
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(same), "--speed-across-cpus")
+    text = " ".join(out.split())
+    assert code == 0 and "+0.0%" in text and "compared anyway (--speed-across-cpus)" in text, out + err
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(slow), "--speed-across-cpus")
     assert code == 1 and "fast_dvla: tokens/s relative to the reference -33.0%" in err
+    # success and NFE are machine-independent: gated from another CPU without asking
+    more_nfe = with_reference(2240.0, 1184.0, nfe_per_chunk=11)
+    code, out, err = cli(
+        "gate",
+        "--baseline",
+        str(base),
+        "--candidate",
+        str(write_run(tmp_path / "nfe", more_nfe, calibration=11500.0, cpu=xeon)),
+    )
+    assert code == 1 and "NFE/chunk" in err and "not comparable" in out
+    worse = episodes({"a": [False] * 6, "b": [True] * 6}, tokens_per_s=2240.0)
+    worse = pd.concat(
+        [worse, episodes(ALL_OK, policy="bidirectional", tokens_per_s=1184.0, nfe_per_chunk=12)]
+    )
+    code, out, err = cli(
+        "gate",
+        "--baseline",
+        str(base),
+        "--candidate",
+        str(write_run(tmp_path / "worse", worse, calibration=11500.0, cpu=xeon)),
+    )
+    assert code == 1 and "FAIL success" in out
+
+
+def test_the_cpu_count_alone_does_not_make_speed_incomparable(cli, tmp_path):
+    base = write_run(tmp_path / "two", with_reference(1400.0, 700.0), calibration=5000.0)
+    cand = write_run(tmp_path / "four", with_reference(1000.0, 700.0), calibration=5000.0)
+    manifest = json.loads((cand / "manifest.json").read_text())
+    manifest["environment"]["cpu_count"] = 4
+    (cand / "manifest.json").write_text(json.dumps(manifest))
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand))
+    assert code == 1 and "not comparable" not in out and "-28.6%" in err, out + err
 
 
 def test_different_torch_threads_are_not_comparable(cli, tmp_path):
@@ -468,7 +505,15 @@ def test_fresh_run_passes_and_degraded_run_fails_against_committed_baseline(cli,
         "gate", "--baseline", base, "--candidate", str(tmp_path / "fresh"), "--max-slowdown", "0.25"
     )
     assert code == 0, out + err
-    assert "gate passed" in out and "reference" in out and "not comparable" not in out
+    assert "gate passed" in out and "reference" in out
+    # speed is compared on the baseline's CPU model, and only there (the model moves the ratio)
+    fresh_cpu = json.loads((tmp_path / "fresh" / "manifest.json").read_text())["environment"]["cpu"]
+    baseline_cpu = json.loads((BASELINE / "manifest.json").read_text())["environment"]["cpu"]
+    text = " ".join(out.split())
+    if fresh_cpu == baseline_cpu:
+        assert "not comparable" not in text
+    else:
+        assert "speed not comparable: the runs come from different CPUs" in text
     calibration = json.loads((tmp_path / "fresh" / "manifest.json").read_text())["calibration"]
     assert calibration["workload"]["version"] == 1 and calibration["torch_threads"] == 1
     from policies.dvla.kernels import describe

@@ -4,6 +4,7 @@ change only what they claim to change (time for slow15, work per pass for morewo
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
 import shlex
 from pathlib import Path
@@ -47,6 +48,22 @@ def test_verdicts_are_read_from_the_gate_exit_and_its_warning():
         "gate failed:",
         "fast_dvla: NFE up",
     ]
+
+
+def test_it_refuses_a_machine_whose_cpu_is_not_the_baselines(monkeypatch):
+    # there the gate leaves speed "not comparable": every trial would pass, untimed
+    bench = load_benchmark()
+    import harness.manifest
+
+    recorded = json.loads((ROOT / bench.BASELINE / "manifest.json").read_text())["environment"]["cpu"]
+    monkeypatch.setattr(harness.manifest, "cpu_model", lambda: "Some Other CPU")
+    with pytest.raises(
+        SystemExit,
+        match=re.escape(f"this machine's CPU (Some Other CPU) is not the committed baseline's ({recorded})"),
+    ):
+        bench.refuse_another_cpu()
+    monkeypatch.setattr(harness.manifest, "cpu_model", lambda: recorded)
+    bench.refuse_another_cpu()  # the same model: no objection
 
 
 def test_unknown_conditions_and_candidates_are_refused():

@@ -40,9 +40,11 @@ What fails the gate:
   tokens/s  a slowdown beyond --max-slowdown of each configuration's tokens/s relative
             to a reference decoder's (--reference, default bidirectional) timed in the
             same run, episode by episode, against the same ratio in the baseline run:
-            the machine's speed, CPU model and load cancel out. Where no such reference
-            exists (not in both runs, changed, different torch thread counts), the table
-            says "not comparable" with the reason, and speed does not fail the gate.
+            the machine's speed and load cancel out, its CPU model does not. Where no
+            such reference exists (not in both runs, changed, different torch thread
+            counts) or the manifests name different CPU models (unless
+            --speed-across-cpus), the table says "not comparable" with the reason, and
+            speed does not fail the gate.
   replay    when both runs were benched (`dvla-harness bench`, replay.json), speed is
             judged on the replay benchmark instead: the same ratio, round by round
             over recorded observations, with a 95% bootstrap interval. It fails only
@@ -108,6 +110,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="bidirectional",
         metavar="POLICY|CONFIG_ID",
         help="the decoder in both runs that speed is measured against (default bidirectional)",
+    )
+    p.add_argument(
+        "--speed-across-cpus",
+        action="store_true",
+        help="judge speed even when the runs' manifests name different CPU models (by default "
+        "not comparable: the CPU model alone moves a decoder's speed over its reference)",
     )
     p.add_argument(
         "--allow-nfe-increase", action="store_true", help="report NFE/chunk increases but do not fail"
@@ -249,6 +257,7 @@ def cmd_gate(args: argparse.Namespace) -> int:
             allow_nfe_increase=args.allow_nfe_increase,
             allow_work_increase=args.allow_work_increase,
             reference=args.reference,
+            speed_across_cpus=args.speed_across_cpus,
         )
     except GateInputError as exc:
         raise UsageError(f"cannot compare {args.baseline} with {args.candidate}: {exc}") from None
@@ -266,6 +275,8 @@ def cmd_gate(args: argparse.Namespace) -> int:
     if result.passed:
         unsure = [r.pair for r in result.replay if r.verdict == "inconclusive"]
         speed = f"speed inconclusive for {', '.join(unsure)} (warning above)" if unsure else "no slowdown"
+        if not result.speed and not result.replay:
+            speed = "speed not compared (the note above says why)"
         console.print(
             "[green]gate passed[/green]: no significant success drop, no NFE or counted work increase, "
             f"{speed}"
