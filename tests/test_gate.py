@@ -348,42 +348,29 @@ def test_a_baseline_from_another_cpu_gates_success_and_nfe_but_speed_only_when_a
     # different CPUs are not compared on speed unless --speed-across-cpus.
     base = write_run(tmp_path / "epyc", with_reference(1400.0, 740.0), calibration=4600.0, cpu="AMD EPYC")
     xeon = "Intel(R) Xeon(R) CPU @ 2.20GHz"
-    slow = write_run(tmp_path / "slow", with_reference(1500.0, 1184.0), calibration=11500.0, cpu=xeon)
-    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(slow))
-    assert code == 0, out + err
-    text = " ".join(out.split())
+
+    def gate_xeon(name: str, df: pd.DataFrame, *flags: str) -> tuple[int, str, str]:
+        cand = write_run(tmp_path / name, df, calibration=11500.0, cpu=xeon)
+        code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand), *flags)
+        return code, " ".join(out.split()), err
+
+    code, text, err = gate_xeon("slow", with_reference(1500.0, 1184.0))
+    assert code == 0, text + err
     assert "speed not comparable: the runs come from different CPUs (baseline AMD EPYC (2 CPUs), " in text
     assert "candidate Intel(R) Xeon(R) CPU @ 2.20GHz (2 CPUs))" in text
     assert "gate passed" in text and "speed not compared (the note above says why)" in text
     # asked, it is judged through the in-run reference: the same ratio passes, -33% fails
-    same = write_run(tmp_path / "same", with_reference(2240.0, 1184.0), calibration=11500.0, cpu=xeon)
-    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(same), "--speed-across-cpus")
-    text = " ".join(out.split())
-    assert code == 0 and "+0.0%" in text and "compared anyway (--speed-across-cpus)" in text, out + err
-    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(slow), "--speed-across-cpus")
+    code, text, err = gate_xeon("same", with_reference(2240.0, 1184.0), "--speed-across-cpus")
+    assert code == 0 and "+0.0%" in text and "compared anyway (--speed-across-cpus)" in text, text + err
+    code, text, err = gate_xeon("slow2", with_reference(1500.0, 1184.0), "--speed-across-cpus")
     assert code == 1 and "fast_dvla: tokens/s relative to the reference -33.0%" in err
     # success and NFE are machine-independent: gated from another CPU without asking
-    more_nfe = with_reference(2240.0, 1184.0, nfe_per_chunk=11)
-    code, out, err = cli(
-        "gate",
-        "--baseline",
-        str(base),
-        "--candidate",
-        str(write_run(tmp_path / "nfe", more_nfe, calibration=11500.0, cpu=xeon)),
-    )
-    assert code == 1 and "NFE/chunk" in err and "not comparable" in out
+    code, text, err = gate_xeon("nfe", with_reference(2240.0, 1184.0, nfe_per_chunk=11))
+    assert code == 1 and "NFE/chunk" in err and "not comparable" in text
     worse = episodes({"a": [False] * 6, "b": [True] * 6}, tokens_per_s=2240.0)
-    worse = pd.concat(
-        [worse, episodes(ALL_OK, policy="bidirectional", tokens_per_s=1184.0, nfe_per_chunk=12)]
-    )
-    code, out, err = cli(
-        "gate",
-        "--baseline",
-        str(base),
-        "--candidate",
-        str(write_run(tmp_path / "worse", worse, calibration=11500.0, cpu=xeon)),
-    )
-    assert code == 1 and "FAIL success" in out
+    reference = episodes(ALL_OK, policy="bidirectional", tokens_per_s=1184.0, nfe_per_chunk=12)
+    code, text, err = gate_xeon("worse", pd.concat([worse, reference]))
+    assert code == 1 and "FAIL success" in text
 
 
 def test_the_cpu_count_alone_does_not_make_speed_incomparable(cli, tmp_path):
