@@ -127,16 +127,20 @@ def torch_threads(manifest: dict[str, Any]) -> int | None:
     return int(threads) if threads is not None else None
 
 
+def _environment(manifest: dict[str, Any] | None) -> dict[str, Any]:
+    return (manifest or {}).get("environment") or {}
+
+
 def run_cpus(manifests: dict[str, dict[str, Any]]) -> dict[str, str]:
     """Each side's CPU model and count as its manifest names them (absent: not named)."""
-    envs = {side: (m or {}).get("environment") or {} for side, m in manifests.items()}
+    envs = {side: _environment(m) for side, m in manifests.items()}
     return {side: f"{e.get('cpu')} ({e.get('cpu_count')} CPUs)" for side, e in envs.items() if e.get("cpu")}
 
 
 def cpus_differ(manifests: dict[str, dict[str, Any]]) -> bool:
     """Both manifests name a CPU model and the models differ (the count alone does not
     move a one-thread ratio)."""
-    models = [((m or {}).get("environment") or {}).get("cpu") for m in manifests.values()]
+    models = [_environment(m).get("cpu") for m in manifests.values()]
     return len(models) == 2 and None not in models and models[0] != models[1]
 
 
