@@ -1,7 +1,7 @@
 """Build hook: record the commit a wheel or a non-editable `pip install .` was built from.
 
 Everything else about the package is in pyproject.toml. An installed copy has no .git
-beside it, so `harness.manifest.git_commit()` reads harness/_build_info.json, which
+beside it, so `harness.run.manifest.git_commit()` reads harness/_build_info.json, which
 build_py writes into the built package (never into the source tree).
 
 setuptools builds in `build/` beside the sources, so a plain `pip install .` left a
@@ -25,7 +25,7 @@ from setuptools.command.build_py import build_py
 from setuptools.command.egg_info import egg_info
 
 HERE = Path(__file__).resolve().parent
-BUILD_INFO = "_build_info.json"  # harness.manifest.BUILD_INFO
+BUILD_INFO = "_build_info.json"  # harness.run.manifest.BUILD_INFO
 
 
 def source_commit(source: Path = HERE) -> str | None:

@@ -77,7 +77,7 @@ class Suite:
     # e.g. the Vulkan driver SAPIEN renders and builds its scene with.
     provenance: Mapping[str, str] = field(default_factory=dict)
     # Control steps per second, which turns an inference latency into steps
-    # (docs/latency.md); None: the built-in table in harness/latency.py, by suite name.
+    # (docs/latency.md); None: the built-in table in harness/episode/latency.py, by suite name.
     control_hz: float | None = None
 
     def task(self, name_or_index: str) -> TaskSpec:

@@ -35,9 +35,9 @@ import numpy as np
 import pandas as pd
 
 from harness.backends import Execution
-from harness.backends.local import episode_context
 from harness.config import ResolvedRun, build_config, resolve
-from harness.runner import run
+from harness.episode.context import episode_context
+from harness.run.runner import run
 from harness.threads import apply_threads
 
 POLICIES = ("fast_dvla", "bidirectional")

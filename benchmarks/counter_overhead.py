@@ -1,4 +1,4 @@
-"""What the NFE and counted-work hooks (harness/nfe.py) add to a forward pass.
+"""What the NFE and counted-work hooks (harness/episode/nfe.py) add to a forward pass.
 
     OMP_NUM_THREADS=1 python benchmarks/counter_overhead.py [--width 8] [--baseline-nfe FILE]
 
@@ -7,7 +7,7 @@ per pass, batch 1, one thread) 8 passes per policy call, as a decoder does, with
 counter and with `NFECounter.counting()` around each call (passes and counted work), in
 interleaved rounds. Times are thread CPU time, which a busy machine disturbs far less
 than wall time does; the median of the rounds is reported. `--baseline-nfe` also times
-another nfe.py (e.g. `git show REV:harness/nfe.py > /tmp/nfe_before.py`) in the same
+another nfe.py (e.g. `git show REV:harness/episode/nfe.py > /tmp/nfe_before.py`) in the same
 rounds, so a change to the counter is measured against what it replaced. Width 8 leaves
 the per-module cost visible (compute noise is small); 128 is the shipped width.
 Writes benchmarks/results/counter-overhead.json unless --json says otherwise.
@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from harness.nfe import NFECounter  # noqa: E402
+from harness.episode.nfe import NFECounter  # noqa: E402
 from policies.dvla.model import ActionTokenModel, ModelConfig  # noqa: E402
 
 PASSES = 8  # per policy call

@@ -278,7 +278,7 @@ def print_table(summary: list[dict[str, Any]]) -> None:
 def refuse_another_cpu() -> None:
     """The gate compares speed only on the baseline's CPU model (docs/ci-gate.md), so on
     another every trial would pass untimed and the rates would mean nothing."""
-    from harness.manifest import cpu_model
+    from harness.run.manifest import cpu_model
 
     manifest = json.loads((ROOT / BASELINE / "manifest.json").read_text())
     theirs, ours = (manifest.get("environment") or {}).get("cpu"), cpu_model()

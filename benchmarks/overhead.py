@@ -27,11 +27,12 @@ import time
 from pathlib import Path
 
 from adapters.registry import load_suite
-from harness.backends.local import episode_context
+from harness.backends.jobs import EpisodeJob
 from harness.config import RunConfig, resolve
-from harness.episode import run_episode
-from harness.nfe import NFECounter
-from harness.runner import EpisodeJob, make_row
+from harness.episode.context import episode_context
+from harness.episode.loop import run_episode
+from harness.episode.timed import TimedPolicy
+from harness.run.rows import make_row
 from results.store import RunDir
 
 TARGET_PERCENT = 3.0  # Meta-World
@@ -78,11 +79,11 @@ def bare_episode(env, suite_name, task, spec, make_expert) -> tuple[float, int]:
     return time.perf_counter() - start, steps
 
 
-def harness_episode(resolved, run_dir, env, task, spec, counter) -> tuple[float, int, float]:
+def harness_episode(resolved, run_dir, env, task, spec, policy: TimedPolicy) -> tuple[float, int, float]:
     prun = resolved.policies[0]
     start = time.perf_counter()
     context = episode_context(resolved.suite.name, task, spec, env)
-    outcome = run_episode(env, prun.policy, counter, context, spec, 0)
+    outcome = run_episode(env, policy, context, spec)
     run_dir.append_episode(make_row("bench", resolved, EpisodeJob(prun, task, spec), outcome))
     return (
         time.perf_counter() - start,
@@ -123,7 +124,7 @@ def main() -> None:
 
     resolved = resolve(RunConfig(**{**config.to_dict(), "policies": (PolicyChoice(policy),)}))
     names = [t.name for t in resolved.tasks]
-    counter = NFECounter(resolved.policies[0].policy)
+    policy = TimedPolicy(resolved.policies[0].policy, resolved.policies[0].spec.name)
     totals = {"harness_s": 0.0, "bare_s": 0.0, "steps": 0, "in_loop_overhead_s": 0.0}
     mismatched = 0
     paired_percent: list[float] = []  # per episode spec: (harness - bare) / harness
@@ -142,7 +143,7 @@ def main() -> None:
                         )
                     else:
                         seconds["harness"], steps["harness"], loop_overhead = harness_episode(
-                            resolved, run_dir, env, task, spec, counter
+                            resolved, run_dir, env, task, spec, policy
                         )
                         totals["in_loop_overhead_s"] += loop_overhead
                 totals["bare_s"] += seconds["bare"]

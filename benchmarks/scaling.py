@@ -36,7 +36,7 @@ import pandas as pd
 
 from harness.backends import Execution
 from harness.config import build_config, resolve
-from harness.runner import run
+from harness.run.runner import run
 from harness.threads import apply_threads
 from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
 

@@ -1,10 +1,10 @@
 """Policy wall time / policy CPU time per episode, idle and beside busy loops.
 
-Where harness/cpu_time.py's STARVED_FACTOR comes from: "episodes" of a fixed torch
-workload at one thread (the calibration block, harness/manifest.py; `--calls` policy
+Where harness/episode/cpu_time.py's STARVED_FACTOR comes from: "episodes" of a fixed torch
+workload at one thread (the calibration block, harness/run/manifest.py; `--calls` policy
 calls of `--passes` passes each, about 0.1 s of policy time per episode, like a short
 Meta-World episode of the shipped decoders) are timed as the episode loop times them,
-with perf_counter and the CPU clock harness/cpu_time.py picks, once as the machine is and
+with perf_counter and the CPU clock harness/episode/cpu_time.py picks, once as the machine is and
 once beside `--busy` busy loops (`python -c 'while True: pass'`, started here and killed
 on the way out, whatever happens). Prints the ratio distribution of each condition,
 how many episodes each factor would flag, and the load average beside it.
@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from harness.cpu_time import STARVED_FACTOR, cpu_clock
+from harness.episode.cpu_time import STARVED_FACTOR, cpu_clock
 
 FACTORS = (1.1, 1.25, 1.5, 2.0)
 

@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 
 from harness.config import PolicyRun, ResolvedRun
+from harness.episode.nfe import NFECounter
 from harness.errors import UsageError
-from harness.nfe import NFECounter
 from policies.base import EpisodeContext
 
 # What a recorded observation's context keeps (the spaces come from the task's env).
@@ -109,8 +109,9 @@ def evenly_spaced(n: int, k: int) -> list[int]:
 
 def record_observations(resolved: ResolvedRun, source: PolicyRun, per_task: int) -> Recorded:
     """Play each task's first episode with `source` and keep `per_task` of its observations."""
-    from harness.backends.local import episode_context
-    from harness.episode import run_episode
+    from harness.episode.context import episode_context
+    from harness.episode.loop import run_episode
+    from harness.episode.plan import ExecutionPlan
 
     contexts: list[dict[str, Any]] = []
     observations: list[Any] = []
@@ -122,9 +123,8 @@ def record_observations(resolved: ResolvedRun, source: PolicyRun, per_task: int)
         try:
             recorder = _Recorder(source.policy)
             context = episode_context(resolved.suite.name, task, specs[0], env)
-            outcome = run_episode(
-                env, recorder, NFECounter(), context, specs[0], resolved.config.replan_every
-            )
+            plan = ExecutionPlan(resolved.config.replan_every)
+            outcome = run_episode(env, recorder, context, specs[0], plan)
         finally:
             env.close()
         if outcome.failure_reason:

@@ -40,12 +40,14 @@ import pyarrow.parquet as pq
 
 from adapters.base import EpisodeSpec, TaskSpec
 from adapters.libero_states import InitialStateOverlap
-from harness.backends.local import episode_context
 from harness.config import CheckpointPin, ResolvedRun, check_checkpoints, checkpoint_pins
-from harness.episode import EpisodeOutcome, run_episode
+from harness.episode.context import episode_context
+from harness.episode.loop import run_episode
+from harness.episode.outcome import EpisodeOutcome
+from harness.episode.plan import ExecutionPlan
+from harness.episode.timed import TimedPolicy
 from harness.errors import HarnessError, UsageError
-from harness.manifest import environment, now
-from harness.nfe import NFECounter
+from harness.run.manifest import environment, now
 from policies.observations import cameras_of, png, unpng
 
 STEPS = "steps.parquet"
@@ -246,7 +248,8 @@ def _collect_job(
     task_index, first, end = job
     task = resolved.tasks[task_index]
     policy_run = resolved.policies[0]
-    counter = NFECounter(policy_run.policy)
+    policy = TimedPolicy(policy_run.policy, policy_run.spec.name)
+    plan = ExecutionPlan(resolved.config.replan_every, resolved.config.out_of_space)
     env = resolved.suite.make_env(task)
     try:  # closed whatever happens, a refused --action-noise included
         if action_noise > 0:
@@ -255,15 +258,7 @@ def _collect_job(
         result = JobResult(task.name, env.cameras, _state_positions(env), _proprio_dim(env), [])
         for spec in resolved.episodes(task)[first:end]:
             context = episode_context(resolved.suite.name, task, spec, env)
-            outcome = run_episode(
-                env,
-                policy_run.policy,
-                counter,
-                context,
-                spec,
-                resolved.config.replan_every,
-                out_of_space=resolved.config.out_of_space,
-            )
+            outcome = run_episode(env, policy, context, spec, plan)
             if env.refused is not None:
                 raise UsageError(f"{task.name}: {env.refused}; nothing was written")
             rows: dict[str, list[Any]] = {}
@@ -277,7 +272,7 @@ def _collect_job(
         return result
     finally:
         env.close()
-        counter.close()
+        policy.close_counter()
 
 
 _WORKER_RUN: ResolvedRun | None = None
@@ -296,11 +291,10 @@ def _worker_job(
         from harness.config import resolve
         from harness.threads import apply_threads
 
-        apply_threads(None, workers)  # the worker's share of the cores
+        apply_threads(None, workers)  # the worker's share of the cores, before torch loads
         check_checkpoints(pins, advice=COLLECT_ADVICE)
         _WORKER_RUN = resolve(config)
         check_checkpoints(pins, _WORKER_RUN, advice=COLLECT_ADVICE)
-        apply_threads(None, workers)  # again with torch loaded
     return _collect_job(_WORKER_RUN, job, action_noise, None)
 
 

@@ -1,7 +1,9 @@
 """Run configuration: the embedded default, overridden by a TOML file, overridden by flags.
 
-A `RunConfig` is plain data (what to evaluate). `resolve` turns it into a `ResolvedRun`
-(suite loaded, tasks chosen, policies built, checkpoints hashed) and is where every bad
+A `RunConfig` is plain data (what to evaluate). `merge_config` applies the precedence
+(the embedded default, or on --resume the config the folder recorded; then --config;
+then the flags); `resolve` turns the result into a `ResolvedRun` (suite loaded, tasks
+chosen, policies built, checkpoints hashed) and is where every bad
 input is caught, before any output folder is created.
 """
 
@@ -20,10 +22,10 @@ from typing import Any
 
 from adapters.base import EpisodeSpec, Suite, TaskSpec
 from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
-from harness.action_space import DEFAULT_OUT_OF_SPACE, check_rule
+from harness.episode.actions import DEFAULT_OUT_OF_SPACE, check_rule
+from harness.episode.latency import check_execution, parse_latency
+from harness.episode.latency import check_run as check_latency
 from harness.errors import HarnessError, UsageError
-from harness.latency import check_execution, parse_latency
-from harness.latency import check_run as check_latency
 from harness.plugins import HARNESS, install_hint
 from policies.base import Policy
 from policies.registry import (
@@ -58,9 +60,9 @@ class RunConfig:
     episodes_per_task: int | None = None  # None = every episode spec of the protocol
     replan_every: int = 0  # 0 = execute the whole chunk before asking again
     split: str = "eval"  # "train": episodes disjoint from evaluation, for demonstrations
-    # What an action outside the action space does: fail, clip or record (harness/action_space.py).
+    # What an action outside the action space does: fail, clip or record (harness/episode/actions.py).
     out_of_space: str = DEFAULT_OUT_OF_SPACE
-    # Simulated decoding time (harness/latency.py, docs/latency.md): the mode as recorded,
+    # Simulated decoding time (harness/episode/latency.py, docs/latency.md): the mode as recorded,
     # and whether the robot waits for each chunk (sync) or keeps moving (async).
     inference_latency: str = "none"
     execution: str = "sync"
@@ -119,6 +121,52 @@ def load_config_file(path: str) -> dict[str, Any]:
     except OSError as exc:
         raise UsageError(f"config file {path!r} cannot be read: {exc.strerror or exc}") from None
     return _read_toml(text, path)
+
+
+def with_variants(suite: str, variants: str) -> str:
+    """`--variants X` as the suite option it stands for (one place decides what a suite
+    name means, so a run's rows and manifest carry the selection)."""
+    base, _, opts = suite.partition(":")
+    if not base.startswith("simpler/"):
+        raise UsageError(f"--variants applies to the simpler/ suites (SimplerEnv-like), not {base!r}")
+    kept = [o for o in opts.split(",") if o.strip() and not o.strip().startswith("variants=")]
+    return f"{base}:" + ",".join([f"variants={variants}", *kept])
+
+
+# Flags that are config keys as they are (None: not given); `tasks` and `policy` come parsed.
+FLAG_KEYS = (
+    "suite", "tasks", "policy", "episodes_per_task", "replan_every", "out_of_space", "inference_latency",
+    "execution",
+)  # fmt: skip
+
+
+def merge_config(
+    recorded: dict[str, Any] | None, config_file: str | None, flags: dict[str, Any]
+) -> tuple[RunConfig, int | None]:
+    """The run's config by precedence: the embedded default (or `recorded`, the config a
+    folder being resumed recorded) < `config_file` (--config) < `flags` (each None when
+    not given; also `variants` and `batch_envs`). Returns it with the batch size asked for
+    (the flag, else the file's; None: neither), which is how to run, not what, so it is no
+    part of the config or its fingerprint."""
+    data = default_config_data() if recorded is None else recorded
+    overrides = load_config_file(config_file) if config_file else {}
+    batch_envs = flags.get("batch_envs")
+    if batch_envs is None:
+        batch_envs = overrides.get("batch_envs")
+    if flags.get("suite"):
+        overrides["suite"] = flags["suite"]
+    if recorded is None and overrides.get("suite", data["suite"]) != data["suite"]:
+        # The default's task subset and episode count are the main job's, not the protocol's.
+        data.pop("tasks", None)
+        data.pop("episodes_per_task", None)
+    data |= overrides
+    if flags.get("variants"):
+        data["suite"] = with_variants(data["suite"], flags["variants"])
+    for key in FLAG_KEYS:
+        if key != "suite" and flags.get(key) is not None:
+            data[key] = flags[key]
+    data.pop("batch_envs", None)
+    return build_config(data), batch_envs
 
 
 def _positive_int(value: Any, what: str, allow_zero: bool = False) -> int:
@@ -318,7 +366,7 @@ def policy_config_id(name: str, pjson: str, digest: str) -> str:
 
 def readopted(rebuild: Callable[[], ResolvedRun], adopted: dict[str, tuple[str, str]]) -> ResolvedRun:
     """A worker's rebuilt run with the parameters and config ids that --resume adopted
-    from the recorded rows (harness/resume.py), keyed by the id the config resolves to:
+    from the recorded rows (harness/run/resume.py), keyed by the id the config resolves to:
     the worker finds each episode it is sent by that id."""
     resolved = rebuild()
     for p in resolved.policies:
@@ -389,3 +437,10 @@ def resolve(config: RunConfig) -> ResolvedRun:
         seen[run.config_id] = run.spec.name
     check_latency(parse_latency(config.inference_latency), suite, [r.spec.name for r in runs])
     return ResolvedRun(config, suite, tasks, runs)
+
+
+def rebuild_from_config(config: RunConfig) -> ResolvedRun:
+    """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`):
+    the same config resolved again in its own process (a built policy is not sent
+    between processes)."""
+    return resolve(config)

@@ -18,8 +18,8 @@ import gymnasium as gym
 import numpy as np
 
 from adapters.base import Suite, TaskSpec
-from harness.action_space import box_bounds, describe
-from harness.backends.local import episode_context
+from harness.episode.actions import box_bounds, describe
+from harness.episode.context import episode_context
 
 # `check policy` asks for this many chunks in each of this many episodes.
 EPISODES, CHUNKS = 2, 4

@@ -11,10 +11,18 @@ more, and the manifest records what was asked for and what torch ended up with.
 
 Worker processes that share a machine (harness/backends/) call `apply_threads` in each
 worker with their own share, so workers x threads stays within the cores.
+
+Each process calls `apply_threads` once, before any heavy import: the environment
+variables it sets are read by torch's and the BLAS libraries' thread pools when they
+load. torch's inter-op pool reads no variable, so when torch is not loaded yet a one-shot
+import hook sets torch's counts right after torch's own import has run, in whatever
+module first imports it (building a policy, usually).
 """
 
 from __future__ import annotations
 
+import importlib.abc
+import importlib.machinery
 import os
 import sys
 from pathlib import Path
@@ -76,14 +84,13 @@ def _env_threads() -> int | None:
 
 
 def apply_threads(n: int | None = None, workers: int = 1) -> dict[str, Any]:
-    """Set this process's torch thread counts and return what to record in the manifest.
+    """Set this process's thread counts and return what to record in the manifest.
 
     n: threads asked for (`--threads`); None takes OMP_NUM_THREADS if the user set it,
-    else `default_threads(workers)`. Call it before any torch work: if torch is not
-    loaded yet, the environment variables it reads at import are set (and inherited by
-    child processes); if it is, torch.set_num_threads is called, and
-    set_num_interop_threads where torch still allows it (only before its inter-op pool
-    has started). Calling it again with the same arguments changes nothing.
+    else `default_threads(workers)`. Call it once, before any torch work: the environment
+    variables torch and BLAS read when they load are set (and inherited by child
+    processes), and torch's own counts are set now if it is loaded, else as soon as it
+    is (`_TorchThreads`). Calling it again with the same arguments changes nothing.
     """
     global _applied
     if n is not None:
@@ -96,16 +103,6 @@ def apply_threads(n: int | None = None, workers: int = 1) -> dict[str, Any]:
         target, source = default_threads(workers), "default"
     for name in THREAD_ENV:
         os.environ[name] = str(target)
-    interop_note = None
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        if torch.get_num_threads() != target:
-            torch.set_num_threads(target)
-        if torch.get_num_interop_threads() != target:
-            try:
-                torch.set_num_interop_threads(target)
-            except RuntimeError:
-                interop_note = "left as it was: torch's inter-op pool had already started"
     _applied = {
         "requested": n,
         "source": source,
@@ -114,7 +111,52 @@ def apply_threads(n: int | None = None, workers: int = 1) -> dict[str, Any]:
         "physical_cores": physical_cores(),
         "cpus_available": len(available_cpus()),
     }
-    return threads_record() | ({"interop_note": interop_note} if interop_note else {})
+    torch = sys.modules.get("torch")
+    if torch is None:
+        _TorchThreads.install()
+        return threads_record()
+    note = _set_torch_threads(torch, target)
+    return threads_record() | ({"interop_note": note} if note else {})
+
+
+def _set_torch_threads(torch: Any, target: int) -> str | None:
+    """torch's intra- and inter-op thread counts; a note when the inter-op pool had
+    already started (its count can then no longer change)."""
+    if torch.get_num_threads() != target:
+        torch.set_num_threads(target)
+    if torch.get_num_interop_threads() != target:
+        try:
+            torch.set_num_interop_threads(target)
+        except RuntimeError:
+            return "left as it was: torch's inter-op pool had already started"
+    return None
+
+
+class _TorchThreads(importlib.abc.MetaPathFinder):
+    """A one-shot import hook: when this process first imports torch, torch's thread
+    counts are set (to what `apply_threads` chose last) right after its module has run."""
+
+    @classmethod
+    def install(cls) -> None:
+        if not any(isinstance(f, cls) for f in sys.meta_path):
+            sys.meta_path.insert(0, cls())
+
+    def find_spec(self, name: str, path: Any, target: Any = None) -> Any:
+        if name != "torch":
+            return None
+        sys.meta_path.remove(self)  # once: the import below, and every later one, is torch's own
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        loader, run = spec.loader, spec.loader.exec_module
+
+        def exec_module(module: Any) -> None:
+            run(module)
+            if _applied is not None:
+                _set_torch_threads(module, _applied["threads"])
+
+        loader.exec_module = exec_module  # type: ignore[method-assign]
+        return spec
 
 
 def threads_record() -> dict[str, Any]:

@@ -2,9 +2,9 @@
 
 Batched by design: `act` takes one observation per batch slot and returns one action
 chunk per slot, so a torch policy can decode several environments in one forward pass.
-The runner calls `act` with batch size 1; `--batch-envs K` (harness/batched.py) steps K
-environments in lockstep and needs the optional `act_batch` below, because their episodes
-start and end at different times.
+The runner calls `act` with batch size 1; `--batch-envs K` (harness/episode/loop.py)
+steps K environments in lockstep and needs the optional `act_batch` below, because their
+episodes start and end at different times.
 
 What a policy reports about itself is limited to what only it can know (how many action
 tokens it decoded, an optional decode trace). Forward passes (NFE) and time are
@@ -81,6 +81,14 @@ class Policy(Protocol):
 # ValueError when the policy cannot act in a suite (a checkpoint trained on other
 # observations). The runner calls it once before it writes anything, so a mismatch is a
 # usage error (exit 2) instead of one failed row per episode.
+#
+# Optional too: `take_served()`, declared by a policy whose model runs in another process
+# behind a policy server (policies/remote.py). It returns what the server's own hooks
+# counted since the last take (harness/episode/timed.py ServedTotals: passes, counted
+# work, the server's time, the client's waits to reconnect); the harness reads it after
+# every call, adds its passes and work to what it counted here, splits the call's time
+# into server and transport, and takes no CPU time for it (the client only waits).
+# `served_by` (text, e.g. "the server at ws://...") names the server in messages.
 
 
 class BatchPolicy(Policy, Protocol):

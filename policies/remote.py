@@ -12,7 +12,7 @@ hooks there count them (a dvla-harness server returns them with every reply, and
 policy's own time); the runner keeps that NFE and splits each call's time into the
 server's policy time and transport (`transport_time_s`). A server that reports no NFE
 (openpi's) gives NFE as null, never 0. The passes' counted work (FLOPs, positions
-attended; harness/work.py) comes the same way, under "dvla/work"; a reply without it
+attended; harness/episode/work.py) comes the same way, under "dvla/work"; a reply without it
 leaves the episode's work null, not measured.
 
 Reliability: every receive has a timeout (`timeout_s`), so a server that stops answering
@@ -23,8 +23,8 @@ mismatch is a usage error (exit 2) with nothing written. Once the run is going, 
 that goes away (a crash, a restart that takes seconds to reload its model) fails the
 episode in flight with `ConnectionLost`, and the next episode keeps trying to connect,
 with back-off, for `reconnect_s` seconds before it fails with `ConnectionLost` too; that
-wait is neither policy nor env time (`take_remote`), and a plain `--resume` runs
-`ConnectionLost` rows again (harness/resume.py), as it does episodes of lost workers.
+wait is neither policy nor env time (`take_served`), and a plain `--resume` runs
+`ConnectionLost` rows again (harness/run/resume.py), as it does episodes of lost workers.
 
 Keys: a server that wants one (`serve --token-env`, openpi's `api_key`) gets it in
 openpi's header, read from an environment variable (`token_env=NAME`) or a file
@@ -46,7 +46,7 @@ import importlib.util
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -54,9 +54,10 @@ from urllib.parse import urlsplit
 import gymnasium as gym
 import numpy as np
 
+from harness.episode.timed import ServedTotals
+from harness.episode.work import WIRE_KEY as WORK_KEY
+from harness.episode.work import Work
 from harness.plugins import install_hint
-from harness.work import WIRE_KEY as WORK_KEY
-from harness.work import Work
 from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.registry import PolicySpec, param
 
@@ -132,17 +133,6 @@ def read_api_key(env: str, path: str, *, env_flag: str = "token_env", file_flag:
     return key
 
 
-@dataclass
-class RemoteTotals:
-    """What the server said about the calls since the last take: its forward passes
-    (None once a reply carried none) and its own policy time."""
-
-    nfe: int | None = 0
-    server_time_s: float = 0.0
-    connect_wait_s: float = 0.0  # connecting again within an episode: neither policy nor env time
-    work: Work = field(default_factory=Work)  # their counted work; None fields: not reported
-
-
 class ConnectionLost(ConnectionError):
     """The connection to the server was lost, or could not be made again within
     `reconnect_s`: the server's trouble, not the policy's (a plain --resume runs the
@@ -163,7 +153,7 @@ class RemotePolicy:
         self._ws: Any = None
         self.metadata: dict[str, Any] = {}
         self._contexts: Sequence[EpisodeContext] = ()
-        self._totals = RemoteTotals()
+        self._totals = ServedTotals()
 
     # --- connection ----------------------------------------------------------------
 
@@ -358,14 +348,16 @@ class RemotePolicy:
             actions=self._actions(reply, len(episodes)), action_tokens=int(reply.get("dvla/action_tokens", 0))
         )
 
-    def passes_so_far(self) -> int | None:
-        """The server's passes reported since the last take, not cleared: an inference
-        latency charges each call its own (harness/delayed.py). None: it reports none."""
-        return self._totals.nfe
+    @property
+    def served_by(self) -> str:
+        """Where its model runs, in words (for messages)."""
+        return f"the server at {self.params.url}"
 
-    def take_remote(self) -> RemoteTotals:
-        """The server's count since the last take (the runner reads it once per episode)."""
-        totals, self._totals = self._totals, RemoteTotals()
+    def take_served(self) -> ServedTotals:
+        """What the server reported since the last take: its passes, work and own time,
+        and this client's waits to connect again (harness/episode/timed.py reads it after
+        every call)."""
+        totals, self._totals = self._totals, ServedTotals()
         return totals
 
 

@@ -21,7 +21,7 @@ def _scoring_provenance(manifest: Mapping[str, Any]) -> dict[str, Any]:
     suite = manifest.get("suite") or {}
     out: dict[str, Any] = {"render backend": suite.get("render_backend")}
     # a suite that renders nothing is not touched by MUJOCO_GL (older manifests recorded
-    # the variable as import order left it); harness.manifest.mujoco_gl records this now
+    # the variable as import order left it); harness.run.manifest.mujoco_gl records this now
     unrendered = str(suite.get("render_backend") or "").startswith("none")
     out["MUJOCO_GL"] = "unused (state observations)" if unrendered else env.get("mujoco_gl")
     for key, value in (suite.get("provenance") or {}).items():  # e.g. SAPIEN's Vulkan driver

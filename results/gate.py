@@ -24,7 +24,7 @@ docs/ci-gate.md explains the rules; in short:
   (Bonferroni), so a chain suite is no likelier to raise a false alarm than another.
 * NFE per chunk (total passes / total chunks) is deterministic for deterministic
   decoders: any increase fails.
-* Counted work per chunk (total FLOPs / total chunks, harness/work.py) is as exact as
+* Counted work per chunk (total FLOPs / total chunks, harness/episode/work.py) is as exact as
   NFE and checked the same way: any increase fails (a wider cached range, a bigger
   pass). Not measured on either side (null in any of the rows) means not compared,
   said in a note.

@@ -70,7 +70,7 @@ class Entry:
     variants: VariantStats | None = None
     # False when no row has an NFE count (a remote server that reports none): "not measured".
     nfe_measured: bool = True
-    # Counted work per chunk (harness/work.py), a mean over the rows that measured it;
+    # Counted work per chunk (harness/episode/work.py), a mean over the rows that measured it;
     # None when none did: "not measured".
     flops_per_chunk: float | None = None
 

@@ -45,13 +45,13 @@ FIELD_TYPES: dict[str, tuple[type, ...]] = {
     "status": (str,),
     "speed_reliable": (bool,),
     "speed_warning": (str,),
-    "starvation": (dict,),  # starved episodes counted at the run's end (harness/manifest.py)
+    "starvation": (dict,),  # starved episodes counted at the run's end (harness/run/manifest.py)
     "starvation.starved_episodes": (int,),
     "starvation.judged_episodes": (int,),
     "starvation.factor": NUMBER,
     "starvation.worst_ratio": (int, float, NoneType),
     "traces": (bool,),
-    "extended": (list,),  # --resume with more episodes per task (harness/resume.py)
+    "extended": (list,),  # --resume with more episodes per task (harness/run/resume.py)
 }
 # what `--resume` reads and writes back
 RESUME_FIELDS = ("run_id", "config", "suite", "policies", "resumed_at", "status")

@@ -44,7 +44,7 @@ NO_BASELINE = "n/a: no bidirectional row"  # as results.leaderboard.speedups say
 CAPTION = (
     "control Hz: env steps per second of policy time (the policy alone); loop Hz: env steps per "
     "second of wall-clock (policy + simulator + harness); GFLOP/chunk: counted work of the passes "
-    "behind one chunk (harness/work.py; - not measured); speedup: tokens/s over bidirectional's "
+    "behind one chunk (harness/episode/work.py; - not measured); speedup: tokens/s over bidirectional's "
     f"in this run (per task only with >= {MIN_EPISODES_FOR_TASK_SPEEDUP} episodes each)"
 )
 

@@ -89,7 +89,7 @@ def speed_warning(manifest: Mapping[str, Any]) -> str:
 
 def speed_reasons(manifest: Mapping[str, Any]) -> list[str]:
     """Each reason a run's speed figures are unreliable, from what its manifest measured:
-    a calibration drift beyond the tolerance, and starved episodes (harness/cpu_time.py)."""
+    a calibration drift beyond the tolerance, and starved episodes (harness/episode/cpu_time.py)."""
     reasons = []
     drift = calibration_drift(manifest)
     if drift is not None and abs(drift) > CALIBRATION_DRIFT_TOLERANCE:

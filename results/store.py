@@ -471,20 +471,12 @@ class RunDir:
         df = df.drop_duplicates(subset=list(EPISODE_KEY), keep="last")
         return with_config_labels(df.reset_index(drop=True)[list(COLUMN_NAMES)])
 
-    def stamp_rows(self, column: str, value: Any) -> None:
-        """Set `column` to `value` in every row of episodes.parquet (atomically): a verdict
-        on the whole run known only at its end (calibration drift: speed_reliable)."""
-        path = self.path / EPISODES
-        if not path.is_file():
-            return
-        table = read_table(path)
-        index = table.schema.get_field_index(column)
-        field = table.schema.field(index)
-        table = table.set_column(index, field, pa.array([value] * len(table), field.type))
-        _write_table(path, table.replace_schema_metadata(arrow_schema().metadata))
+    def compact(self, stamp: Mapping[str, Any] | None = None) -> None:
+        """Fold pending rows into episodes.parquet (atomically), then drop pending.jsonl.
 
-    def compact(self) -> None:
-        """Fold pending rows into episodes.parquet (atomically), then drop pending.jsonl."""
+        stamp: columns to set in every row as the file is written, a verdict on the whole
+        run known only at its end (calibration drift: speed_reliable); with a stamp the
+        file is written even when no row is pending."""
         handles, self._pending, self._traces = (self._pending, self._traces), None, None
         failed: OSError | None = None
         for handle in handles:
@@ -496,11 +488,13 @@ class RunDir:
         if failed is not None:
             raise failed
         pending = self.path / PENDING
-        if not pending.is_file():
+        if not pending.is_file() and not (stamp and (self.path / EPISODES).is_file()):
             return
         df = self.read_episodes()
+        for column, value in (stamp or {}).items():
+            df[column] = [value] * len(df)
         df = df.sort_values(["policy_config_id", "task_index", "episode_index"], kind="stable")
         table = pa.Table.from_pandas(df, schema=arrow_schema(), preserve_index=False)
         _write_table(self.path / EPISODES, table.replace_schema_metadata(arrow_schema().metadata))
-        pending.unlink()
+        pending.unlink(missing_ok=True)
         _fsync_dir(self.path)

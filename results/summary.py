@@ -79,7 +79,7 @@ def _summarise(group: pd.DataFrame) -> dict[str, float]:
         "success_high": high,
         "failures": int(group["failure_reason"].notna().sum()),
         "nfe_per_chunk": group["nfe_per_chunk"].mean(),
-        # counted work (harness/work.py); NaN when no row measured it
+        # counted work (harness/episode/work.py); NaN when no row measured it
         "flops_per_chunk": group["flops_per_chunk"].mean() if "flops_per_chunk" in group else math.nan,
         "tokens_per_s": group["tokens_per_s"].mean(),
         "control_hz": group["control_hz"].mean(),

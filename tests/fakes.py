@@ -3,14 +3,21 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 from adapters.base import EpisodeSpec, Suite, TaskSpec
 from harness.config import PolicyRun, ResolvedRun, RunConfig
+from harness.episode.envs import TaskEnvs
+from harness.episode.loop import Episode, EpisodeLoop, run_episode
+from harness.episode.nfe import NFECounter
+from harness.episode.outcome import EpisodeOutcome
+from harness.episode.plan import ExecutionPlan
+from harness.episode.timed import TimedPolicy
 from policies.base import ChunkBatch, EpisodeContext
 from policies.registry import NoParams, PolicySpec
 
@@ -273,3 +280,56 @@ class FakeBuild:
         kind = BatchFaultPolicy if self.batch else FaultPolicy
         policy = kind(dict(self.faults), self.marks, delay=self.delay)
         return fake_resolved(policy, episodes=self.episodes, tasks=self.tasks, succeed_at=self.succeed_at)
+
+
+def run_one(
+    env: gym.Env,
+    policy: Any,
+    ctx: EpisodeContext,
+    spec: EpisodeSpec,
+    replan_every: int = 0,
+    latency: Any = None,
+    out_of_space: str = "fail",
+    counter: NFECounter | None = None,
+    name: str = "fake",
+) -> EpisodeOutcome:
+    """One episode through the episode loop on a given env (harness/episode/loop.py
+    run_episode); `name`: the policy's registered name (a latency profile's key)."""
+    timed = TimedPolicy(policy, name, counter)
+    try:
+        return run_episode(env, timed, ctx, spec, ExecutionPlan(replan_every, out_of_space, latency))
+    finally:
+        if counter is None:
+            timed.close_counter()
+
+
+def run_batch(
+    specs: Sequence[EpisodeSpec],
+    make_env: Callable[[], gym.Env],
+    policy: Any,
+    context_for: Callable[[EpisodeSpec, Any], EpisodeContext],
+    k: int,
+    replan_every: int = 0,
+    latency: Any = None,
+    out_of_space: str = "fail",
+    envs: Sequence[gym.Env] = (),
+    counter: NFECounter | None = None,
+    name: str = "fake",
+) -> list[tuple[int, EpisodeOutcome]]:
+    """Every episode of `specs` (one task, one policy) through the loop's `k` slots:
+    (position in `specs`, outcome) in the order they end. `envs`: envs already built,
+    taken before any is made."""
+    plan = ExecutionPlan(replan_every, out_of_space, latency, batch_envs=k)
+    task = TaskSpec("task-0", "do the task", 50, tuple(specs))
+    pool = TaskEnvs(lambda _task: make_env(), out_of_space)
+    for env in reversed(list(envs)):  # the first given is taken first
+        pool.adopt(task.name, env)
+    timed = TimedPolicy(policy, name, counter)
+    loop = EpisodeLoop("fake/suite", plan, pool)
+    episodes = [Episode(task, spec, timed, context_for(spec, None)) for spec in specs]
+    try:
+        return list(loop.run(episodes, alone=k == 1))
+    finally:
+        pool.idle.clear()  # the caller's envs stay open, as the test made them
+        if counter is None:
+            timed.close_counter()

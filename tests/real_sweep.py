@@ -42,8 +42,8 @@ def real_sweep(tmp_path_factory: pytest.TempPathFactory) -> SweepRun:
     from harness.cli import build_parser, main
     from harness.commands.run import config_from_args
     from harness.config import resolve
-    from harness.runner import run
-    from harness.sweep import expand, parse_grid
+    from harness.run.runner import run
+    from harness.run.sweep import expand, parse_grid
 
     out = tmp_path_factory.mktemp("sweep") / "run"
     args = build_parser().parse_args(["sweep", *SWEEP_ARGS, "--out", str(out)])

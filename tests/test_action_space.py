@@ -1,4 +1,4 @@
-"""Actions outside the env's action space (harness/action_space.py): failed by default,
+"""Actions outside the env's action space (harness/episode/actions.py): failed by default,
 clipped or recorded by choice, counted in every row, held fixed across --resume, and
 caught by `check policy` on any call of any episode, not only the first."""
 
@@ -14,17 +14,16 @@ import pyarrow.parquet as pq
 import pytest
 
 from adapters.base import EpisodeSpec, Suite, TaskSpec
-from harness.batched import run_batched
 from harness.conformance import check_policy
 from harness.errors import UsageError
-from harness.nfe import NFECounter
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from policies.base import ChunkBatch, EpisodeContext
 from policies.registry import NoParams, PolicySpec
 from results import schema
 from results.board_warnings import out_of_space_warnings
 from results.store import RunDir, read_table, rows_to_table
-from tests.fakes import CountdownEnv, fake_resolved
+from tests.fakes import CountdownEnv, fake_resolved, run_batch
 from tests.test_plugins import installed_plugin  # noqa: F401  (the fixture)
 
 UNIT = gym.spaces.Box(-1.0, 1.0, (2,))  # the [-1, 1] space of most robot suites
@@ -164,9 +163,7 @@ def test_batched_episodes_follow_the_rule(rule, failed, seen):
         return env
 
     specs = [EpisodeSpec(i) for i in range(3)]
-    out = dict(
-        run_batched(specs, make_env, policy, NFECounter(), lambda _s, _e: _context(), 2, out_of_space=rule)
-    )
+    out = dict(run_batch(specs, make_env, policy, lambda _s, _e: _context(), 2, out_of_space=rule))
     assert sum(o.failure_reason is not None for o in out.values()) == failed
     assert all(o.actions_out_of_space == (2 if rule == "fail" else 4) for o in out.values())
     actions = np.array([a for env in envs for a in env.actions])
@@ -183,14 +180,14 @@ def test_resume_refuses_another_rule_and_reads_an_older_manifest_as_fail(tmp_pat
     out = tmp_path / "r"
     run(unit_resolved(ValuePolicy(1.0), episodes=1), out)
     with pytest.raises(UsageError, match=r'out_of_space: "fail" -> "clip"'):
-        run(unit_resolved(ValuePolicy(1.0), "clip", episodes=2), out, resume=True)
+        run(unit_resolved(ValuePolicy(1.0), "clip", episodes=2), out, OpenMode.RESUME)
     # a manifest written before the rule existed: its runs resume under the default
     manifest = RunDir(out).read_manifest()
     del manifest["config"]["out_of_space"]
     RunDir(out).write_manifest(manifest)
     with pytest.raises(UsageError, match=r'out_of_space: "fail" -> "record"'):
-        run(unit_resolved(ValuePolicy(1.0), "record", episodes=2), out, resume=True)
-    report = run(unit_resolved(ValuePolicy(1.0), episodes=2), out, resume=True)
+        run(unit_resolved(ValuePolicy(1.0), "record", episodes=2), out, OpenMode.RESUME)
+    report = run(unit_resolved(ValuePolicy(1.0), episodes=2), out, OpenMode.RESUME)
     assert (report.skipped, report.executed) == (1, 1)
 
 

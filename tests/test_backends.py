@@ -14,18 +14,20 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import pandas as pd
 import pytest
 
 from harness.backends import Execution
+from harness.backends.jobs import plan_jobs as plan
 from harness.backends.local import HOST, Worker
 from harness.backends.ray import actor_death_reason
-from harness.backends.schedule import Event, JobId, job_id, schedule, units_by_task
-from harness.runner import plan, run
+from harness.backends.scheduler import Event, JobId, job_id, schedule, units_by_task
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
 from tests.fakes import FakeBuild
+from tests.test_schedule import stand_ins
 
 REPO = Path(__file__).resolve().parent.parent
 HAS_RAY = importlib.util.find_spec("ray") is not None
@@ -72,34 +74,19 @@ def test_workers_give_the_rows_of_one_process_and_say_where_they_ran(tmp_path):
     assert all([p["policy"] for p in w["warm_up"]["policies"]] == ["fake"] for w in workers)
 
 
-def _jobs(tasks: int, episodes: int, policies: tuple[str, ...]) -> list:
-    """Plan-ordered stand-ins for EpisodeJob (task -> episode -> policy): what
-    units_by_task reads of them."""
-    return [
-        SimpleNamespace(
-            task=SimpleNamespace(name=f"t{t}"),
-            spec=SimpleNamespace(index=e),
-            policy=SimpleNamespace(config_id=p),
-        )
-        for t in range(tasks)
-        for e in range(episodes)
-        for p in policies
-    ]
-
-
 def test_a_task_is_split_into_episode_ranges_only_when_workers_would_idle():
-    one_task = units_by_task(_jobs(1, 5, ("a", "b")), workers=2)
+    one_task = units_by_task(stand_ins(1, 5, ("a", "b")), workers=2)
     # contiguous episode ranges, every policy's episode kept together, in plan order
     assert [list(u) for u in one_task] == [
         [("t0", 0, "a"), ("t0", 0, "b"), ("t0", 1, "a"), ("t0", 1, "b")],
         [("t0", e, p) for e in (2, 3, 4) for p in ("a", "b")],
     ]
-    assert [len(u) for u in units_by_task(_jobs(1, 8, ("a",)), workers=4)] == [2, 2, 2, 2]
+    assert [len(u) for u in units_by_task(stand_ins(1, 8, ("a",)), workers=4)] == [2, 2, 2, 2]
     # as many tasks as workers, or one worker: a task stays whole
-    assert [len(u) for u in units_by_task(_jobs(3, 4, ("a",)), workers=2)] == [4, 4, 4]
-    assert len(units_by_task(_jobs(1, 4, ("a",)), workers=1)) == 1
+    assert [len(u) for u in units_by_task(stand_ins(3, 4, ("a",)), workers=2)] == [4, 4, 4]
+    assert len(units_by_task(stand_ins(1, 4, ("a",)), workers=1)) == 1
     # one episode cannot be split; no jobs, no units
-    assert len(units_by_task(_jobs(1, 1, ("a", "b")), workers=4)) == 1
+    assert len(units_by_task(stand_ins(1, 1, ("a", "b")), workers=4)) == 1
     assert not units_by_task([], workers=4)
 
 
@@ -172,7 +159,7 @@ def test_batched_workers_give_the_rows_of_one_batched_process(tmp_path):
     # --resume with a larger protocol runs only the new episodes, batched in the workers
     bigger = FakeBuild(episodes=6, tasks=2, batch=True)
     execution = Execution(workers=2, batch_envs=3, rebuild=bigger)
-    resumed = run(bigger(), tmp_path / "two", resume=True, execution=execution)
+    resumed = run(bigger(), tmp_path / "two", OpenMode.RESUME, execution=execution)
     assert (resumed.skipped, resumed.executed) == (10, 2)
     rows = _rows(resumed)
     assert (
@@ -183,7 +170,7 @@ def test_batched_workers_give_the_rows_of_one_batched_process(tmp_path):
 
 
 def test_a_batched_worker_warms_up_at_the_batch_shape_and_reports_each_episode():
-    worker = Worker(FakeBuild(episodes=4, batch=True)(), False, "w-0", batch_envs=3, heartbeat_s=0.0)
+    worker = Worker(FakeBuild(episodes=4, batch=True)(), "w-0", batch_envs=3, heartbeat_s=0.0)
     policy = worker.runner.resolved.policies[0].policy
     try:
         assert policy.sizes == [] and worker.warm_up is None  # built; warmed up next, step by step
@@ -203,7 +190,7 @@ def test_a_batched_worker_warms_up_at_the_batch_shape_and_reports_each_episode()
             )
         assert all(o.batch_envs == 3 and o.worker_id == "w-0" and o.host == HOST for o in done.values())
         assert max(policy.sizes[2:]) == 3
-        quiet = Worker(FakeBuild(episodes=4, batch=True)(), False, "w-1", batch_envs=3)
+        quiet = Worker(FakeBuild(episodes=4, batch=True)(), "w-1", batch_envs=3)
         assert "stepped" not in [
             kind for kind, _ in quiet.run(group, alone=False)
         ]  # no timeout: no heartbeat
@@ -339,7 +326,8 @@ KILL_SCRIPT = """
 import sys
 from pathlib import Path
 from harness.backends import Execution
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from tests.fakes import FakeBuild
 
 if __name__ == "__main__":
@@ -386,7 +374,7 @@ def test_parent_sigkill_then_resume_records_each_episode_once(tmp_path, backend)
     assert pids and not [pid for pid in pids if _running(pid)]
     build = FakeBuild(episodes=6, tasks=2)
     # resumed in this process: another backend and worker count are not a config difference
-    report = run(build(), out, resume=True, execution=Execution(workers=1))
+    report = run(build(), out, OpenMode.RESUME, execution=Execution(workers=1))
     assert report.skipped == first and report.executed == 12 - first
     episodes = report.run_dir.read_episodes()
     assert len(episodes) == 12 and not episodes.duplicated(["task", "episode_index", "policy"]).any()

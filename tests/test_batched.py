@@ -1,4 +1,4 @@
-"""Batched inference across environments (--batch-envs K, harness/batched.py).
+"""Batched inference across environments (--batch-envs K, harness/episode/loop.py).
 
 A physics-free env whose episodes have different lengths and a fake batching policy with
 a real torch module (so NFE is counted by the harness's hooks, as for a decoder).
@@ -16,13 +16,13 @@ import pytest
 
 from adapters.base import EpisodeSpec
 from harness.backends import Execution
-from harness.batch_runner import check_batching
-from harness.batched import run_batched
+from harness.backends.options import check_batching
+from harness.episode.nfe import NFECounter
 from harness.errors import UsageError
-from harness.nfe import NFECounter
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from policies.base import ChunkBatch, EpisodeContext
-from tests.fakes import ChunkPolicy, CountdownEnv, context, fake_resolved
+from tests.fakes import ChunkPolicy, CountdownEnv, context, fake_resolved, run_batch
 
 
 def length(index: int) -> int:
@@ -110,7 +110,7 @@ def batched(policy, episodes: int, k: int, fail_episode: int | None = None, envs
     counter = NFECounter(policy)
     try:
         start = time.perf_counter()
-        out = list(run_batched(specs, make_env, policy, counter, context_for, k, envs=envs))
+        out = run_batch(specs, make_env, policy, context_for, k, envs=envs or (), counter=counter)
         elapsed = time.perf_counter() - start
     finally:
         counter.close()
@@ -198,7 +198,7 @@ def test_runner_rows_record_the_batch_size_and_resume_may_change_it(tmp_path):
     assert policy.calls[:2] == [[0], [0, 0, 0]] and manifest["warm_up"][0]["policies"][0]["error"] is None
     # a larger protocol resumed unbatched: only the new episodes run, at batch size 1
     bigger = fake_resolved(ChunkPolicy(chunk=2), episodes=6, succeed_at=3, tasks=2)
-    report = run(bigger, out, resume=True, execution=Execution(batch_envs=1))
+    report = run(bigger, out, OpenMode.RESUME, execution=Execution(batch_envs=1))
     rows = report.run_dir.read_episodes()
     assert report.executed == 2 and len(rows) == 12
     assert sorted(rows[rows["batch_envs"] == 1]["episode_index"]) == [5, 5]

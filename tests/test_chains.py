@@ -19,13 +19,11 @@ from rich.console import Console
 from adapters import chain_scenes as cs
 from adapters import libero as lb
 from adapters.base import EpisodeSpec
-from harness.batched import run_batched
-from harness.episode import run_episode
-from harness.nfe import NFECounter
+from harness.episode.nfe import NFECounter
 from policies.base import ChunkBatch, EpisodeContext
 from results import schema
 from results.store import read_table, rows_to_table
-from tests.fakes import context
+from tests.fakes import context, run_batch, run_one
 
 needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 SCENE = "living_room_scene3"
@@ -46,7 +44,7 @@ class FakeChainEnv(gym.Env):
     """Three instructions; subtask k's goal holds after `every` steps in it."""
 
     observation_space = gym.spaces.Box(-np.inf, np.inf, (1,))
-    action_space = gym.spaces.Box(-1.0, 1.0, (2,))
+    action_space = gym.spaces.Box(-10.0, 10.0, (2,))  # RecordingPolicy's numbered actions lie inside
     INSTRUCTIONS = ("open the drawer", "push the block", "close the drawer")
 
     def __init__(self, every: int = 3):
@@ -103,7 +101,7 @@ class RecordingPolicy:
 def test_every_instruction_reaches_the_policy_in_order_and_a_switch_drops_the_chunk():
     env, policy = FakeChainEnv(every=3), RecordingPolicy()
     spec = EpisodeSpec(index=0, chain=("s0", "s1", "s2"))
-    out = run_episode(env, policy, NFECounter(), context(max_steps=100), spec)
+    out = run_one(env, policy, context(max_steps=100), spec)
     assert [(c.instruction, c.subtask_index) for c in policy.resets] == [
         ("open the drawer", 0),
         ("push the block", 1),
@@ -121,7 +119,9 @@ def test_the_batched_loop_switches_instructions_per_episode():
     envs = [FakeChainEnv(every=2 + i) for i in range(2)]
     counter = NFECounter()
     outcomes = dict(
-        run_batched(specs, lambda: FakeChainEnv(), policy, counter, lambda _s, _e: context(100), 2, envs=envs)
+        run_batch(
+            specs, lambda: FakeChainEnv(), policy, lambda _s, _e: context(100), 2, envs=envs, counter=counter
+        )
     )
     assert sorted(outcomes) == [0, 1, 2]
     assert all(o.success and o.subtasks_completed == 3 for o in outcomes.values())
@@ -143,7 +143,7 @@ def test_a_single_instruction_env_never_resets_the_policy_twice():
             Counting.resets += 1
             super().reset(episodes)
 
-    out = run_episode(CountdownEnv(succeed_at=12), Counting(), NFECounter(), context(), EpisodeSpec(index=0))
+    out = run_one(CountdownEnv(succeed_at=12), Counting(), context(), EpisodeSpec(index=0))
     assert out.success and Counting.resets == 1 and out.subtasks is None
 
 
@@ -448,7 +448,7 @@ def test_a_failed_chain_keeps_the_steps_of_its_completed_subtasks_only():
     from types import SimpleNamespace
 
     from harness.collect import _kept_steps
-    from harness.episode import EpisodeOutcome
+    from harness.episode.outcome import EpisodeOutcome
 
     def outcome(completed: int, steps: list[int], success: bool = False) -> EpisodeOutcome:
         records = [

@@ -1,4 +1,4 @@
-"""The shared policy server's dynamic batching (harness/coalesce.py): which concurrent
+"""The shared policy server's dynamic batching (harness/serving/coalesce.py): which concurrent
 calls share one act_batch call, and what each is told about it."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from harness.coalesce import Coalescer
+from harness.serving.coalesce import Coalescer
 from policies.base import ChunkBatch
 
 

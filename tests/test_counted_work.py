@@ -1,4 +1,4 @@
-"""Counted work (harness/work.py): the NFE hooks' FLOP and token counts equal a hand count
+"""Counted work (harness/episode/work.py): the NFE hooks' FLOP and token counts equal a hand count
 on a toy model for every decoder's pass shapes, do not depend on threads or the batch,
 say "not measured" rather than 0, travel over the wire, and fail the gate when they grow."""
 
@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 import torch
 
-from harness.nfe import NFECounter
-from harness.work import NOT_MEASURED, Work
+from harness.episode.nfe import NFECounter
+from harness.episode.work import NOT_MEASURED, Work
 from policies.dvla.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
 from policies.dvla.fast_dllm import decode_fast_dllm
 from policies.dvla.fast_dvla import decode_fast_dvla
@@ -223,11 +223,11 @@ def test_a_servers_reported_work_adds_up_and_a_reply_without_it_is_not_measured(
     policy._ws = FakeSocket([{"dvla/nfe": 2, "dvla/work": reported.to_wire()}] * 2)
     policy._call({})
     policy._call({})
-    assert policy.take_remote().work == Work(200, 20, 60, 40)
+    assert policy.take_served().work == Work(200, 20, 60, 40)
     policy._ws = FakeSocket([{"dvla/nfe": 2, "dvla/work": reported.to_wire()}, {"actions": 0}])
     policy._call({})
     policy._call({})  # an openpi server: no work reported
-    assert policy.take_remote().work == NOT_MEASURED
+    assert policy.take_served().work == NOT_MEASURED
     assert Work.from_wire(
         {"flops": -1, "query_tokens": "x", "kv_tokens": 3, "kv_cached_tokens": True}
     ) == Work(None, None, 3, None)

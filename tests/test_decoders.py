@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from harness.nfe import NFECounter
+from harness.episode.nfe import NFECounter
 from policies.dvla.decoders import decode_autoregressive, decode_bidirectional, decode_block_diffusion
 from policies.dvla.fast_dvla import decode_fast_dvla
 from policies.dvla.schedules import still_masked

@@ -121,6 +121,7 @@ def test_a_ray_worker_decodes_on_the_gpu_ray_reserved_for_it(monkeypatch):
 @pytest.mark.parametrize(("reserved", "used"), [(["0"], "cuda"), ([], "cpu")])
 def test_a_ray_actor_records_where_its_policies_decode(monkeypatch, reserved, used):
     from harness.backends import ray as ray_backend
+    from harness.backends.local import WorkerSpec
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda _index=0: "Fake GPU")
@@ -128,7 +129,8 @@ def test_a_ray_actor_records_where_its_policies_decode(monkeypatch, reserved, us
     monkeypatch.setattr(device, "_record", None)
     monkeypatch.setattr("harness.threads.apply_threads", lambda *_a: {})  # this process's threads
     policy = _Placed()
-    actor = ray_backend.EpisodeActor("ray-0", lambda: fake_resolved(policy), 1, 1, False, device="auto")
+    spec = WorkerSpec(lambda: fake_resolved(policy), threads=1, workers=1, traces=False, device="auto")
+    actor = ray_backend.EpisodeActor("ray-0", spec)
     try:
         *warming, (kind, record) = actor.ready()  # a stream: each policy's warm-up, then ready
         assert [k for k, _ in warming] == ["warming"]

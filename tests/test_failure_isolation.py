@@ -21,7 +21,7 @@ import pytest
 
 from harness.backends import Execution
 from harness.errors import HarnessError
-from harness.runner import run
+from harness.run.runner import run
 from policies.base import ChunkBatch
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, FakeBuild, fake_resolved

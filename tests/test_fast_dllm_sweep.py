@@ -156,7 +156,7 @@ def test_measure_refuses_a_bad_threshold_list(bench, tmp_path, capsys):
 def test_resume_does_not_adopt_rows_recorded_before_blocks_existed():
     """Such rows decoded one action step a block; `blocks`' default (the whole chunk) is
     another decoder, so they must not be counted as made at it."""
-    from harness.resume import _added_at_default
+    from harness.run.resume import _added_at_default
     from policies.registry import params_json
 
     current = FastDLLMParams(checkpoint=__file__, threshold=0.9)

@@ -451,7 +451,7 @@ def test_cli_bad_input_is_one_clear_line_and_exit_2(cli, tmp_path):
 
 def test_calibration_restores_torch_threads_and_random_state():
     torch = pytest.importorskip("torch")
-    from harness.manifest import measure_calibration
+    from harness.run.manifest import measure_calibration
 
     threads, state = torch.get_num_threads(), torch.random.get_rng_state()
     m = measure_calibration()

@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from harness.nfe import NFECounter
+from harness.episode.nfe import NFECounter
 from policies.base import EpisodeContext
 from policies.registry import get_policy, parse_params
 from tests.test_dvla_policies import make_checkpoint
@@ -53,16 +53,16 @@ def test_verdicts_are_read_from_the_gate_exit_and_its_warning():
 def test_it_refuses_a_machine_whose_cpu_is_not_the_baselines(monkeypatch):
     # there the gate leaves speed "not comparable": every trial would pass, untimed
     bench = load_benchmark()
-    import harness.manifest
+    import harness.run.manifest
 
     recorded = json.loads((ROOT / bench.BASELINE / "manifest.json").read_text())["environment"]["cpu"]
-    monkeypatch.setattr(harness.manifest, "cpu_model", lambda: "Some Other CPU")
+    monkeypatch.setattr(harness.run.manifest, "cpu_model", lambda: "Some Other CPU")
     with pytest.raises(
         SystemExit,
         match=re.escape(f"this machine's CPU (Some Other CPU) is not the committed baseline's ({recorded})"),
     ):
         bench.refuse_another_cpu()
-    monkeypatch.setattr(harness.manifest, "cpu_model", lambda: recorded)
+    monkeypatch.setattr(harness.run.manifest, "cpu_model", lambda: recorded)
     bench.refuse_another_cpu()  # the same model: no objection
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from harness.runner import run
+from harness.run.runner import run
 from results import html_report
 from results.runs import load_run
 from results.store import RunDir

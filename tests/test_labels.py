@@ -8,7 +8,7 @@ import json
 import pandas as pd
 import pyarrow.parquet as pq
 
-from harness.runner import run
+from harness.run.runner import run
 from results import schema
 from results.labels import config_labels, with_config_labels
 from results.leaderboard import leaderboards

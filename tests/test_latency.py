@@ -1,4 +1,4 @@
-"""Inference latency (harness/latency.py, harness/delayed.py): d control steps per chunk,
+"""Inference latency (harness/episode/latency.py, harness/episode/plan.py): d control steps per chunk,
 sync holds, async skips, chains, determinism across threads and workers, the gate and
 the CLI's refusals."""
 
@@ -14,15 +14,14 @@ import torch
 
 from adapters.base import EpisodeSpec
 from harness.backends import Execution
-from harness.episode import run_episode
+from harness.episode.latency import LatencyPlan, delay_steps, parse_latency
 from harness.errors import UsageError
-from harness.latency import LatencyPlan, delay_steps, parse_latency
-from harness.nfe import NFECounter
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from policies.base import ChunkBatch, EpisodeContext
 from results.gate import GateInputError, gate
 from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
-from tests.fakes import CountdownEnv, context, fake_resolved
+from tests.fakes import CountdownEnv, context, fake_resolved, run_one
 from tests.test_remote import serve_process  # noqa: F401  (a fixture)
 
 HZ = 10.0  # the fake suite's control frequency: 100 ms a step
@@ -64,10 +63,8 @@ def episode(mode: str, execution: str, replan_every: int = 0, max_steps: int = 2
     env = env or CountdownEnv(None)
     policy = policy or PassingPolicy()
     latency = parse_latency(mode)
-    plan = None if latency.kind == "none" else LatencyPlan(latency, execution, HZ, "fake")
-    out = run_episode(
-        env, policy, NFECounter(policy), context(max_steps), EpisodeSpec(0, 1), replan_every, latency=plan
-    )
+    plan = None if latency.kind == "none" else LatencyPlan(latency, execution, HZ)
+    out = run_one(env, policy, context(max_steps), EpisodeSpec(0, 1), replan_every, latency=plan)
     return out, env, policy
 
 
@@ -227,9 +224,9 @@ def test_resume_refuses_another_latency(tmp_path):
     out = tmp_path / "r"
     run(LatencyBuild("passes:10")(), out)
     with pytest.raises(UsageError, match=r'inference_latency: "passes:10" -> "passes:20"'):
-        run(LatencyBuild("passes:20")(), out, resume=True)
+        run(LatencyBuild("passes:20")(), out, OpenMode.RESUME)
     with pytest.raises(UsageError, match=r'execution: "sync" -> "async"'):
-        run(LatencyBuild("passes:10", "async")(), out, resume=True)
+        run(LatencyBuild("passes:10", "async")(), out, OpenMode.RESUME)
 
 
 def test_the_gate_refuses_runs_at_different_latencies(tmp_path, cli):
@@ -284,8 +281,8 @@ def test_measured_turns_the_calls_wall_clock_into_steps():
 
     policy = ChunkPolicy(chunk=4, delay=0.15)  # at 10 Hz: at least 2 steps a call
     env = CountdownEnv(None)
-    plan = LatencyPlan(parse_latency("measured"), "sync", HZ, "fake")
-    out = run_episode(env, policy, NFECounter(policy), context(8), EpisodeSpec(0, 1), latency=plan)
+    plan = LatencyPlan(parse_latency("measured"), "sync", HZ)
+    out = run_one(env, policy, context(8), EpisodeSpec(0, 1), latency=plan)
     assert out.delay_steps_max >= 2 and out.hold_steps >= 2
     assert not env.actions[0].any()  # the first steps hold while the first chunk decodes
 

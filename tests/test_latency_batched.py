@@ -1,4 +1,4 @@
-"""Inference latency with --batch-envs K (harness/batched_latency.py): each slot keeps its
+"""Inference latency with --batch-envs K (harness/episode/plan.py): each slot keeps its
 own clock and chunks in flight, so deterministic modes give the rows of --batch-envs 1.
 
 Episodes of different lengths put the slots at different phases, so some calls serve
@@ -15,13 +15,11 @@ import pytest
 
 from adapters.base import EpisodeSpec
 from harness.backends import Execution
-from harness.batched import run_batched
-from harness.episode import run_episode
-from harness.latency import LatencyPlan, parse_latency
-from harness.nfe import NFECounter
-from harness.runner import run
+from harness.episode.latency import LatencyPlan, parse_latency
+from harness.episode.nfe import NFECounter
+from harness.run.runner import run
 from policies.base import ChunkBatch, EpisodeContext
-from tests.fakes import CountdownEnv, context, fake_resolved
+from tests.fakes import CountdownEnv, context, fake_resolved, run_batch, run_one
 from tests.test_latency import rows_of
 from tests.test_remote import serve_process  # noqa: F401  (a fixture)
 
@@ -126,13 +124,20 @@ FIELDS = ("success", "steps", "chunks", "nfe_total", "action_tokens_total", "del
 
 
 def unbatched(plan: LatencyPlan, replan_every: int, policy, switch_at=None):
-    """Each episode alone (run_episode): outcomes and env logs by episode."""
+    """Each episode alone (one slot): outcomes and env logs by episode."""
     log: dict[int, list] = {}
     counter = NFECounter(policy)
     try:
         outcomes = {
-            spec.index: run_episode(
-                SlotEnv(log, switch_at), policy, counter, context_for(spec), spec, replan_every, latency=plan
+            spec.index: run_one(
+                SlotEnv(log, switch_at),
+                policy,
+                context_for(spec),
+                spec,
+                replan_every,
+                latency=plan,
+                counter=counter,
+                name="fast_dvla",
             )
             for spec in SPECS
         }
@@ -146,7 +151,17 @@ def batched(plan: LatencyPlan, replan_every: int, policy, k: int, switch_at=None
     counter = NFECounter(policy)
     try:
         make_env = lambda: SlotEnv(log, switch_at)  # noqa: E731
-        out = run_batched(SPECS, make_env, policy, counter, context_for, k, replan_every, latency=plan)
+        out = run_batch(
+            SPECS,
+            make_env,
+            policy,
+            context_for,
+            k,
+            replan_every,
+            latency=plan,
+            counter=counter,
+            name="fast_dvla",
+        )
         outcomes = {SPECS[i].index: o for i, o in out}
     finally:
         counter.close()
@@ -154,7 +169,7 @@ def batched(plan: LatencyPlan, replan_every: int, policy, k: int, switch_at=None
 
 
 def plan(mode: str, execution: str) -> LatencyPlan:
-    return LatencyPlan(parse_latency(mode), execution, HZ, "fast_dvla")
+    return LatencyPlan(parse_latency(mode), execution, HZ)
 
 
 @pytest.mark.parametrize("k", [2, 3])

@@ -157,7 +157,7 @@ def test_scripted_expert_solves_a_goal_task_that_is_not_pick_and_place(
     cli, tmp_path, task, expert, name, episodes
 ):
     from adapters.registry import load_suite
-    from harness.backends.local import episode_context
+    from harness.episode.context import episode_context
     from policies.experts.libero_scripted import LiberoScripted, LiberoScriptedParams
     from results.store import RunDir
 
@@ -327,7 +327,7 @@ def test_a_trained_checkpoint_runs_two_episodes_end_to_end(cli, tmp_path):
 def test_camera_images_are_collected_trained_on_and_read_by_the_policy(cli, tmp_path):
     """obs=images: PNG frames in the demonstrations, a model with an image encoder, and a
     decoder policy that acts on a real image observation (and refuses a state-only one)."""
-    from harness.backends.local import episode_context
+    from harness.episode.context import episode_context
     from policies.dvla.checkpoint import load
     from policies.dvla.recipes import TrainConfig
     from policies.dvla.training import train

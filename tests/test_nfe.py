@@ -14,10 +14,9 @@ import pytest
 import torch
 
 from adapters.base import EpisodeSpec
-from harness.episode import run_episode
-from harness.nfe import NFECounter
+from harness.episode.nfe import NFECounter
 from policies.base import ChunkBatch
-from tests.fakes import CountdownEnv, context
+from tests.fakes import CountdownEnv, context, run_one
 
 
 class TinyModel(torch.nn.Module):
@@ -93,7 +92,7 @@ class CallPolicy:
 def _episode(policy, succeed_at=8, env=None, counter=None):
     counter = counter or NFECounter(policy)
     env = env or CountdownEnv(succeed_at)
-    out = run_episode(env, policy, counter, context(), EpisodeSpec(0))
+    out = run_one(env, policy, context(), EpisodeSpec(0), counter=counter)
     counter.close()
     return out
 
@@ -124,15 +123,13 @@ def test_policies_without_modules_count_zero_and_never_import_torch():
     script = (
         "import sys, numpy as np\n"
         "from adapters.base import EpisodeSpec\n"
-        "from harness.episode import run_episode\n"
-        "from harness.nfe import NFECounter\n"
+        "from harness.episode.loop import run_episode\n"
         "from policies.base import ChunkBatch\n"
         "from tests.fakes import CountdownEnv, context\n"
         "class P:\n"
         "    def reset(self, episodes): pass\n"
         "    def act(self, obs): return ChunkBatch(actions=np.zeros((1, 4, 2)))\n"
-        "p = P(); c = NFECounter(p)\n"
-        "out = run_episode(CountdownEnv(8), p, c, context(), EpisodeSpec(0))\n"
+        "out = run_episode(CountdownEnv(8), P(), context(), EpisodeSpec(0))\n"
         "assert out.chunks == 2 and out.nfe_total == 0, out\n"
         "assert 'torch' not in sys.modules\n"
     )

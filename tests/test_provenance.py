@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-import harness.manifest as manifest_module
+import harness.run.manifest as manifest_module
 from results.leaderboard import leaderboards
 from results.runs import load_run
 from tests.test_leaderboard import BIDI, FAST, MANIFEST, episodes, write_run
@@ -48,7 +48,7 @@ def test_an_installed_copy_without_git_reads_the_commit_recorded_at_build(tmp_pa
     package = tmp_path / "site-packages" / "harness"
     package.mkdir(parents=True)
     (package / manifest_module.BUILD_INFO).write_text(json.dumps({"version": "9.9", "git_commit": "c0ffee"}))
-    monkeypatch.setattr(manifest_module, "__file__", str(package / "manifest.py"))
+    monkeypatch.setattr(manifest_module, "__file__", str(package / "run" / "manifest.py"))
     monkeypatch.setattr(manifest_module, "package_version", lambda name: None)
     assert manifest_module.git_commit() == "c0ffee"
     assert manifest_module.harness_version() == "9.9"

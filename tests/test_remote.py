@@ -30,7 +30,7 @@ from websockets.sync.server import serve
 from policies.wire import pack, unpack
 
 SUITE = "metaworld/mt1/reach-v3"
-# counted work (harness/work.py): the server's hooks count it and report it with each reply
+# counted work (harness/episode/work.py): the server's hooks count it and report it with each reply
 WORK = ("flops_total", "query_tokens_total", "kv_tokens_total", "kv_cached_tokens_total")
 
 

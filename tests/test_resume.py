@@ -16,7 +16,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from harness.errors import UsageError
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
 
@@ -246,9 +247,9 @@ def test_a_suite_default_that_changed_is_named_and_naming_the_recorded_protocol_
         UsageError,
         match=r"suite: \"fake/countdown:seeding=old\" -> \"fake/countdown:seeding=new\" \(the same --suite now resolves to another protocol",
     ):
-        run(resolving_to("fake/countdown:seeding=new", "fake/countdown", 3), out, resume=True)
+        run(resolving_to("fake/countdown:seeding=new", "fake/countdown", 3), out, OpenMode.RESUME)
     report = run(
-        resolving_to("fake/countdown:seeding=old", "fake/countdown:seeding=old", 3), out, resume=True
+        resolving_to("fake/countdown:seeding=old", "fake/countdown:seeding=old", 3), out, OpenMode.RESUME
     )
     assert (report.skipped, report.executed) == (2, 1)
 
@@ -267,5 +268,5 @@ def test_a_suite_whose_version_changed_is_not_resumed(tmp_path):
     with pytest.raises(
         UsageError, match=r'suite version: "1" -> "2" \(the suite\'s episodes or scoring changed'
     ):
-        run(versioned("2", 3), out, resume=True)
-    assert run(versioned("1", 3), out, resume=True).executed == 1
+        run(versioned("2", 3), out, OpenMode.RESUME)
+    assert run(versioned("1", 3), out, OpenMode.RESUME).executed == 1

@@ -1,5 +1,5 @@
 """--resume of a run folder recorded in a clone at another folder: the shipped checkpoint
-the config resolves to has another absolute path there (harness/resume.py,
+the config resolves to has another absolute path there (harness/run/resume.py,
 `adopt_moved_checkpoints`).
 
 The "other checkout" is a copy of the shipped file under tmp_path/other/policies/
@@ -18,8 +18,9 @@ import pytest
 from harness.backends import Execution
 from harness.config import PolicyRun, ResolvedRun, policy_config_id, sha256_file
 from harness.errors import UsageError
-from harness.resume import adopt_moved_checkpoints
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.resume import adopt_moved_checkpoints
+from harness.run.runner import run
 from policies.registry import SHIPPED_CHECKPOINTS, get_policy, params_json, parse_params
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
@@ -78,7 +79,7 @@ def test_rows_of_the_same_shipped_checkpoint_at_another_path_are_continued_not_r
     capsys.readouterr()
     # workers=2 rebuild the run in spawned processes, which must find episodes by the recorded id
     execution = Execution(workers=2, rebuild=resumed_here) if workers == 2 else None
-    report = run(here, out, resume=True, execution=execution)
+    report = run(here, out, OpenMode.RESUME, execution=execution)
     assert (report.skipped, report.executed, report.failed) == (2, 1, 0)
     err = capsys.readouterr().err
     assert "its rows were recorded with the same shipped checkpoint" in err
@@ -100,7 +101,7 @@ def test_a_shipped_checkpoint_with_other_content_in_the_other_checkout_is_refuse
     written = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file() and p.name != "writer.lock"}
     here = resumed_here()
     with pytest.raises(UsageError) as refused:
-        run(here, out, resume=True)
+        run(here, out, OpenMode.RESUME)
     message = str(refused.value)
     assert message.startswith("--resume: policy 'bidirectional': its rows were recorded with checkpoint ")
     assert str(tmp_path / "other") in message and str(SHIPPED_CHECKPOINTS / SHIPPED_FILE) in message

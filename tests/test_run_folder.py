@@ -22,7 +22,8 @@ import pytest
 
 import results.store
 from harness.errors import HarnessError, UsageError
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from results.lock import RunLock
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
@@ -56,9 +57,9 @@ def test_a_second_writer_is_refused_while_the_first_runs_and_the_first_keeps_its
     try:
         assert started.wait(30)
         before = sorted(p.name for p in out.iterdir())
-        for mode in ({"resume": True}, {"overwrite": True}, {}):
+        for mode in (OpenMode.RESUME, OpenMode.OVERWRITE, OpenMode.NEW):
             with pytest.raises(UsageError, match="being written by another process") as refused:
-                run(fake_resolved(ChunkPolicy(2), 4), out, **mode)
+                run(fake_resolved(ChunkPolicy(2), 4), out, mode)
             message = str(refused.value)
             assert f"pid {os.getpid()}" in message and socket.gethostname() in message
             assert "started 20" in message
@@ -125,7 +126,7 @@ def test_a_cut_off_pending_tail_is_dropped_before_resume_appends_and_nothing_els
     recorded = RunDir(out).read_episodes()
     assert recorded["episode_index"].tolist() == [0, 1]  # the cut line is not a row
 
-    report = run(fake_resolved(ChunkPolicy(2), 4), out, resume=True)
+    report = run(fake_resolved(ChunkPolicy(2), 4), out, OpenMode.RESUME)
     assert report.executed == 2 and report.skipped == 2
     assert not (out / "pending.jsonl").exists()  # compaction went through
     df = RunDir(out).read_episodes()
@@ -161,12 +162,14 @@ def test_resume_refuses_another_checkpoint_at_the_same_path(tmp_path):
     run(_with_checkpoint(fake_resolved(ChunkPolicy(2), 2), ckpt, old), out)
     before = (out / "episodes.parquet").read_bytes()
     with pytest.raises(UsageError) as refused:
-        run(_with_checkpoint(fake_resolved(ChunkPolicy(2), 3), ckpt, new), out, resume=True)
+        run(_with_checkpoint(fake_resolved(ChunkPolicy(2), 3), ckpt, new), out, OpenMode.RESUME)
     message = str(refused.value)
     assert "a" * 12 in message and "b" * 12 in message and str(ckpt) in message
     assert (out / "episodes.parquet").read_bytes() == before
     # the same content resumes as before
-    assert run(_with_checkpoint(fake_resolved(ChunkPolicy(2), 3), ckpt, old), out, resume=True).executed == 1
+    assert (
+        run(_with_checkpoint(fake_resolved(ChunkPolicy(2), 3), ckpt, old), out, OpenMode.RESUME).executed == 1
+    )
 
 
 def _full_disk_after(monkeypatch, appends: int) -> None:
@@ -211,7 +214,7 @@ def test_a_full_disk_while_compacting_keeps_pending_rows_and_no_temporary(tmp_pa
     assert [p.name for p in out.iterdir() if p.name.endswith(".tmp")] == []
     assert not (out / "episodes.parquet").exists() and len(RunDir(out).pending_rows()) == 3
     monkeypatch.undo()
-    assert run(fake_resolved(ChunkPolicy(2), 3), out, resume=True).skipped == 3
+    assert run(fake_resolved(ChunkPolicy(2), 3), out, OpenMode.RESUME).skipped == 3
     assert pq.read_table(out / "episodes.parquet").num_rows == 3
 
 
@@ -230,7 +233,7 @@ def test_temporaries_left_by_a_kill_are_removed_by_the_next_writer(tmp_path):
     left = [out / ".episodes.parquet.4242.tmp", out / ".manifest.json.4242.tmp"]
     for p in left:
         p.write_bytes(b"half")
-    assert run(fake_resolved(ChunkPolicy(2), 2), out, resume=True).skipped == 2
+    assert run(fake_resolved(ChunkPolicy(2), 2), out, OpenMode.RESUME).skipped == 2
     assert not any(p.exists() for p in left)
     removed = [e for e in _events(out) if e["event"] == "temporaries_removed"]
     assert removed and sorted(removed[0]["files"]) == sorted(p.name for p in left)
@@ -286,7 +289,7 @@ def test_a_reader_tidying_up_leaves_a_killed_writers_stale_lock_for_the_next_wri
     assert json.loads((out / "writer.lock").read_text()) == stale
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
-        run(fake_resolved(ChunkPolicy(2), 2), out, resume=True)
+        run(fake_resolved(ChunkPolicy(2), 2), out, OpenMode.RESUME)
     assert f"taking over a stale writer lock (pid {dead.pid} " in err.getvalue()
     assert any(e["event"] == "stale_lock_taken_over" for e in _events(out))
 
@@ -298,14 +301,14 @@ def test_overwrite_deletes_only_what_the_harness_wrote_and_refuses_other_files(t
     (out / "plots").mkdir()
     before = sorted(p.name for p in out.iterdir())
     with pytest.raises(UsageError, match=r"did not write \(notes\.txt, plots/\); refusing to delete it"):
-        run(fake_resolved(ChunkPolicy(2), 1), out, overwrite=True)
+        run(fake_resolved(ChunkPolicy(2), 1), out, OpenMode.OVERWRITE)
     assert sorted(p.name for p in out.iterdir()) == before
 
     (out / "notes.txt").unlink()
     (out / "plots").rmdir()
     (out / ".episodes.parquet.4242.tmp").write_bytes(b"half")
     old_id = _manifest(out)["run_id"]
-    run(fake_resolved(ChunkPolicy(2), 1), out, overwrite=True)
+    run(fake_resolved(ChunkPolicy(2), 1), out, OpenMode.OVERWRITE)
     assert _manifest(out)["run_id"] != old_id and len(RunDir(out).read_episodes()) == 1
     assert sorted(p.name for p in out.iterdir()) == ["episodes.parquet", "events.jsonl", "manifest.json"]
 
@@ -315,5 +318,5 @@ def test_overwrite_through_a_symlink_is_refused(tmp_path):
     run(fake_resolved(ChunkPolicy(2), 2), out)
     link.symlink_to(out)
     with pytest.raises(UsageError, match="symbolic link"):
-        run(fake_resolved(ChunkPolicy(2), 1), link, overwrite=True)
+        run(fake_resolved(ChunkPolicy(2), 1), link, OpenMode.OVERWRITE)
     assert len(RunDir(out).read_episodes()) == 2 and link.is_symlink()

@@ -7,9 +7,10 @@ import json
 import pyarrow.parquet as pq
 import pytest
 
-import harness.runner
+import harness.run.runner
 from harness.errors import UsageError
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from results.schema import COLUMN_NAMES
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
@@ -56,15 +57,21 @@ def test_each_episode_is_durable_before_the_next_starts(tmp_path):
             super().reset(episodes)
 
     run(fake_resolved(Watching(chunk=2), episodes=4), out)
-    assert seen_parts == [0, 0, 1, 2, 3]  # the warm-up's reset (harness/warmup.py), then one per episode
+    assert seen_parts == [
+        0,
+        0,
+        1,
+        2,
+        3,
+    ]  # the warm-up's reset (harness/backends/warmup.py), then one per episode
 
 
 def test_resume_runs_only_missing_episodes_and_retry_failed_reruns_failures(tmp_path):
     out = tmp_path / "run"
     run(fake_resolved(ChunkPolicy(chunk=2), episodes=3, fail_episode=1), out)
-    again = run(fake_resolved(ChunkPolicy(chunk=2), episodes=3), out, resume=True)
+    again = run(fake_resolved(ChunkPolicy(chunk=2), episodes=3), out, OpenMode.RESUME)
     assert again.executed == 0 and again.skipped == 3
-    retried = run(fake_resolved(ChunkPolicy(chunk=2), episodes=3), out, resume=True, retry_failed=True)
+    retried = run(fake_resolved(ChunkPolicy(chunk=2), episodes=3), out, OpenMode.RETRY_FAILED)
     assert retried.executed == 1
     df = RunDir(out).read_episodes()
     assert len(df) == 3 and df["success"].all() and df["failure_reason"].isna().all()
@@ -127,7 +134,7 @@ def test_a_run_that_stops_before_its_episodes_closes_the_pre_flight_env(tmp_path
     def refuse(*_args):
         raise UsageError("the recorded run has another configuration")
 
-    monkeypatch.setattr(harness.runner, "open_run", refuse)
+    monkeypatch.setattr(harness.run.runner.RunFolder, "open", refuse)
     resolved = fake_resolved(Checking(chunk=2), episodes=1)
     with pytest.raises(UsageError):
         run(resolved, tmp_path / "run")
@@ -197,4 +204,4 @@ def test_resume_refuses_rows_of_a_suite_the_config_no_longer_resolves_to(tmp_pat
         table.replace_schema_metadata(arrow_schema().metadata), tmp_path / "run" / "episodes.parquet"
     )
     with pytest.raises(UsageError, match="holds rows of suite 'fake/countdown:seeding=old'"):
-        run(fake_resolved(ChunkPolicy(chunk=2), episodes=4, succeed_at=5), tmp_path / "run", resume=True)
+        run(fake_resolved(ChunkPolicy(chunk=2), episodes=4, succeed_at=5), tmp_path / "run", OpenMode.RESUME)

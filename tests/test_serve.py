@@ -14,7 +14,7 @@ pytest.importorskip("websockets")
 pytest.importorskip("msgpack")
 
 from harness.commands.serve import build_served
-from harness.serve import make_server
+from harness.serving.server import make_server
 from policies.wire import WireError, pack, unpack
 
 SUITE, TASK = "metaworld/mt10", "reach-v3"

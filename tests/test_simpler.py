@@ -239,7 +239,7 @@ def test_bad_variants_exit_2_naming_the_valid_ones(cli, tmp_path, suite, needle)
 
 
 def test_the_variants_flag_is_the_suite_option(cli, tmp_path):
-    from harness.commands.run import with_variants
+    from harness.config import with_variants
     from harness.errors import UsageError
 
     assert with_variants("simpler/all", "all") == "simpler/all:variants=all"
@@ -392,7 +392,7 @@ def test_a_camera_policy_reads_only_the_robots_state_and_its_images(cli, tmp_pat
     robot's 16 entries (the env's `proprio_dim`, recorded by collect) and the camera, so
     the object and goal entries of the state change nothing it computes; a student keeps
     the choice; state-only demonstrations are refused (the model would see no objects)."""
-    from harness.backends.local import episode_context
+    from harness.episode.context import episode_context
     from policies.dvla.checkpoint import load, to_tensors
     from policies.registry import get_policy, parse_params
 

@@ -8,8 +8,8 @@ import json
 
 import pytest
 
-import harness.manifest as manifest_module
-from harness.manifest import record_end_calibration
+import harness.run.manifest as manifest_module
+from harness.run.manifest import record_end_calibration
 from results.leaderboard import leaderboards
 from results.runs import CALIBRATION_DRIFT_TOLERANCE, calibration_drift, load_run, speed_warning
 from tests.test_leaderboard import BIDI, FAST, MANIFEST, episodes, write_run
@@ -111,7 +111,7 @@ def test_paper_table_and_html_report_warn_about_a_drifted_run_as_leaderboard_doe
 def test_a_drifted_run_marks_its_rows_and_a_steady_one_marks_them_reliable(monkeypatch, tmp_path):
     import torch  # noqa: F401  runs are calibrated only when their policies loaded torch
 
-    from harness.runner import run
+    from harness.run.runner import run
     from results.store import RunDir
     from tests.fakes import ChunkPolicy, fake_resolved
 

@@ -1,5 +1,5 @@
 """Starved episodes: the policy's CPU time beside its wall time, per episode, and what a
-run with starved episodes says (harness/cpu_time.py, the manifest, `run`, `show`).
+run with starved episodes says (harness/episode/cpu_time.py, the manifest, `run`, `show`).
 
 A policy that waits (time.sleep) inside its call is what starvation looks like to the
 measurement: wall time passes, the thread's CPU time does not. A policy that has its
@@ -17,19 +17,17 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-import harness.batched as batched_module
-import harness.episode as episode_module
-import harness.manifest as manifest_module
-from harness.cpu_time import MIN_JUDGED_POLICY_TIME_S, STARVED_FACTOR, cpu_clock, is_starved
-from harness.episode import run_episode
-from harness.manifest import record_end_calibration
-from harness.nfe import NFECounter
-from harness.runner import run
-from policies.remote import RemoteTotals
+import harness.episode.loop as loop_module
+import harness.episode.timed as timed_module
+import harness.run.manifest as manifest_module
+from harness.episode.cpu_time import MIN_JUDGED_POLICY_TIME_S, STARVED_FACTOR, cpu_clock, is_starved
+from harness.episode.timed import ServedTotals
+from harness.run.manifest import record_end_calibration
+from harness.run.runner import run
 from results import schema
 from results.runs import load_run, speed_warning
 from results.store import RunDir, read_table
-from tests.fakes import ChunkPolicy, CountdownEnv, context, fake_resolved
+from tests.fakes import ChunkPolicy, CountdownEnv, context, fake_resolved, run_one
 from tests.test_batched import BatchPolicy, batched
 from tests.test_leaderboard import BIDI, MANIFEST, episodes, write_run
 
@@ -86,10 +84,11 @@ def test_a_policy_that_waits_for_its_core_is_starved_and_the_run_unreliable(tmp_
 def test_a_cpu_bound_policy_with_its_core_is_not_flagged(monkeypatch, tmp_path):
     # Real clocks: the CPU time is the policy's work (a loaded machine may stretch the wall).
     policy = SpinPolicy(cpu_s=0.02)
-    out = run_episode(CountdownEnv(succeed_at=8), policy, NFECounter(policy), context(), spec(0))
+    out = run_one(CountdownEnv(succeed_at=8), policy, context(), spec(0))
     assert 4 * 0.02 <= out.policy_cpu_time_s <= out.policy_time_s + 1e-3
     # No load: the wall clock advances only while the thread runs (and the calibration holds).
-    monkeypatch.setattr(episode_module, "time", SimpleNamespace(perf_counter=time.thread_time))
+    monkeypatch.setattr(loop_module, "clock", time.thread_time)
+    monkeypatch.setattr(timed_module, "clock", time.thread_time)
     monkeypatch.setattr(manifest_module, "measure_calibration", lambda: {"passes_per_s": 10_000.0})
     run(fake_resolved(SpinPolicy(cpu_s=0.02), episodes=2, succeed_at=8), tmp_path / "r")
     rows = RunDir(tmp_path / "r").read_episodes()
@@ -109,7 +108,8 @@ def test_batched_episodes_share_their_calls_cpu_time_and_are_judged_alike(monkey
         assert o.policy_cpu_time_s is not None and o.policy_cpu_time_s < o.policy_time_s / 3
     assert any(is_starved(o.policy_time_s, o.policy_cpu_time_s) for _, o in out)
     # with its core all the time (wall = the thread's CPU clock) no slot is starved
-    monkeypatch.setattr(batched_module, "clock", time.thread_time)
+    monkeypatch.setattr(loop_module, "clock", time.thread_time)
+    monkeypatch.setattr(timed_module, "clock", time.thread_time)
     out, _, _ = batched(BatchPolicy(chunk=3), episodes=4, k=2)
     for _, o in out:
         assert o.policy_cpu_time_s == pytest.approx(o.policy_time_s, rel=0.05, abs=1e-4)
@@ -211,14 +211,13 @@ def test_a_version_3_table_reads_without_cpu_time_as_nulls(tmp_path):
     assert read.column("policy_cpu_time_s").null_count == 1 and read.column("starved").null_count == 1
 
 
-def test_a_remote_policy_records_no_cpu_time():
+def test_a_served_policy_records_no_cpu_time():
     class Remote(ChunkPolicy):
-        def take_remote(self):
-            return RemoteTotals(nfe=0, server_time_s=0.0)
+        def take_served(self):  # the capability a served policy declares (policies/base.py)
+            return ServedTotals(nfe=0, server_time_s=0.0)
 
-    Remote.__module__, Remote.__name__ = "policies.remote", "RemotePolicy"  # what remote_policy() checks
     policy = Remote(chunk=2, delay=0.02)
-    out = run_episode(CountdownEnv(succeed_at=6), policy, NFECounter(policy), context(), spec(0))
+    out = run_one(CountdownEnv(succeed_at=6), policy, context(), spec(0))
     assert out.policy_time_s >= 0.06 and out.policy_cpu_time_s is None
     assert is_starved(out.policy_time_s, out.policy_cpu_time_s) is None
 

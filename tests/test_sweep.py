@@ -12,8 +12,8 @@ import pytest
 
 from harness.config import PolicyChoice, RunConfig
 from harness.errors import UsageError
-from harness.runner import run
-from harness.sweep import expand, parse_grid
+from harness.run.runner import run
+from harness.run.sweep import expand, parse_grid
 from policies.base import ChunkBatch
 from results.store import TRACES, RunDir
 from tests.fakes import ChunkPolicy, fake_resolved

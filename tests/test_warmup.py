@@ -9,7 +9,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from harness.runner import run
+from harness.run.folder import OpenMode
+from harness.run.runner import run
 from policies.base import ChunkBatch, EpisodeContext
 from results.store import RunDir
 from tests.fakes import fake_resolved
@@ -67,5 +68,5 @@ def test_a_resumed_run_warms_up_again_and_a_raising_warm_up_is_left_to_the_episo
     assert report.failed == 2  # the episodes say why, as they would without a warm-up
     (entry,) = RunDir(tmp_path / "r").read_manifest()["warm_up"]
     assert entry["policies"][0]["error"] == "SystemExit: 3"
-    run(resolved, tmp_path / "r", resume=True, retry_failed=True)
+    run(resolved, tmp_path / "r", OpenMode.RETRY_FAILED)
     assert len(RunDir(tmp_path / "r").read_manifest()["warm_up"]) == 2

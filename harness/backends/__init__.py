@@ -1,17 +1,17 @@
 """Executors: where a run's episodes are run (this process, worker processes, Ray).
 
-The runner (harness/runner.py) plans the episodes, skips what is recorded and writes
+The runner (harness/run/runner.py) plans the episodes, skips what is recorded and writes
 every row; an executor only runs episodes and hands each outcome back to the runner's
 `on_done` in the parent process, so the run folder keeps a single writer whatever runs
 the episodes.
 
-- `local`, 1 worker (the default): this process, episodes one after another
-  (harness/backends/local.py), or K at a time in lockstep with --batch-envs K
-  (harness/batched.py).
+- `local`, 1 worker (the default): this process (harness/backends/local.py), episodes
+  one after another, or K at a time in lockstep with --batch-envs K, through the one
+  episode loop (harness/episode/loop.py).
 - `local`, N workers: N spawned processes (harness/backends/pool.py).
 - `ray`: N Ray actors, on this machine or a cluster (harness/backends/ray.py).
 
-The last two share one scheduler (harness/backends/schedule.py): a task's episodes go
+The last two share one scheduler (harness/backends/scheduler.py): a task's episodes go
 to one worker, all policies interleaved episode by episode as in one process; a worker
 holds one episode at a time, so a lost worker loses exactly that episode, which is run
 again on a fresh worker up to `max_retries` times and then recorded as a failure row.
@@ -23,16 +23,17 @@ to K) are run again, alone, on its replacement (schedule.py says why alone).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
 if TYPE_CHECKING:
+    from harness.backends.jobs import EpisodeJob
+    from harness.backends.local import WorkerSpec
     from harness.config import ResolvedRun
-    from harness.episode import EpisodeOutcome
-    from harness.runner import EpisodeJob
-    from results.store import RunDir
+    from harness.episode.outcome import EpisodeOutcome
+    from harness.episode.plan import ExecutionPlan
 
 BACKENDS = ("local", "ray")
 DEFAULT_MAX_RETRIES = 2
@@ -50,7 +51,7 @@ class Execution:
     device: --device for each worker's policies (harness/device.py); None leaves them
       where they were built.
     batch_envs: environments stepped in lockstep, one policy call for them all
-      (harness/batched.py), in this process or in each worker.
+      (harness/episode/loop.py), in this process or in each worker.
     """
 
     backend: str = "local"
@@ -82,61 +83,77 @@ class Execution:
         }
 
 
-def record_execution(run_dir: RunDir, execution: Execution) -> Callable[[dict[str, Any]], None]:
-    """Append this session to manifest["execution"]; returns the callback the workers'
-    records go through (host, pid, threads), written as each worker reports."""
-    from harness.manifest import now
+def _ignore(_record: Any) -> None:
+    return None
 
-    manifest = run_dir.read_manifest()
-    sessions = list(manifest.get("execution") or [])
-    sessions.append(execution.record() | {"started_at": now()})
-    run_dir.write_manifest(manifest | {"execution": sessions})
 
-    def on_worker(record: dict[str, Any]) -> None:
-        manifest = run_dir.read_manifest()
-        manifest["execution"][-1]["worker_threads"].append(record)
-        run_dir.write_manifest(manifest)
-        run_dir.log_event("worker_started", **record)
+@dataclass
+class Sink:
+    """Where a backend hands what it learns to the one process that writes the run: each
+    episode's outcome as it ends, each worker's record as it starts, this process's
+    warm-up record."""
 
-    return on_worker
+    episode: Callable[[EpisodeJob, EpisodeOutcome], None]
+    worker: Callable[[dict[str, Any]], None] = field(default=_ignore)
+    warm_up: Callable[[dict[str, Any] | None], None] = field(default=_ignore)
 
 
 def execute(
     resolved: ResolvedRun,
     jobs: list[EpisodeJob],
-    on_done: Callable[[EpisodeJob, EpisodeOutcome], None],
-    traces: bool,
+    plan: ExecutionPlan,
+    execution: Execution,
+    sink: Sink,
     envs: dict[str, gym.Env],
-    execution: Execution | None = None,
-    on_worker: Callable[[dict[str, Any]], None] | None = None,
 ) -> None:
-    """Run `jobs` with the chosen backend, handing each outcome to `on_done` here."""
-    from harness.backends.local import execute_local
-
-    execution = execution or Execution()
-    if execution.in_process and execution.batch_envs > 1:
-        from harness.batch_runner import execute_batched
-
-        execute_batched(resolved, jobs, on_done, traces, envs, execution.batch_envs)
-        return
+    """Run `jobs` with the chosen backend, handing each outcome to the sink here.
+    `envs`: built by the preflight in this process; its episodes take them over, and
+    workers (which build their own) leave them to be closed."""
     if execution.in_process:
-        execute_local(resolved, jobs, on_done, traces, envs)
+        from harness.backends.local import execute_in_process
+
+        execute_in_process(resolved, jobs, plan, sink, envs)
         return
-    while envs:  # built by preflight in this process; the workers build their own
+    while envs:
         envs.popitem()[1].close()
     if not jobs:
         return
-    from harness.backends.schedule import schedule
+    from harness.backends.scheduler import schedule
 
+    spec = worker_spec(resolved, execution, plan.traces)
     if execution.backend == "ray":
         from harness.backends.ray import RayWorkers
 
-        workers: Any = RayWorkers(resolved, execution, traces)
+        workers: Any = RayWorkers(spec, execution)
     else:
         from harness.backends.pool import ProcessWorkers
 
-        workers = ProcessWorkers(resolved, execution, traces)
+        workers = ProcessWorkers(spec)
     try:
-        schedule(jobs, workers, execution, on_done, on_worker or (lambda _record: None))
+        schedule(jobs, workers, execution, sink.episode, sink.worker)
     finally:
         workers.shutdown()
+
+
+def worker_spec(resolved: ResolvedRun, execution: Execution, traces: bool) -> WorkerSpec:
+    """What each worker of this run starts with: the run rebuilt from its config (with
+    what --resume adopted), threads, batching, device and the checkpoint hashes."""
+    from functools import partial
+
+    from harness.backends.local import WorkerSpec
+    from harness.config import checkpoint_pins, rebuild_from_config, worker_rebuild
+
+    rebuild = worker_rebuild(execution.rebuild or partial(rebuild_from_config, resolved.config), resolved)
+    heartbeat = None
+    if execution.episode_timeout is not None and execution.batch_envs > 1:
+        heartbeat = execution.episode_timeout / 4  # declared stalled only after the limit without a step
+    return WorkerSpec(
+        rebuild,
+        execution.threads,
+        execution.workers,
+        traces,
+        execution.batch_envs,
+        heartbeat,
+        execution.device,
+        checkpoint_pins(resolved),
+    )

@@ -1,197 +1,150 @@
-"""The laptop backend: one process, episodes one after another, envs reused per task;
-and the `Worker` every pool process and Ray actor runs, so an episode runs the same
-way wherever it runs."""
+"""Running a run's episodes in one process: this one (the laptop backend) or a worker.
+
+`EpisodeRunner` is what every process that runs episodes holds: its open envs, one
+`TimedPolicy` (and NFE counter) per policy of the run, and the episode loop
+(harness/episode/loop.py). The process that writes the run uses one directly
+(`execute_in_process`); each pool process and Ray actor holds one in its `Worker`, so an
+episode runs the same way wherever it runs.
+"""
 
 from __future__ import annotations
 
+import os
 import socket
 import time
-import traceback
 from collections.abc import Callable, Iterator, Sequence
-from datetime import UTC, datetime
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
-from adapters.base import EpisodeSpec, TaskSpec
-from harness.episode import EpisodeOutcome, run_episode
-from harness.latency import latency_plan, parse_latency
-from harness.nfe import NFECounter
-from policies.base import EpisodeContext
+from harness.backends.jobs import EpisodeJob, JobId, batch_groups, index_jobs
+from harness.backends.warmup import warm_up_run_steps
+from harness.episode.envs import TaskEnvs
+from harness.episode.loop import Episode, EpisodeEvent, EpisodeLoop
+from harness.episode.plan import ExecutionPlan
+from harness.episode.timed import TimedPolicy
 
 if TYPE_CHECKING:
-    from harness.backends.schedule import JobId as EpisodeJobKey
-    from harness.config import ResolvedRun
-    from harness.runner import EpisodeJob
+    from harness.backends import Sink
+    from harness.config import CheckpointPin, ResolvedRun
 
 HOST = socket.gethostname()  # the `host` column: where an episode ran
 IN_PROCESS = "main"  # the `worker_id` of episodes run by the process that writes the run
 WARMING = "warming"  # a worker's event: it calls this policy (config id) for its warm-up
 
 
-def episode_context(suite: str, task: TaskSpec, spec: EpisodeSpec, env: gym.Env) -> EpisodeContext:
-    return EpisodeContext(
-        suite=suite,
-        task=task.name,
-        instruction=task.instruction,
-        action_space=env.action_space,
-        observation_space=env.observation_space,
-        max_steps=task.max_steps,
-        episode_index=spec.index,
-        seed=spec.seed,
-        init_state_id=spec.init_state_id,
-    )
-
-
-def failure_outcome(
-    reason: str,
-    started_at: datetime | None = None,
-    trace: str | None = None,
-    host: str = "",
-    worker_id: str = "",
-) -> EpisodeOutcome:
-    """The outcome of an episode that did not run to an end: nothing counted, a reason."""
-    return EpisodeOutcome(
-        success=False,
-        steps=0,
-        chunks=0,
-        nfe_total=0,
-        action_tokens_total=0,
-        policy_time_s=0.0,
-        env_time_s=0.0,
-        wall_clock_s=0.0,
-        started_at=started_at or datetime.now(UTC),
-        failure_reason=reason,
-        traceback=trace,
-        host=host,
-        worker_id=worker_id,
-    )
-
-
-def failed_outcome(exc: BaseException) -> EpisodeOutcome:
-    return failure_outcome(f"{type(exc).__name__}: {exc}", trace=traceback.format_exc())
-
-
 class EpisodeRunner:
-    """Runs one episode at a time with the envs and NFE counters of one process.
-
-    A task's env is kept for its next episode and closed when another task's episode
-    comes (a LIBERO env holds ~0.5 GB; ninety open at once would not fit), and rebuilt
-    after an episode that failed (its state is suspect). Used by the in-process backend
-    and by every worker of the pool and Ray backends, so an episode runs the same way
-    wherever it runs.
-    """
-
-    def __init__(self, resolved: ResolvedRun, traces: bool = False, envs: dict[str, gym.Env] | None = None):
-        self.resolved, self.traces = resolved, traces
-        self.envs = {} if envs is None else envs
-        self.counters = {id(p): NFECounter(p.policy) for p in resolved.policies}
-
-    def run(self, job: EpisodeJob) -> EpisodeOutcome:
-        envs, resolved = self.envs, self.resolved
-        for name in [n for n in envs if n != job.task.name]:
-            envs.pop(name).close()
-        try:
-            if job.task.name not in envs:
-                envs[job.task.name] = resolved.suite.make_env(job.task)
-        except Exception as exc:
-            return failed_outcome(exc)
-        env = envs[job.task.name]
-        context = episode_context(resolved.suite.name, job.task, job.spec, env)
-        outcome = run_episode(
-            env,
-            job.policy.policy,
-            self.counters[id(job.policy)],
-            context,
-            job.spec,
-            resolved.config.replan_every,
-            record_traces=self.traces,
-            out_of_space=resolved.config.out_of_space,
-            latency=latency_plan(
-                parse_latency(resolved.config.inference_latency),
-                resolved.config.execution,
-                resolved.suite,
-                job.policy.spec.name,
-            ),
-        )
-        if outcome.failure_reason is not None:
-            envs.pop(job.task.name).close()  # its state is suspect: rebuild next time
-        return outcome
-
-    def close(self) -> None:
-        while self.envs:
-            self.envs.popitem()[1].close()
-        for counter in self.counters.values():
-            counter.close()
-
-
-def execute_local(
-    resolved: ResolvedRun,
-    jobs: list[EpisodeJob],
-    on_done: Callable[[EpisodeJob, EpisodeOutcome], None],
-    traces: bool = False,
-    envs: dict[str, gym.Env] | None = None,
-) -> None:
-    """Run `jobs` in this process, in order, handing each outcome to `on_done`.
-
-    `envs` (already built, by task name) are used and closed like the ones built here.
-    """
-    runner = EpisodeRunner(resolved, traces, envs)
-    try:
-        for job in jobs:
-            outcome = runner.run(job)
-            outcome.host, outcome.worker_id = HOST, IN_PROCESS
-            on_done(job, outcome)
-    finally:
-        runner.close()
-
-
-class Worker:
-    """A worker's episodes (a pool process or a Ray actor): the run rebuilt, its policies
-    warmed up, then the groups of episodes the scheduler (harness/backends/schedule.py)
-    sends, each as a stream of events.
-
-    A group sent `alone` runs episode by episode with the `EpisodeRunner`, as without
-    batching: every group with --batch-envs 1, and with K > 1 each episode that was in
-    flight when its batch's worker was lost or stalled (run alone, a second loss or hang
-    names the episode that causes it). Any other group (one task, one policy) runs K at a
-    time with the `BatchedRunner`, saying when each episode starts (the scheduler re-runs
-    exactly those if the worker is lost) and, with --episode-timeout, that the batch
-    still moves at least every `heartbeat_s` seconds.
-
-    The warm-up (harness/warmup.py, `warming`) pays the first calls at the batched shapes
-    too, on the run's first task, before the worker reports ready.
-    """
+    """A run's episodes in this process: envs kept per task, a counter per policy."""
 
     def __init__(
         self,
         resolved: ResolvedRun,
-        traces: bool,
+        plan: ExecutionPlan,
+        worker_id: str,
+        envs: dict[str, gym.Env] | None = None,
+    ):
+        self.resolved, self.plan = resolved, plan
+        self.envs = TaskEnvs(resolved.suite.make_env, plan.out_of_space)
+        for task, env in (envs or {}).items():
+            self.envs.adopt(task, env)
+        self.policies = {id(p): TimedPolicy(p.policy, p.spec.name) for p in resolved.policies}
+        self.loop = EpisodeLoop(resolved.suite.name, plan, self.envs, worker_id, HOST)
+
+    def episodes(self, jobs: Sequence[EpisodeJob]) -> list[Episode]:
+        return [Episode(job.task, job.spec, self.policies[id(job.policy)]) for job in jobs]
+
+    def warm_up(self, jobs: Sequence[EpisodeJob]) -> Iterator[Any]:
+        """harness/backends/warmup.py on this process's envs; returns its record."""
+        return warm_up_run_steps(self.resolved, jobs, self.envs, self.plan.batch_envs)
+
+    def close(self) -> None:
+        self.envs.close()
+        for timed in self.policies.values():
+            timed.close_counter()
+
+
+def run_groups(jobs: Sequence[EpisodeJob], batch_envs: int) -> list[list[EpisodeJob]]:
+    """The queues the loop takes in turn: every job in plan order, one at a time; or with
+    --batch-envs K each task's episodes of one policy (a batch serves one policy), task
+    by task, the task's policies one after another (their timing ratios are still taken
+    minutes apart at most, under the same load)."""
+    if batch_envs == 1:
+        return [list(jobs)]
+    return batch_groups(jobs, lambda job: job.task.name, lambda job: job.policy.config_id)
+
+
+def execute_in_process(
+    resolved: ResolvedRun, jobs: list[EpisodeJob], plan: ExecutionPlan, sink: Sink, envs: dict[str, gym.Env]
+) -> None:
+    """Run `jobs` in this process, handing each outcome to the sink as it ends. `envs`
+    (built by the preflight) are the loop's first; the policies are warmed up first,
+    on the first job's task, outside every row (harness/backends/warmup.py)."""
+    runner = EpisodeRunner(resolved, plan, IN_PROCESS, envs)
+    envs.clear()
+    try:
+        sink.warm_up(_drain(runner.warm_up(jobs)))
+        for group in run_groups(jobs, plan.batch_envs):
+            for index, outcome in runner.loop.run(runner.episodes(group)):
+                sink.episode(group[index], outcome)
+    finally:
+        runner.close()
+
+
+def _drain(steps: Iterator[Any]) -> Any:
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """What every worker of a run is started with (a pool process, a Ray actor)."""
+
+    rebuild: Callable[[], ResolvedRun]  # the run rebuilt from its config, --resume's adoptions applied
+    threads: int | None  # --threads (None: the default share of the cores)
+    workers: int
+    traces: bool
+    batch_envs: int = 1
+    heartbeat_s: float | None = None  # a batched worker says its batch still moves this often
+    device: str | None = None
+    pins: tuple[CheckpointPin, ...] = ()  # the checkpoint content the run hashed
+
+
+class Worker:
+    """A worker's episodes (a pool process or a Ray actor): the run rebuilt, its policies
+    warmed up, then the groups of episodes the scheduler (harness/backends/scheduler.py)
+    sends, each as a stream of events.
+
+    A group sent `alone` runs one episode at a time, as without batching: every group
+    with --batch-envs 1, and with K > 1 each episode that was in flight when its batch's
+    worker was lost or stalled (run alone, a second loss or hang names the episode that
+    causes it); only its ends are sent. Any other group (one task, one policy) runs K at
+    a time, saying when each episode starts (the scheduler re-runs exactly those if the
+    worker is lost) and, with --episode-timeout, that the batch still moves at least
+    every `heartbeat_s` seconds."""
+
+    def __init__(
+        self,
+        resolved: ResolvedRun,
         worker_id: str,
         batch_envs: int = 1,
+        traces: bool = False,
         heartbeat_s: float | None = None,
     ):
-        from harness.backends.schedule import index_jobs
-        from harness.batch_runner import BatchedRunner
-
         self.worker_id, self.heartbeat_s = worker_id, heartbeat_s
-        self.runner = EpisodeRunner(resolved, traces)
+        plan = ExecutionPlan.for_run(resolved, batch_envs, traces)
+        self.runner = EpisodeRunner(resolved, plan, worker_id)
         self.jobs = index_jobs(resolved)
-        self.batched = (
-            BatchedRunner(resolved, batch_envs, traces, self.runner.envs, self.runner.counters)
-            if batch_envs > 1
-            else None
-        )
-        self.resolved, self.batch_envs = resolved, batch_envs
         self.warm_up: dict[str, Any] | None = None
 
     def warming(self) -> Iterator[tuple[str, Any]]:
         """Warm the policies up (into `self.warm_up`), yielding ("warming",
         policy_config_id) before each one's calls: the scheduler holds each to
         --episode-timeout, so a policy that hangs on its first call cannot hang the run."""
-        from harness.warmup import warm_up_run_steps
-
-        steps = warm_up_run_steps(self.resolved, list(self.jobs.values()), self.runner.envs, self.batch_envs)
+        steps = self.runner.warm_up(list(self.jobs.values()))
         while True:
             try:
                 p = next(steps)
@@ -200,33 +153,48 @@ class Worker:
                 return
             yield WARMING, p.config_id
 
-    def _placed(self, outcome: EpisodeOutcome) -> EpisodeOutcome:
-        outcome.host, outcome.worker_id = HOST, self.worker_id
-        return outcome
-
-    def run(self, group: Sequence[EpisodeJobKey], alone: bool) -> Iterator[tuple[str, Any]]:
-        """Yields ("started", key), ("stepped", None) and ("done", (key, outcome))."""
-        from harness.batched import DONE, STARTED, STEPPED
-
-        if alone or self.batched is None:
-            if self.batched is not None:
-                self.batched.release()  # its envs back to the runner, K at most per task
-            for key in group:
-                yield DONE, (key, self._placed(self.runner.run(self.jobs[key])))
-            return
+    def run(self, group: Sequence[JobId], alone: bool) -> Iterator[tuple[str, Any]]:
+        """Yields ("started", id), ("stepped", None) and ("done", (id, outcome))."""
+        jobs = [self.jobs[key] for key in group]
         said = time.monotonic()
-        for kind, payload in self.batched.events([self.jobs[key] for key in group]):
-            if kind == STEPPED and (self.heartbeat_s is None or time.monotonic() - said < self.heartbeat_s):
-                continue
-            if kind == STARTED:
-                payload = group[payload]
-            elif kind == DONE:
+        steps = not alone and self.heartbeat_s is not None
+        for kind, payload in self.runner.loop.events(self.runner.episodes(jobs), alone, steps):
+            if kind is EpisodeEvent.DONE:
                 index, outcome = payload
-                payload = (group[index], self._placed(outcome))
+                payload = (group[index], outcome)
+            elif alone or (
+                kind is EpisodeEvent.STEPPED
+                and (self.heartbeat_s is None or time.monotonic() - said < self.heartbeat_s)
+            ):
+                continue
+            elif kind is EpisodeEvent.STARTED:
+                payload = group[payload]
             said = time.monotonic()
-            yield kind, payload
+            yield kind.value, payload
 
     def close(self) -> None:
-        if self.batched is not None:
-            self.batched.close()
         self.runner.close()
+
+
+def start_worker(
+    spec: WorkerSpec, worker_id: str, gpu_ids: list[Any] | None = None
+) -> tuple[Worker, dict[str, Any]]:
+    """A worker's start, the same in a pool process and a Ray actor: its threads set, the
+    checkpoints it loads checked against the run's hashes (before and after loading),
+    its policies on --device (`gpu_ids`: what Ray reserved for an actor), then the
+    manifest's record of it. Any exception is the worker's failure to start."""
+    from harness.config import check_checkpoints
+    from harness.device import apply_device, worker_device, worker_device_record
+    from harness.threads import apply_threads, threads_record
+
+    apply_threads(spec.threads, spec.workers)  # once, before the policies load torch
+    check_checkpoints(spec.pins)  # before loading: the content this run hashed, or stop the run
+    resolved = spec.rebuild()
+    check_checkpoints(spec.pins, resolved)  # and what was loaded
+    if spec.device is not None:  # before the warm-up (a GPU's one-off costs are paid there)
+        used = worker_device(spec.device, gpu_ids) if gpu_ids is not None else None
+        apply_device(resolved.policies, spec.device, used=used)
+    worker = Worker(resolved, worker_id, spec.batch_envs, spec.traces, spec.heartbeat_s)
+    record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
+    record["device"] = worker_device_record(gpu_ids)
+    return worker, record

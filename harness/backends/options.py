@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Sequence
+from typing import Any
 
 from harness.backends import BACKENDS, DEFAULT_MAX_RETRIES, Execution
 from harness.errors import UsageError
@@ -108,3 +110,33 @@ def execution_from_args(args: argparse.Namespace) -> Execution:
 
         connect(execution)  # not installed, unreachable: exit 2 here
     return execution
+
+
+def check_batching(policies: Sequence[Any], batch_envs: int) -> None:
+    """Refuse (exit 2) a policy that cannot batch when --batch-envs K > 1. `policies`: the
+    run's PolicyRun entries (spec name and built policy)."""
+    from harness.episode.timed import is_served
+    from policies.base import can_batch
+
+    if batch_envs < 1:
+        raise UsageError(f"--batch-envs must be at least 1, got {batch_envs}; 1 steps one env at a time")
+    if batch_envs == 1:
+        return
+    for p in policies:
+        try:
+            batchable = can_batch(p.policy)  # a served policy asks its server
+        except ConnectionError as exc:
+            raise UsageError(f"policy {p.spec.name}: {exc}") from None
+        if not batchable and is_served(p.policy):
+            where = getattr(p.policy, "served_by", "its server")
+            raise UsageError(
+                f"policy {p.spec.name}: {where} cannot decode batches (its metadata has no act_batch: "
+                "true; openpi servers and experts cannot); serve a decoder with dvla-harness serve, or "
+                f"run with --batch-envs 1 (not {batch_envs})"
+            )
+        if not batchable:
+            raise UsageError(
+                f"policy {p.spec.name} cannot batch across environments (--batch-envs {batch_envs}): "
+                "it must declare act_batch(episodes, observations) and keep no per-episode state "
+                "between chunks (policies/base.py BatchPolicy); run it with --batch-envs 1"
+            )

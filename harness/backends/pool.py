@@ -4,9 +4,9 @@ Workers are started with multiprocessing's `spawn` context: a fresh interpreter,
 torch's thread pools and MuJoCo's GL state do not survive a fork of a process that has
 started them. Each worker rebuilds the run's policies and suite from the config (a
 built policy is not sent between processes), sets its own torch/BLAS threads, and then
-runs the episodes it is sent with the same runners as the in-process backend
-(`EpisodeRunner`, and with --batch-envs K the `BatchedRunner`; harness/backends/local.py
-`Worker`), sending each event (an episode started, ended) as it happens.
+runs the episodes it is sent with the same episode loop as the in-process backend
+(harness/backends/local.py `Worker`), sending each event (an episode started, ended) as
+it happens.
 
 Each worker talks to the parent over its own pipe, not a shared queue: a worker killed
 mid-write (SIGKILL, a segfault) can then leave at most a cut message on its own pipe,
@@ -17,46 +17,14 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import os
 import signal
-from functools import partial
 from multiprocessing import connection, get_context
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from harness.backends.local import HOST, Worker
-from harness.backends.schedule import Event, JobId
-from harness.config import CheckpointPin, check_checkpoints, checkpoint_pins, worker_rebuild
-
-if TYPE_CHECKING:
-    from collections.abc import Callable
-
-    from harness.backends import Execution
-    from harness.config import ResolvedRun
+from harness.backends.local import WorkerSpec, start_worker
+from harness.backends.scheduler import Event, JobId
 
 _PR_SET_PDEATHSIG = 1
-
-
-def rebuild_from_config(config: Any) -> ResolvedRun:
-    """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`);
-    the worker then moves its policies to --device (`worker_main`, the Ray actor)."""
-    from harness.config import resolve
-
-    return resolve(config)
-
-
-def worker_threads(execution: Execution) -> int:
-    """Threads per worker: --threads, else the default share (harness/threads.py)."""
-    from harness.threads import default_threads
-
-    return execution.threads or default_threads(execution.workers)
-
-
-def heartbeat_interval(execution: Execution) -> float | None:
-    """How often a batched worker says its batch still moves: often enough that a batch
-    is declared stalled only after --episode-timeout without a step; never without it."""
-    if execution.episode_timeout is None or execution.batch_envs == 1:
-        return None
-    return execution.episode_timeout / 4
 
 
 def lost_reason(exitcode: int | None) -> str:
@@ -83,41 +51,18 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
-def worker_main(
-    conn: Any,
-    worker_id: str,
-    rebuild: Callable[[], ResolvedRun],
-    threads: int | None,
-    workers: int,
-    traces: bool,
-    batch_envs: int = 1,
-    heartbeat_s: float | None = None,
-    device: str | None = None,
-    pins: tuple[CheckpointPin, ...] = (),
-) -> None:
-    """A worker's life: set threads, build (policies on --device), say ready, run groups of episodes until told
-    to stop, sending each event as it happens (a finished episode's row is written by the
-    parent while the rest of its batch runs)."""
+def worker_main(conn: Any, worker_id: str, spec: WorkerSpec) -> None:
+    """A worker's life: start (harness/backends/local.py `start_worker`), warm up, say
+    ready, run groups of episodes until told to stop, sending each event as it happens (a
+    finished episode's row is written by the parent while the rest of its batch runs)."""
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the parent, which stops us
-    from harness.device import apply_device, worker_device_record
-    from harness.threads import apply_threads, threads_record
-
-    apply_threads(threads, workers)  # before the policies load torch
     try:
-        check_checkpoints(pins)  # before loading: the content this run hashed, or stop the run
-        resolved = rebuild()
-        check_checkpoints(pins, resolved)  # and what was loaded
-        if device is not None:  # before the warm-up (a GPU's one-off costs are paid there)
-            apply_device(resolved.policies, device)
-        worker = Worker(resolved, traces, worker_id, batch_envs, heartbeat_s)
+        worker, record = start_worker(spec, worker_id)
     except BaseException as exc:
         with contextlib.suppress(OSError):
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    apply_threads(threads, workers)  # again with torch loaded: its inter-op threads too
-    record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
-    record["device"] = worker_device_record()
     try:
         for event in worker.warming():  # each policy's first calls, held to --episode-timeout
             conn.send(event)
@@ -136,18 +81,11 @@ def worker_main(
 
 
 class ProcessWorkers:
-    """The `Workers` of harness/backends/schedule.py as spawned processes."""
+    """The `Workers` of harness/backends/scheduler.py as spawned processes."""
 
-    def __init__(self, resolved: ResolvedRun, execution: Execution, traces: bool):
+    def __init__(self, spec: WorkerSpec):
         self.context = get_context("spawn")
-        self.rebuild = worker_rebuild(
-            execution.rebuild or partial(rebuild_from_config, resolved.config), resolved
-        )
-        self.device = execution.device
-        self.pins = checkpoint_pins(resolved)
-        self.threads, self.asked = worker_threads(execution), execution.threads
-        self.workers, self.traces = execution.workers, traces
-        self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
+        self.spec = spec
         self.procs: dict[int, Any] = {}
         self.conns: dict[int, Any] = {}
         self.started = 0
@@ -156,8 +94,7 @@ class ProcessWorkers:
         worker_id = f"local-{self.started}"
         self.started += 1
         mine, theirs = self.context.Pipe()
-        args = (theirs, worker_id, self.rebuild, self.asked, self.workers, self.traces)
-        args += (self.batch_envs, self.heartbeat_s, self.device, self.pins)
+        args = (theirs, worker_id, self.spec)
         proc = self.context.Process(target=worker_main, args=args, name=f"dvla-{worker_id}", daemon=True)
         proc.start()
         theirs.close()

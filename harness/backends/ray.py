@@ -6,7 +6,7 @@ from the config, as a pool worker does, and runs one episode per call, or with
 generator (each episode's start and outcome reach the scheduler as they happen, so a
 row is written while the rest of its batch runs). Ray moves the calls and results, places the actors (`num_cpus` = the worker's torch threads,
 `num_gpus` = --ray-num-gpus, so a policy that decodes on a GPU lands on a GPU node), and
-reports a lost actor as `RayActorError`; the scheduler (harness/backends/schedule.py)
+reports a lost actor as `RayActorError`; the scheduler (harness/backends/scheduler.py)
 then resubmits the episodes it held to a fresh actor, as it does for a lost process. The actors
 are made with `max_restarts=0`: a restarted actor would run the lost call again by
 itself, without the per-episode retry count the failure rows need.
@@ -31,20 +31,17 @@ import socket
 import sys
 import time
 import warnings
-from functools import partial
 from typing import TYPE_CHECKING, Any
 
-from harness.backends.pool import heartbeat_interval, rebuild_from_config, worker_threads
-from harness.backends.schedule import Event, JobId
-from harness.config import checkpoint_pins, worker_rebuild
+from harness.backends.scheduler import Event, JobId
 from harness.errors import UsageError
 from harness.plugins import install_hint
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterator
+    from collections.abc import Iterator
 
     from harness.backends import Execution
-    from harness.config import ResolvedRun
+    from harness.backends.local import WorkerSpec
 
 RAY_FIX = install_hint("ray")
 CONNECT_TIMEOUT_S = 5.0
@@ -217,39 +214,14 @@ class EpisodeActor:
     """A Ray worker: the run rebuilt once, then one episode per `run` call, or a batch of
     a task's episodes per `run_batch` call, whose events stream back as they happen."""
 
-    def __init__(
-        self,
-        worker_id: str,
-        rebuild: Callable[[], ResolvedRun],
-        threads: int,
-        workers: int,
-        traces: bool,
-        batch_envs: int = 1,
-        heartbeat_s: float | None = None,
-        device: str | None = None,
-        pins: tuple[tuple[str, str, str], ...] = (),
-    ):
-        from harness.backends.local import HOST, Worker
-        from harness.config import check_checkpoints
-        from harness.device import apply_device, worker_device, worker_device_record
-        from harness.threads import apply_threads, threads_record
+    def __init__(self, worker_id: str, spec: WorkerSpec):
+        from harness.backends.local import start_worker
 
         self.error = ""
-        apply_threads(threads, workers)
-        gpu_ids = reserved_gpu_ids()
         try:
-            check_checkpoints(pins)  # the content the run hashed, on this node too
-            resolved = rebuild()
-            check_checkpoints(pins, resolved)
-            if device is not None:  # before the warm-up, on the GPU Ray gave this actor if any
-                apply_device(resolved.policies, device, used=worker_device(device, gpu_ids))
-            self.worker = Worker(resolved, traces, worker_id, batch_envs, heartbeat_s)
+            self.worker, self.record = start_worker(spec, worker_id, reserved_gpu_ids())
         except Exception as exc:  # said by ready(), not as a dead actor retried in vain
             self.error = f"{type(exc).__name__}: {exc}"
-            return
-        apply_threads(threads, workers)
-        record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
-        self.record = record | {"device": worker_device_record(gpu_ids)}
 
     def ready(self) -> Iterator[tuple[str, Any]]:
         """A Ray streaming generator: ("warming", policy_config_id) before each policy's
@@ -275,24 +247,23 @@ class EpisodeActor:
 
 
 class RayWorkers:
-    """The `Workers` of harness/backends/schedule.py as Ray actors."""
+    """The `Workers` of harness/backends/scheduler.py as Ray actors; each resolves
+    --device on its own node."""
 
-    def __init__(self, resolved: ResolvedRun, execution: Execution, traces: bool):
+    def __init__(self, spec: WorkerSpec, execution: Execution):
         import ray
+
+        from harness.threads import default_threads
 
         connect(execution)
         self.ray = ray
         self.owns_ray = execution.ray_address is None
-        self.threads, self.asked = worker_threads(execution), execution.threads
-        self.rebuild = worker_rebuild(
-            execution.rebuild or partial(rebuild_from_config, resolved.config), resolved
-        )
-        self.device = execution.device  # each actor resolves it on its node
-        self.pins = checkpoint_pins(resolved)
-        self.workers, self.traces = execution.workers, traces
-        self.batch_envs, self.heartbeat_s = execution.batch_envs, heartbeat_interval(execution)
+        self.spec = spec
         self.actor_class = ray.remote(EpisodeActor).options(
-            num_cpus=self.threads, num_gpus=execution.ray_num_gpus, max_restarts=0, max_task_retries=0
+            num_cpus=spec.threads or default_threads(spec.workers),
+            num_gpus=execution.ray_num_gpus,
+            max_restarts=0,
+            max_task_retries=0,
         )
         self.actors: dict[int, Any] = {}
         # object ref or a batch's ObjectRefGenerator -> (slot, the actor it came from)
@@ -306,18 +277,7 @@ class RayWorkers:
     def start(self, slot: int) -> str:
         worker_id = f"ray-{self.started}"
         self.started += 1
-        args = (
-            worker_id,
-            self.rebuild,
-            self.asked,
-            self.workers,
-            self.traces,
-            self.batch_envs,
-            self.heartbeat_s,
-            self.device,
-            self.pins,
-        )
-        actor = self.actor_class.remote(*args)
+        actor = self.actor_class.remote(worker_id, self.spec)
         self.actors[slot] = actor
         self.refs[self._stream(actor.ready)] = (slot, actor)
         return worker_id

@@ -151,7 +151,7 @@ def _identity(policy: str, params_json: str, sha256: str | None) -> str:
 def _resolved(run_dir: Any) -> Any:
     """The run's config resolved again, refusing one whose policies are no longer the run's."""
     from harness.config import build_config, resolve
-    from harness.resume import config_data
+    from harness.run.resume import config_data
     from results.store import ResultsFileError
 
     try:
@@ -192,9 +192,9 @@ def _pick(resolved: Any, name: str) -> Any:
 def cmd_bench(args: argparse.Namespace) -> int:
     from harness.threads import apply_threads
 
-    apply_threads(args.threads)  # before torch does any work
+    apply_threads(args.threads)  # once, before torch does any work
     from harness.bench import load_observations
-    from harness.run_folder import acquire
+    from harness.run.folder import acquire
     from results.lock import RunLock
     from results.store import REPLAY_OBSERVATIONS, RunDir
 
@@ -216,10 +216,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: Any, own: Path) -> int:
     from harness import bench
     from harness.console import console, err_console
-    from harness.threads import apply_threads, threads_record
+    from harness.threads import threads_record
 
     resolved, manifest = _resolved(run_dir)
-    apply_threads(args.threads)  # again, now that torch is loaded
     started = time.perf_counter()
     if given is not None:
         recorded, how = given, f"from {source}"
@@ -251,7 +250,16 @@ def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: A
             f"{run_dir.path}: no configuration of the run decodes action tokens; nothing to time"
         )
     rounds = _timed_rounds(args, timed, contexts, recorded.observations)
-    payload = _payload(args, manifest, recorded, how, source, timed, decodes, rounds, not_timed)
+    configurations = _configurations(timed, decodes, rounds, len(recorded.observations))
+    observations = {
+        "file": "replay_observations.npz",
+        "count": len(recorded.observations),
+        "tasks": sorted({c["task"] for c in recorded.contexts}),
+        "sha256": None,  # set below from the observations as loaded, before any decode
+        "how": how,
+        "source": str(source) if source else None,
+    }
+    payload = _payload(args, manifest, observations, configurations, not_timed)
     payload["observations"]["sha256"] = digest
     payload["elapsed_s"] = time.perf_counter() - started
     payload["torch_threads"] = threads_record().get("torch_intra_op")
@@ -287,20 +295,12 @@ def _timed_rounds(args: argparse.Namespace, timed: list, contexts: list, observa
         return bench.time_rounds(timed, contexts, observations, args.rounds, tick)
 
 
-def _payload(
-    args: argparse.Namespace,
-    manifest: dict[str, Any],
-    recorded: Any,
-    how: str,
-    source: Path | None,
-    timed: list,
-    decodes: dict,
-    rounds: dict[str, list[float]],
-    not_timed: list,
-) -> dict[str, Any]:
-    from results.replay import REPLAY_VERSION, chunk_figures
+def _configurations(
+    timed: list, decodes: dict, rounds: dict[str, list[float]], n: int
+) -> list[dict[str, Any]]:
+    """Each timed configuration's figures per chunk, from its decodes and rounds."""
+    from results.replay import chunk_figures
 
-    n = len(recorded.observations)
     configurations = []
     for p in timed:
         d = decodes[p.config_id]
@@ -315,6 +315,18 @@ def _payload(
                 "round_chunk_s": rounds[p.config_id],
             }
         )
+    return configurations
+
+
+def _payload(
+    args: argparse.Namespace,
+    manifest: dict[str, Any],
+    observations: dict[str, Any],
+    configurations: list[dict[str, Any]],
+    not_timed: list,
+) -> dict[str, Any]:
+    from results.replay import REPLAY_VERSION
+
     return {
         "replay_version": REPLAY_VERSION,
         "run_id": manifest.get("run_id"),
@@ -325,14 +337,7 @@ def _payload(
             "act per observation in that round (reset untimed); one untimed warm-up pass first"
         ),
         "rounds": args.rounds,
-        "observations": {
-            "file": "replay_observations.npz",
-            "count": n,
-            "tasks": sorted({c["task"] for c in recorded.contexts}),
-            "sha256": None,  # set by the caller from the observations as loaded, before any decode
-            "how": how,
-            "source": str(source) if source else None,
-        },
+        "observations": observations,
         "configurations": configurations,
         "not_timed": not_timed,
     }
@@ -352,7 +357,7 @@ def _portable_params(p: Any) -> dict[str, Any]:
 
 def _write(run_dir: Any, own: Path, recorded: Any, payload: dict[str, Any]) -> None:
     from harness.bench import observations_bytes
-    from harness.run_folder import io_error
+    from harness.run.folder import io_error
     from results.store import REPLAY, atomic_write
 
     try:

@@ -45,7 +45,7 @@ def cmd_list(args: argparse.Namespace) -> int:
             )
         print_table(table)
     elif args.what == "latency-profiles":
-        from harness.latency import profile_rows
+        from harness.episode.latency import profile_rows
 
         table = Table(
             "profile", "chunk latency per decoder", "source", title="--inference-latency profile:NAME"

@@ -57,7 +57,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of `run`, shared with `sweep` (a sweep is a run over a grid of policies)."""
+    """The flags of `run`, shared with `sweep` (a sweep is a run over a grid of policies),
+    in three groups: what is evaluated, the run folder, where it computes."""
+    _what_arguments(p.add_argument_group("what to evaluate (the config; --config FILE holds the same keys)"))
+    _folder_arguments(p.add_argument_group("the run folder"))
+    _compute_arguments(p.add_argument_group("where and how episodes run (not part of the config)"))
+
+
+def _what_arguments(p: Any) -> None:
     p.add_argument(
         "--config",
         metavar="FILE",
@@ -95,7 +102,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="execute K actions of each chunk before asking again; 0 = the whole chunk (default 0)",
     )
-    from harness.action_space import OUT_OF_SPACE_RULES, RULES_HELP
+    from harness.episode.actions import OUT_OF_SPACE_RULES, RULES_HELP
 
     p.add_argument("--out-of-space", choices=OUT_OF_SPACE_RULES, metavar="RULE", help=RULES_HELP)
     p.add_argument(
@@ -110,6 +117,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         help="under an inference latency: sync (the robot holds still while a chunk decodes; "
         "default) or async (it keeps executing the current chunk)",
     )
+
+
+def _folder_arguments(p: Any) -> None:
     p.add_argument(
         "--out", metavar="DIR", help="run folder (default: runs/<UTC date and time>, printed with the table)"
     )
@@ -134,6 +144,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
         "(for `dvla-harness plot decoding-order`)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _compute_arguments(p: Any) -> None:
     from harness.backends.options import add_backend_arguments
 
     add_backend_arguments(p)
@@ -159,59 +172,42 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def with_variants(suite: str, variants: str) -> str:
-    """`--variants X` as the suite option it stands for (one place decides what a suite
-    name means, so a run's rows and manifest carry the selection)."""
-    base, _, opts = suite.partition(":")
-    if not base.startswith("simpler/"):
-        raise UsageError(f"--variants applies to the simpler/ suites (SimplerEnv-like), not {base!r}")
-    kept = [o for o in opts.split(",") if o.strip() and not o.strip().startswith("variants=")]
-    return f"{base}:" + ",".join([f"variants={variants}", *kept])
-
-
-def config_from_args(args: argparse.Namespace):
-    from harness.config import build_config, default_config_data, load_config_file, parse_policy_arg
-    from harness.resume import recorded_config_data
+def config_from_args(args: argparse.Namespace) -> Any:
+    """The RunConfig the flags ask for (harness/config.py `merge_config` applies the
+    precedence); the batch size they or --config ask for goes to `args.batch_envs`, which
+    the backend flags read."""
+    from harness.config import merge_config, parse_policy_arg
+    from harness.run.resume import recorded_config_data
 
     # --resume continues the folder's recorded config; flags change it (and are checked)
     recorded = recorded_config_data(Path(args.out)) if args.resume and args.out else None
-    data = default_config_data() if recorded is None else recorded
-    overrides = load_config_file(args.config) if args.config else {}
-    if getattr(args, "batch_envs", None) is None and "batch_envs" in overrides:
-        args.batch_envs = overrides["batch_envs"]  # how to execute, not what: not in RunConfig
-    if args.suite:
-        overrides["suite"] = args.suite
-    if recorded is None and overrides.get("suite", data["suite"]) != data["suite"]:
-        # The default's task subset and episode count are the main job's, not the protocol's.
-        data.pop("tasks", None)
-        data.pop("episodes_per_task", None)
-    data |= overrides
-    if getattr(args, "variants", None):
-        data["suite"] = with_variants(data["suite"], args.variants)
+    tasks = None
     if args.tasks is not None:
-        data["tasks"] = [t.strip() for t in args.tasks.split(",") if t.strip()]
-        if not data["tasks"]:
+        tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
+        if not tasks:
             raise UsageError("--tasks is empty; give task names or indices, comma-separated")
-    if args.policy:
-        data["policy"] = [parse_policy_arg(p) for p in args.policy]
-    if args.episodes_per_task is not None:
-        data["episodes_per_task"] = args.episodes_per_task
-    if args.replan_every is not None:
-        data["replan_every"] = args.replan_every
-    if getattr(args, "out_of_space", None) is not None:
-        data["out_of_space"] = args.out_of_space
-    if getattr(args, "inference_latency", None) is not None:
-        data["inference_latency"] = args.inference_latency
-    if getattr(args, "execution", None) is not None:
-        data["execution"] = args.execution
-    return build_config(data)
+    flags = {
+        "suite": args.suite,
+        "variants": getattr(args, "variants", None),
+        "tasks": tasks,
+        "policy": [parse_policy_arg(p) for p in args.policy] if args.policy else None,
+        "episodes_per_task": args.episodes_per_task,
+        "replan_every": args.replan_every,
+        "out_of_space": getattr(args, "out_of_space", None),
+        "inference_latency": getattr(args, "inference_latency", None),
+        "execution": getattr(args, "execution", None),
+        "batch_envs": getattr(args, "batch_envs", None),
+    }
+    config, args.batch_envs = merge_config(recorded, args.config, flags)
+    return config
 
 
 def prepare_compute(args: argparse.Namespace) -> None:
-    """Before the policies are built: torch's threads set before it does any work, and a
-    device that cannot be had refused (exit 2) before any model is loaded. Under
-    --backend ray the workers resolve --device on their nodes (this machine may have no
-    GPU); only a GPU no Ray worker could be given is refused here."""
+    """Before the policies are built: torch's threads set once for this process (harness/
+    threads.py applies them to torch whenever it loads), and a device that cannot be had
+    refused (exit 2) before any model is loaded. Under --backend ray the workers resolve
+    --device on their nodes (this machine may have no GPU); only a GPU no Ray worker could
+    be given is refused here."""
     from harness.device import resolve_device
     from harness.threads import apply_threads
 
@@ -226,16 +222,16 @@ def prepare_compute(args: argparse.Namespace) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from harness.config import resolve
+    from harness.run.folder import OpenMode
 
-    if args.retry_failed and not args.resume:
-        raise UsageError("--retry-failed only makes sense with --resume")
+    OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)  # refused before anything loads
     prepare_compute(args)
     resolved = resolve(config_from_args(args))
     return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
 
 
 def print_out_of_space(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
-    """A warning line per configuration whose actions left the action space (harness/action_space.py)."""
+    """A warning line per configuration whose actions left the action space (harness/episode/actions.py)."""
     from results.board_warnings import out_of_space_warnings
 
     for line in out_of_space_warnings(episodes, labels):
@@ -283,41 +279,49 @@ def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
     again: the command that continues an interrupted run ({out} is filled in). Every table
     names a configuration by the config_label its rows hold (a sweep's grid points too).
     """
-    from harness.backends.options import execution_from_args
+    from harness.backends.options import check_batching, execution_from_args
     from harness.device import apply_device
-    from harness.runner import run
-    from harness.threads import apply_threads
-    from results.labels import row_labels
-    from results.render import summary_table
-    from results.summary import summarize
+    from harness.run.folder import OpenMode
+    from harness.run.runner import run
 
-    apply_threads(args.threads)  # again, now that torch is loaded: its inter-op threads too
     # under Ray each worker places its own policies; this process only records the request
     apply_device(resolved.policies, args.device, per_worker=getattr(args, "backend", "local") == "ray")
-
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
-    from harness.batch_runner import check_batching
-
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
-    out = Path(args.out) if args.out else None
-    if out is None:
-        from datetime import UTC, datetime
-
-        out = Path("runs") / datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    mode = OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)
+    out = Path(args.out) if args.out else default_out()
     progress, start = episode_progress(args.quiet)
     # CI cancels with SIGTERM: stop like Ctrl-C, keeping every finished episode.
     signal.signal(signal.SIGTERM, raise_interrupt)
     with progress:
-        report = run(
-            resolved,
-            out,
-            resume=args.resume,
-            overwrite=args.overwrite,
-            retry_failed=args.retry_failed,
-            progress=start,
-            traces=args.traces,
-            execution=execution,
+        report = run(resolved, out, mode, execution=execution, traces=args.traces, progress=start)
+    print_run(resolved, report)
+    if report.interrupted:
+        err_console.print(f"interrupted; continue with: {again.format(out=out)}")
+        return 130
+    if report.failed:
+        err_console.print(
+            f"[red]{report.failed} episode(s) raised an exception[/red]; see failure_reason in the rows "
+            f"and tracebacks in {report.run_dir.path / 'events.jsonl'}"
         )
+        return 1
+    return 0
+
+
+def default_out() -> Path:
+    """runs/<UTC date and time>: a new folder for a run given no --out (printed with the table)."""
+    from datetime import UTC, datetime
+
+    return Path("runs") / datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+
+
+def print_run(resolved: Any, report: Any) -> None:
+    """The run's summary tables (chains, latency, out-of-space warnings beneath), where
+    its rows and manifest are, and its speed verdict."""
+    from results.labels import row_labels
+    from results.render import summary_table
+    from results.summary import summarize
+
     episodes = report.run_dir.read_episodes()
     if len(episodes):
         labels = row_labels(episodes)
@@ -335,13 +339,3 @@ def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"
     )
     print_speed_warning(report.run_dir)
-    if report.interrupted:
-        err_console.print(f"interrupted; continue with: {again.format(out=out)}")
-        return 130
-    if report.failed:
-        err_console.print(
-            f"[red]{report.failed} episode(s) raised an exception[/red]; see failure_reason in the rows "
-            f"and tracebacks in {report.run_dir.path / 'events.jsonl'}"
-        )
-        return 1
-    return 0

@@ -106,7 +106,7 @@ def build_served(args: argparse.Namespace, token: str | None = None):
     the served task's spaces read from one env of the suite; `token`: the key clients
     must send (server_key)."""
     from harness.config import build_config, parse_policy_arg, resolve
-    from harness.serve import Served
+    from harness.serving.server import Served
 
     data = {"suite": args.suite, "policy": [parse_policy_arg(args.policy)]}
     if args.task:
@@ -157,7 +157,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         served = build_served(args, token)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    from harness.serve import make_server, stop_server
+    from harness.serving.server import make_server, stop_server
 
     try:
         server = make_server(served, args.host, args.port)

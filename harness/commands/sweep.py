@@ -54,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_sweep(args: argparse.Namespace) -> int:
     from harness.commands.run import config_from_args, execute_run, prepare_compute
     from harness.config import load_config_file, resolve
-    from harness.sweep import expand, parse_grid
+    from harness.run.sweep import expand, parse_grid
 
     if args.retry_failed and not args.resume:
         raise UsageError("--retry-failed only makes sense with --resume")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rich.progress import (
     BarColumn,
@@ -27,16 +27,7 @@ CLIPPED = 0.1  # warn above this tokenizer error on a training action (a tenth o
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from policies.dvla.recipes import (
-        ACTION_RANGES,
-        DEFAULT_NOISE_SCHEDULE,
-        NOISE_SCHEDULES,
-        NOISY_TARGETS,
-        RECIPES,
-        SAMPLING,
-        STATE_FEATURES,
-        TrainConfig,
-    )
+    from policies.dvla.recipes import TrainConfig
 
     d = TrainConfig(recipe="bidirectional")
     p = sub.add_parser(
@@ -69,6 +60,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    _data_arguments(p.add_argument_group("data and recipe"), d)
+    _representation_arguments(p.add_argument_group("what the model reads and predicts"))
+    _model_arguments(p.add_argument_group("model and optimisation"), d)
+    _output_arguments(p.add_argument_group("output and device"))
+    p.set_defaults(func=cmd_train)
+
+
+def _data_arguments(p: Any, d: Any) -> None:
+    from policies.dvla.recipes import NOISY_TARGETS, RECIPES, SAMPLING
+
     p.add_argument(
         "--demos",
         required=True,
@@ -121,6 +122,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="save an exponential moving average of the weights with this decay per step, e.g. "
         "0.995 (default 0: the last step's weights)",
     )
+
+
+def _representation_arguments(p: Any) -> None:
+    from policies.dvla.recipes import ACTION_RANGES, DEFAULT_NOISE_SCHEDULE, NOISE_SCHEDULES, STATE_FEATURES
+
     p.add_argument(
         "--state-features",
         choices=STATE_FEATURES,
@@ -144,6 +150,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         + ", ".join(f"{s} for {r}" for r, s in DEFAULT_NOISE_SCHEDULE.items())
         + "; clean_context is block_diffusion's only); recorded in the checkpoint",
     )
+
+
+def _model_arguments(p: Any, d: Any) -> None:
     for name, kind in (
         ("steps", int),
         ("batch_size", int),
@@ -179,6 +188,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="camera demonstrations: the image encoder also reads each pixel's x and y (CoordConv), "
         "so a policy without object poses (--state-features proprio) can tell where things are",
     )
+
+
+def _output_arguments(p: Any) -> None:
     p.add_argument(
         "--device",
         choices=DEVICES,
@@ -190,12 +202,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_train)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     from policies.dvla.checkpoint import CheckpointError
-    from policies.dvla.recipes import TrainConfig
     from policies.dvla.training import train
 
     out = Path(args.out)
@@ -206,6 +216,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     for folder in args.demos:
         if not Path(folder).is_dir():
             raise UsageError(f"--demos {folder!r} is not a folder (make one with `dvla-harness collect`)")
+    cfg = train_config(args)
+    progress, on_step = _progress(cfg, args.quiet)
+    try:
+        with progress:
+            report = train(cfg, args.demos, out, on_step)
+    except (ValueError, CheckpointError) as exc:
+        raise UsageError(str(exc)) from None
+    _report(out, cfg, report)
+    return 0
+
+
+def train_config(args: argparse.Namespace) -> TrainConfig:
+    """The flags as a TrainConfig, validated (UsageError, exit 2)."""
+    from policies.dvla.recipes import TrainConfig
+
     cfg = TrainConfig(
         recipe=args.recipe,
         steps=args.steps,
@@ -240,6 +265,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         cfg.validate()
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    return cfg
+
+
+def _progress(cfg: TrainConfig, quiet: bool) -> tuple[Progress, Any]:
+    """A progress bar over the steps, and its per-step callback (a line every 5% where no
+    live bar shows: a log file, CI)."""
     progress = Progress(
         TextColumn("[bold]training"),
         BarColumn(),
@@ -249,7 +280,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         TextColumn("ETA"),
         TimeRemainingColumn(),
         console=err_console,
-        disable=args.quiet,
+        disable=quiet,
     )
     task = progress.add_task("train", total=cfg.steps, loss="-")
 
@@ -259,18 +290,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     def on_step(step: int, loss: float) -> None:
         progress.update(task, advance=1, loss=f"{loss:.4f}")
         # A log file or CI has no live bar: a line every 5% instead.
-        if not err_console.is_terminal and not args.quiet and (step + 1) % every == 0:
+        if not err_console.is_terminal and not quiet and (step + 1) % every == 0:
             elapsed = time.monotonic() - started
             eta = elapsed / (step + 1) * (cfg.steps - step - 1)
             err_console.print(
                 f"step {step + 1}/{cfg.steps}  loss {loss:.4f}  {elapsed:.0f} s, ETA {eta:.0f} s"
             )
 
-    try:
-        with progress:
-            report = train(cfg, args.demos, out, on_step)
-    except (ValueError, CheckpointError) as exc:
-        raise UsageError(str(exc)) from None
+    return progress, on_step
+
+
+def _report(out: Path, cfg: TrainConfig, report: Any) -> None:
+    """What was written, what it was trained on, and how well its tokenizer fits."""
     console.print(
         f"wrote {out} ({cfg.recipe}, {cfg.steps} steps, {report.seconds:.0f} s, "
         f"final loss {sum(report.losses[-50:]) / len(report.losses[-50:]):.4f}); curve: {out.with_suffix('.loss.png')}"
@@ -289,7 +320,6 @@ def cmd_train(args: argparse.Namespace) -> int:
             f"{CLIPPED} ({'; '.join(lost)}): rare large actions decode smaller than demonstrated. "
             + _widen_hint(cfg)
         )
-    return 0
 
 
 def _widen_hint(cfg: TrainConfig) -> str:

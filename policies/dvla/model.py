@@ -203,7 +203,7 @@ class StepOutput:
 
 class Attention(nn.Module):
     """`F.scaled_dot_product_attention` as a module without parameters: the harness's
-    hooks see each call's query, key and value shapes and count its work (harness/work.py:
+    hooks see each call's query, key and value shapes and count its work (harness/episode/work.py:
     FLOPs, and the positions attended, cached or not). Queries (B, heads, L, E) attend
     keys/values (B, heads, S, E) that end with the call's own L positions."""
 

@@ -173,7 +173,7 @@ class FastDLLMParams:
 
     # Rows recorded before `blocks` existed decoded one action step a block, which its
     # default does not reproduce: `--resume` must count them as another configuration,
-    # not adopt them as made at the default (harness/resume.py).
+    # not adopt them as made at the default (harness/run/resume.py).
     CHANGED_BY_ADDING: ClassVar[frozenset[str]] = frozenset({"blocks"})
 
     def __post_init__(self) -> None:

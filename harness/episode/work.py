@@ -1,4 +1,4 @@
-"""Counted work: what the forward passes counted by harness/nfe.py computed, by shape.
+"""Counted work: what the forward passes counted by harness/episode/nfe.py computed, by shape.
 
 NFE says how many passes a decoder ran; counted work says how big they were, so a
 speedup (or a slowdown) can be explained and gated without a clock. Every figure is a
@@ -47,6 +47,11 @@ from typing import Any
 WIRE_KEY = "dvla/work"  # the reply key a dvla-harness server reports a call's work under
 
 
+def _plus(a: int | None, b: int | None) -> int | None:
+    """A sum that is not measured when either part is not."""
+    return None if a is None or b is None else a + b
+
+
 @dataclass(frozen=True)
 class Work:
     """Counted work of some policy calls; None in a field: not measured."""
@@ -57,11 +62,12 @@ class Work:
     kv_cached_tokens: int | None = 0
 
     def __add__(self, other: Work) -> Work:
+        # field by field (not through dataclasses.fields): the loop adds a call's work per call
         return Work(
-            *(
-                None if a is None or b is None else a + b
-                for a, b in zip(self._values(), other._values(), strict=True)
-            )
+            _plus(self.flops, other.flops),
+            _plus(self.query_tokens, other.query_tokens),
+            _plus(self.kv_tokens, other.kv_tokens),
+            _plus(self.kv_cached_tokens, other.kv_cached_tokens),
         )
 
     def _values(self) -> tuple[int | None, ...]:
@@ -93,6 +99,7 @@ class Work:
 
 
 NOT_MEASURED = Work(None, None, None, None)
+NO_WORK = Work()  # counted, and nothing: no pass ran
 
 
 def shares(total: int, parts: int) -> list[int]:

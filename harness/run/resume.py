@@ -39,8 +39,8 @@ from typing import Any
 
 import pandas as pd
 
-from harness.action_space import DEFAULT_OUT_OF_SPACE
 from harness.config import ResolvedRun, build_config
+from harness.episode.actions import DEFAULT_OUT_OF_SPACE
 from harness.errors import UsageError
 from policies.registry import (
     SHIPPED_CHECKPOINTS,

@@ -26,14 +26,14 @@ true` and a `dvla/batch` message carries K observations with each one's episode 
 (the episodes are at different steps; openpi has no such message, so only our client
 sends it). One `act_batch` call serves them all; its NFE is the passes of that call (the
 client charges them to each of the K episodes, as the local batched loop does).
-With `--max-batch B` the server batches across clients too (harness/coalesce.py): calls
+With `--max-batch B` the server batches across clients too (harness/serving/coalesce.py): calls
 that arrive together, from any connections, share one act_batch call, and the replies
 add the queue wait ("dvla/queue_time_s") and the decode's size ("dvla/batch_size").
 
-Forward passes are counted with the runner's own hooks (harness/nfe.py) around each
+Forward passes are counted with the runner's own hooks (harness/episode/nfe.py) around each
 call and returned with it, with the policy's own time, so a remote row keeps honest NFE
 and splits time into policy and transport. Every reply that reports passes also reports
-their counted work under "dvla/work" (harness/work.py: "flops", "query_tokens",
+their counted work under "dvla/work" (harness/episode/work.py: "flops", "query_tokens",
 "kv_tokens", "kv_cached_tokens", integers or null for not measured); a call batched
 across clients gives each request its rows' share of the work, as of the tokens. A bad message gets an error text back (the
 protocol's way: openpi clients raise it) and the connection stays open; nothing is
@@ -56,9 +56,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from harness.coalesce import Coalescer, checked_actions
-from harness.nfe import NFECounter
-from harness.work import WIRE_KEY, Work
+from harness.episode.nfe import NFECounter
+from harness.episode.work import WIRE_KEY, Work
+from harness.serving.coalesce import Coalescer, checked_actions
 from policies.base import EpisodeContext, Policy, can_batch
 from policies.wire import MAX_MESSAGE_BYTES, WireError, pack, unpack
 
@@ -84,7 +84,7 @@ class Served:
     action_space: gym.spaces.Box
     state_key: str = "state"
     token: str | None = field(default=None, repr=False)  # never printed
-    max_batch: int = 1  # > 1: coalesce concurrent clients' calls (harness/coalesce.py)
+    max_batch: int = 1  # > 1: coalesce concurrent clients' calls (harness/serving/coalesce.py)
     batch_wait_s: float = 0.005
     counter: NFECounter = field(init=False)
     lock: threading.Lock = field(default_factory=threading.Lock)

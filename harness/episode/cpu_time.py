@@ -4,7 +4,7 @@ Wall-clock time inside a policy call is the policy's work plus whatever time the
 gave its core to someone else. The CPU time over the same interval is the work alone,
 so an episode whose policy wall time is well above its policy CPU time spent part of it
 waiting: it was starved, and its speed figures say more about the machine's load than
-about the policy. The episode loops (harness/episode.py, harness/batched.py) sum both
+about the policy. The episode loop (harness/episode/loop.py) sums both
 over every policy call of an episode (`policy_time_s`, `policy_cpu_time_s`); the row's
 `starved` column and the manifest's `starvation` count come from `is_starved`.
 

@@ -16,14 +16,20 @@ one rule decides what happens:
 
 Each row says how many action vectors (one per env step, not per element) were outside
 and the largest distance of any element beyond its bound, whatever the rule. Non-finite
-actions and actions above 1e6 in magnitude fail the episode under every rule
-(harness/episode.py check_chunk): they are broken arithmetic, not a policy's choice.
-Action spaces that are not a Box are not checked (their rows say null).
+actions and actions above 1e6 in magnitude fail the episode under every rule: they are
+broken arithmetic, not a policy's choice. Action spaces that are not a Box are not
+checked (their rows say null).
+
+`ActionGuard` is that rule as a wrapper around the env the loop steps: every chunk is
+admitted through it before any of its actions can reach `step`, and it counts what it
+saw per episode (a reset starts the count again). Admission is per chunk, not per step,
+because the policy answered with the whole chunk: under `fail` an action it returned
+ends the episode when it is returned, even one the harness would never execute.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -85,22 +91,47 @@ def describe(chunk: np.ndarray, low: np.ndarray, high: np.ndarray, first_step: i
     )
 
 
-@dataclass
-class ActionCheck:
-    """One episode's bounds and rule, with what it returned outside them so far."""
+# Beyond any action space a simulator clips to: a policy's arithmetic went wrong, and the
+# episode's outcome would say nothing about the policy (an env clips it to a corner).
+ABSURD_ACTION = 1e6
 
-    rule: str
-    bounds: tuple[np.ndarray, np.ndarray] | None
-    outside: int = 0  # action vectors outside the bounds
-    worst: float = 0.0  # largest distance of an element beyond its bound
 
-    @classmethod
-    def for_space(cls, space: gym.Space, rule: str) -> ActionCheck:
-        return cls(rule, box_bounds(space))
+def check_chunk(actions: np.ndarray, action_dim: int) -> None:
+    """A ValueError unless `actions` is one chunk (1, chunk >= 1, action_dim) of finite,
+    sane numbers; the message says which of those it is not."""
+    if actions.ndim != 3 or actions.shape[0] != 1 or actions.shape[1] < 1:
+        raise ValueError(
+            f"policy returned actions of shape {actions.shape}; expected (1, chunk>=1, {action_dim})"
+        )
+    if actions.shape[2] != action_dim:
+        raise ValueError(f"policy returned {actions.shape[2]}-D actions; the action space is {action_dim}-D")
+    if not np.isfinite(actions).all():
+        raise ValueError("policy returned a non-finite action (NaN or infinity)")
+    if np.abs(actions).max() > ABSURD_ACTION:
+        raise ValueError(f"policy returned an absurd action ({np.abs(actions).max():.3g} in magnitude)")
 
-    def apply(self, chunk: np.ndarray, first_step: int) -> np.ndarray:
-        """The actions to execute from `chunk` (actions x dim, as returned), counted and
-        handled by the rule; raises ActionOutOfSpace under `fail`."""
+
+class ActionGuard(gym.Wrapper):
+    """The env as the episode loop steps it: chunks admitted under one rule, counted per episode."""
+
+    def __init__(self, env: gym.Env, rule: str = DEFAULT_OUT_OF_SPACE):
+        super().__init__(env)
+        self.step = env.step  # type: ignore[method-assign]  # admission is per chunk; a step is the env's own
+        self.rule = rule
+        self.bounds = box_bounds(env.action_space)
+        self.action_dim = int(np.prod(env.action_space.shape))
+        self.outside = 0  # action vectors outside the bounds, this episode
+        self.worst = 0.0  # largest distance of an element beyond its bound, this episode
+
+    def reset(self, **kwargs: Any) -> Any:
+        self.outside, self.worst = 0, 0.0
+        return self.env.reset(**kwargs)
+
+    def admit(self, actions: np.ndarray, first_step: int) -> np.ndarray:
+        """The actions that may be executed from one returned chunk (1, chunk, action_dim):
+        checked (ValueError), counted, and handled by the rule (ActionOutOfSpace under `fail`)."""
+        check_chunk(actions, self.action_dim)
+        chunk = actions[0]
         if self.bounds is None:
             return chunk
         low, high = self.bounds

@@ -33,7 +33,7 @@ children added to a module after its first counted entry do not change its decis
 
 Batches: a forward pass over a batch of K episodes' observations counts 1 for each of
 those K episodes: NFE is per episode, never divided by the batch. With --batch-envs K
-(harness/batched.py) one `act_batch` call serves up to K episodes; the batched decoders
+(harness/episode/loop.py) one `act_batch` call serves up to K episodes; the batched decoders
 decode it in one pass per step, and each episode the call served is charged every pass.
 
 Limitations. A model whose `forward` is called as `model.forward(...)` (not
@@ -59,7 +59,7 @@ process-wide hooks left on) cost 75-135 us per pass. With other Python threads a
 a pass keeps the process-wide hooks on and nests per thread, so no thread's module
 calls go unseen.
 
-Counted work (harness/work.py says what is counted and why). The same hooks count how
+Counted work (harness/episode/work.py says what is counted and why). The same hooks count how
 big each pass was: FLOPs of the matrix products of the counted module kinds (nn.Linear,
 PackedLinear, nn.Conv*, and attention through the parameter-free `Attention` module of
 policies/dvla/model.py, the hook point that shows the hooks the query and key shapes),
@@ -100,7 +100,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from harness.work import ATTENTION, LINEAR, Work, attention_work, cost_of, unseen_kind
+from harness.episode.work import ATTENTION, LINEAR, NO_WORK, Work, attention_work, cost_of, unseen_kind
 
 _starts_pass_cache: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
 _counting: NFECounter | None = None  # the counter inside counting(), if any
@@ -209,7 +209,7 @@ class NFECounter:
         self._pass_frame: Any = None  # and the frame of torch's _call_impl that runs its hooks
         self._pass_depth = 0  # entries of that module (a module may call itself)
         self._local: weakref.WeakKeyDictionary[Any, list[Any]] = weakref.WeakKeyDictionary()
-        # Counted work (harness/work.py), cleared by take_work():
+        # Counted work (harness/episode/work.py), cleared by take_work():
         self._leaf_hooks: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
         self._plans: weakref.WeakKeyDictionary[Any, tuple[bool, list[Any]]] = weakref.WeakKeyDictionary()
         self._flops = 0
@@ -350,12 +350,6 @@ class NFECounter:
 
     # ---- counted work ------------------------------------------------------------------
 
-    def _leaf(self, module: Any, args: Any) -> None:
-        """Pre-hook on a counted module below a pass's module: counts only while a
-        single-thread pass has the process-wide hooks off (they count it otherwise)."""
-        if self._pass_module is not None and module is not self._pass_module:
-            self._count(module, args, cost_of(module), self._pass_tid)
-
     def _count(self, module: Any, args: Any, cost: Any, tid: int) -> None:
         if cost is not ATTENTION:
             flops = cost(module, args)
@@ -394,10 +388,12 @@ class NFECounter:
             self._tokens = [a + b for a, b in zip(self._tokens, largest, strict=True)]
 
     def take_work(self) -> Work:
-        """Counted work since the last call, cleared (harness/work.py says what is counted;
+        """Counted work since the last call, cleared (harness/episode/work.py says what is counted;
         a None field is not measured)."""
         for tid in list(self._open_tokens):
             self._close_tokens(tid)
+        if not (self._work_passes or self._attended_passes or self._flops) and self._flops_measured:
+            return NO_WORK  # nothing ran (a scripted policy's call): one shared zero
         if self._work_passes and not self._attended_passes:
             tokens: tuple[int | None, ...] = (None, None, None)
         else:

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.work import NOT_MEASURED, Work
+from harness.episode.work import NOT_MEASURED, Work
 from policies.base import EpisodeContext
 
 ACTIVE_S = 2.0  # a client that asked within this long is expected to ask again soon

@@ -9,7 +9,7 @@ the run. When the two differ beyond a tolerance the machine's load changed durin
 run, and the manifest flags its speed figures as unreliable (`speed_reliable: false`),
 which `run`, `show`, `leaderboard` and `gate` repeat. A load that comes and goes between
 the two calibrations is caught by the episodes themselves: one whose policy calls waited
-for a core (`starved`, harness/cpu_time.py) also makes the run unreliable, and the
+for a core (`starved`, harness/episode/cpu_time.py) also makes the run unreliable, and the
 manifest's `starvation` counts them. (Speeds are compared across machines as ratios to
 a reference decoder in the same run, not through the calibration: results/gate.py.)
 """
@@ -92,10 +92,15 @@ def _gpu() -> str | None:
 BUILD_INFO = "_build_info.json"  # written into the package by setup.py's build_py
 
 
+def _package() -> Path:
+    """The `harness` package folder (this module is harness/run/manifest.py)."""
+    return Path(__file__).resolve().parents[1]
+
+
 def build_info() -> dict[str, Any]:
     """What setup.py recorded when this copy was built (version, git commit), or {}."""
     try:
-        return json.loads((Path(__file__).resolve().parent / BUILD_INFO).read_text())
+        return json.loads((_package() / BUILD_INFO).read_text())
     except (OSError, ValueError):
         return {}
 
@@ -103,7 +108,7 @@ def build_info() -> dict[str, Any]:
 def git_commit() -> str | None:
     """The commit of the dvla-harness source: of the git checkout it runs from, else the
     one recorded at build time (a non-editable `pip install .` has no .git beside it)."""
-    source = Path(__file__).resolve().parent.parent
+    source = _package().parent
     if (source / ".git").exists():
         try:
             out = subprocess.run(
@@ -260,8 +265,8 @@ def record_end_calibration(manifest: dict[str, Any], status: str, episodes: Any 
 
 def starvation_record(episodes: Any) -> dict[str, Any]:
     """The manifest's `starvation` block: how many of the rows were judged and starved,
-    by what rule (harness/cpu_time.py), and the worst policy wall/CPU ratio judged."""
-    from harness.cpu_time import MIN_JUDGED_POLICY_TIME_S, STARVED_FACTOR
+    by what rule (harness/episode/cpu_time.py), and the worst policy wall/CPU ratio judged."""
+    from harness.episode.cpu_time import MIN_JUDGED_POLICY_TIME_S, STARVED_FACTOR
 
     judged = episodes[episodes["starved"].notna()]
     # a judged episode whose calls used no measurable CPU reads as 1e6 (JSON has no infinity)

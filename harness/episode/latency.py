@@ -7,7 +7,7 @@ turned into a delay of d = ceil(latency x control frequency) control steps, duri
 the robot either holds still (sync) or keeps executing the chunk it has (async, the
 naive asynchronous baseline of real-time chunking). Deterministic modes add no sleep:
 the delay is steps in the simulator, not seconds on the clock. docs/latency.md is the
-reference; harness/delayed.py is the loop.
+reference; harness/episode/plan.py is each episode's timeline under it.
 """
 
 from __future__ import annotations
@@ -124,20 +124,20 @@ def delay_steps(latency_s: float, hz: float) -> int:
 
 @dataclass(frozen=True)
 class LatencyPlan:
-    """What one episode's loop needs: the mode, the execution, the clock and the hold."""
+    """A run's latency in its suite: the mode, the execution, the clock and the hold."""
 
     mode: LatencyMode
     execution: str
     hz: float
-    policy: str  # the policy's name: a profile's key
     gripper_open: float = 0.0
 
-    def delay(self, passes: int, wall_s: float) -> int:
-        """Control steps one chunk takes to arrive, from its call's passes or wall clock."""
+    def delay(self, passes: int, wall_s: float, policy: str) -> int:
+        """Control steps one chunk of `policy` (a profile's key) takes to arrive, from its
+        call's passes or wall clock."""
         if self.mode.kind == "passes":
             ms = passes * self.mode.ms_per_pass + self.mode.fixed_ms
         elif self.mode.kind == "profile":
-            ms = self.mode.chunk_ms[self.policy]
+            ms = self.mode.chunk_ms[policy]
         elif self.mode.kind == "measured":
             ms = wall_s * 1000.0
         else:
@@ -152,18 +152,16 @@ class LatencyPlan:
         return action
 
 
-def latency_plan(mode: LatencyMode, execution: str, suite: Any, policy: str) -> LatencyPlan | None:
-    """The plan for one policy in one suite; None at `none` (the upstream loop, unchanged)."""
+def latency_plan(mode: LatencyMode, execution: str, suite: Any) -> LatencyPlan | None:
+    """The plan for a run in `suite`; None at `none` (the world waits for every chunk)."""
     if mode.kind == "none":
         return None
-    return LatencyPlan(
-        mode, execution, control_hz(suite), policy, _by_prefix(GRIPPER_OPEN, suite.name) or 0.0
-    )
+    return LatencyPlan(mode, execution, control_hz(suite), _by_prefix(GRIPPER_OPEN, suite.name) or 0.0)
 
 
 def check_run(mode: LatencyMode, suite: Any, policies: list[str]) -> None:
     """Refuse (exit 2), before anything runs, what this latency mode cannot model. Any
-    --batch-envs may run: each slot keeps its own clock (harness/batched_latency.py)."""
+    --batch-envs may run: each slot keeps its own timeline (harness/episode/plan.py)."""
     if mode.kind == "none":
         return
     control_hz(suite)

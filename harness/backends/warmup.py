@@ -6,7 +6,8 @@ first timed episode's policy time was 3.4-5.2 s against 0.15-0.35 s for the late
 so short runs measured start-up and per-run tokens/s swung by up to 10x.
 One reset and one act per policy, on an observation drawn from the task's observation
 space, runs every pass of a chunk's decode at the shapes the episodes use; its seconds
-go to the manifest (`warm_up`), and it is outside `NFECounter.counting()`, so none of
+go to the manifest (`warm_up`, or a worker's record), and it is outside the NFE counter's
+`counting()`, so none of
 its forward passes is counted in any row.
 
 The observation is a sample of the observation space, not an env reset: an extra reset
@@ -20,14 +21,17 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Generator, Sequence
-from typing import Any
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
 from adapters.base import EpisodeSpec, TaskSpec
-from harness.backends.local import episode_context
-from harness.config import PolicyRun
-from harness.manifest import now
+from harness.episode.context import episode_context
+from harness.episode.envs import TaskEnvs
+
+if TYPE_CHECKING:
+    from harness.config import PolicyRun
 
 WARM_UP_DEFINITION = (
     "before the first timed episode of this process: per policy, reset on the first "
@@ -57,7 +61,7 @@ def warm_up_steps(
 
     The yields let a worker tell the scheduler which policy it is calling, so that a
     policy hanging on its first call is stopped by --episode-timeout and charged to an
-    episode of that policy (harness/backends/schedule.py), not to another one.
+    episode of that policy (harness/backends/scheduler.py), not to another one.
 
     batch_envs > 1 (--batch-envs): one act_batch over that many copies of the
     observation too, so the batched shapes' first calls are paid here as well.
@@ -67,7 +71,7 @@ def warm_up_steps(
     """
     context = episode_context(suite, task, spec, env)
     observation = warm_up_observation(env.observation_space)
-    record: dict[str, Any] = {"at": now(), "definition": WARM_UP_DEFINITION, "policies": []}
+    record: dict[str, Any] = {"at": _now(), "definition": WARM_UP_DEFINITION, "policies": []}
     for p in policies:
         yield p
         error = None
@@ -92,61 +96,27 @@ def warm_up_steps(
     return record
 
 
-def warm_up(
-    policies: Sequence[PolicyRun],
-    suite: str,
-    task: TaskSpec,
-    spec: EpisodeSpec,
-    env: gym.Env,
-    batch_envs: int = 1,
-) -> dict[str, Any]:
-    """`warm_up_steps` run through: every policy warmed up, the record returned."""
-    return _drain(warm_up_steps(policies, suite, task, spec, env, batch_envs))
-
-
-def _drain(steps: Generator[Any, None, Any]) -> Any:
-    while True:
-        try:
-            next(steps)
-        except StopIteration as done:
-            return done.value
-
-
 def warm_up_run_steps(
-    resolved: Any, jobs: Sequence[Any], envs: dict[str, gym.Env], batch_envs: int = 1
+    resolved: Any, jobs: Sequence[Any], envs: TaskEnvs, batch_envs: int = 1
 ) -> Generator[PolicyRun, None, dict[str, Any] | None]:
-    """Warm up the policies that have episodes in `jobs`, on the first job's task, with its
-    env from `envs` (built and left there for the episodes to reuse if missing), yielding
-    each policy before its calls (`warm_up_steps`). Returns None when there is nothing to run."""
+    """Warm up the policies that have episodes in `jobs`, on the first job's task, with an
+    env of it from `envs` (built and left there for the episodes to reuse if missing),
+    yielding each policy before its calls (`warm_up_steps`). Returns None when there is
+    nothing to run."""
     if not jobs:
         return None
     first = jobs[0]
-    if first.task.name not in envs:
-        try:
-            envs[first.task.name] = resolved.suite.make_env(first.task)
-        except Exception as exc:  # the episodes record why, row by row
-            return {
-                "at": now(),
-                "skipped": f"the first task's env did not build: {type(exc).__name__}: {exc}",
-            }
+    try:
+        env = envs.peek(first.task)
+    except Exception as exc:  # the episodes record why, row by row
+        return {
+            "at": _now(),
+            "skipped": f"the first task's env did not build: {type(exc).__name__}: {exc}",
+        }
     running = {id(job.policy) for job in jobs}
     policies = [p for p in resolved.policies if id(p) in running]
-    env = envs[first.task.name]
     return (yield from warm_up_steps(policies, resolved.suite.name, first.task, first.spec, env, batch_envs))
 
 
-def warm_up_run(
-    resolved: Any, jobs: Sequence[Any], envs: dict[str, gym.Env], batch_envs: int = 1
-) -> dict[str, Any] | None:
-    """`warm_up_run_steps` run through, in the calling process (no limit on its calls)."""
-    return _drain(warm_up_run_steps(resolved, jobs, envs, batch_envs))
-
-
-def record_warm_up(run_dir: Any, record: dict[str, Any] | None) -> None:
-    """Append this session's warm-up to the manifest's `warm_up` list (a resumed run
-    warms up again in its new process, and says so in a second entry)."""
-    if record is None:
-        return
-    manifest = run_dir.read_manifest()
-    manifest["warm_up"] = [*(manifest.get("warm_up") or []), record]
-    run_dir.write_manifest(manifest)
+def _now() -> str:
+    return datetime.now(UTC).isoformat()  # as the manifest's other times
