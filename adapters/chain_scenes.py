@@ -36,7 +36,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from adapters.registry import SuiteDataError
+from adapters.base import SuiteDataError
 
 DATA = Path(__file__).resolve().parent / "chain_data"
 # CALVIN's protocol (calvin_models/calvin_agent/evaluation/evaluate_policy.py):

@@ -26,9 +26,8 @@ import numpy as np
 
 from adapters import chain_scenes as cs
 from adapters import libero, libero_layout, libero_sim
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.base import EpisodeSpec, Suite, SuiteInfo, SuiteProvider, TaskSpec, UnknownSuiteError
 from adapters.chain_credit import ChainCredit
-from adapters.registry import SuiteProvider, UnknownSuiteError
 
 # 2: CALVIN's credit rule (adapters/chain_credit.py): a subtask whose goal holds at its
 # start fails the chain; version 1 credited it after one step.

@@ -29,7 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters import libero_pro
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.base import EpisodeSpec, Suite, SuiteInfo, SuiteProvider, TaskSpec, UnknownSuiteError
 from adapters.libero_layout import (
     PROPRIO_DIM,
     entity_names,
@@ -66,7 +66,6 @@ from adapters.libero_states import (
     draw_fresh,
     fresh_seed,
 )
-from adapters.registry import SuiteProvider, UnknownSuiteError
 
 SUITE_VERSION = "1"
 

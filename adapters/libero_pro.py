@@ -39,8 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adapters.base import derive_seed
-from adapters.libero_options import SuiteOptionError
+from adapters.base import SuiteOptionError, derive_seed
 
 PERTURBATIONS = ("swap", "env", "object", "lan", "task")  # LIBERO-PRO's order of application
 SHIPPED = ("swap", "object", "lan", "task")  # folders the package ships

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from adapters import libero_pro
-from adapters.registry import MissingExtraError
+from adapters.base import MissingExtraError
 from harness.plugins import install_hint
 
 EXTRA = "libero"

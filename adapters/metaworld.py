@@ -37,8 +37,16 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.utils import seeding
 
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec, derive_seed
-from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
+from adapters.base import (
+    EpisodeSpec,
+    MissingExtraError,
+    Suite,
+    SuiteInfo,
+    SuiteProvider,
+    TaskSpec,
+    UnknownSuiteError,
+    derive_seed,
+)
 from harness.plugins import install_hint
 
 SUITE_VERSION = "1"
