@@ -56,7 +56,6 @@ from adapters.libero_sim import (
     benchmark,
     choose_render_backend,
     installed,
-    task_files,
     task_problem,
 )
 from adapters.libero_states import (
@@ -104,6 +103,15 @@ def suite_task_problem(suite: str, task_index: int) -> dict[str, Any]:
     return bddl_problem(
         str(libero_pro.task_bddl(key, options.perturb, task.bddl_file, task.init_states_file))
     )
+
+
+def task_files(key: str, task_index: int, perturb: tuple[str, ...]) -> tuple[str, Any]:
+    """(BDDL path, initial states) of a task, standard or under a LIBERO-PRO perturbation."""
+    bench = benchmark(key)
+    if not perturb:
+        return bench.get_task_bddl_file_path(task_index), bench.get_task_init_states(task_index)
+    task = bench.get_task(task_index)
+    return libero_pro.task_files(key, perturb, task.bddl_file, task.init_states_file)
 
 
 class LiberoEpisodeEnv(gym.Env):
