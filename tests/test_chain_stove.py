@@ -18,7 +18,7 @@ from tests.chain_live import expert_plays_a_pair
 
 needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 STOVE = ("turnon", "flat_stove_1"), ("turnoff", "flat_stove_1")
-# The BDDL's :init of each stove scene (what adapters.chains.scene_problem reads).
+# The BDDL's :init of each stove scene (what adapters.chain_scenes.scene_problem reads).
 STARTS = {
     "kitchen_scene3": frozenset(
         {
@@ -145,7 +145,7 @@ def test_the_scene_loads_and_re_checks_its_chains_from_the_bddl(name):
     suite = chains.load_suite(f"chains/{name}")
     (task,) = suite.tasks
     assert [e.chain for e in task.episodes] == list(cs.load_chains(name).chains)
-    assert cs.initial_state(chains.scene_problem(cs.load_scene(name))) == STARTS[name]
+    assert cs.initial_state(cs.scene_problem(cs.load_scene(name))) == STARTS[name]
 
 
 @needs_libero
