@@ -42,6 +42,7 @@ from adapters.base import (
     MissingExtraError,
     Suite,
     SuiteInfo,
+    SuiteOptionError,
     SuiteProvider,
     TaskSpec,
     UnknownSuiteError,
@@ -127,10 +128,6 @@ MT10 = (
     "window-close-v3",
 )
 MT50 = tuple(INSTRUCTIONS)
-
-
-class SuiteOptionError(UnknownSuiteError):
-    """A `:key=value` suite option is unknown or out of range; the message says which."""
 
 
 @dataclass(frozen=True)
