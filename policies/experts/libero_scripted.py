@@ -25,7 +25,7 @@ import numpy as np
 
 from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.experts.libero_geometry import Geometry
-from policies.registry import PolicySpec, param
+from policies.spec import PolicySpec, param
 
 MAX_DELTA_M = 0.05  # OSC_POSE maps a position action of 1 to a 5 cm goal offset
 MAX_DELTA_RAD = 0.5  # and a rotation action of 1 to 0.5 rad
