@@ -178,7 +178,7 @@ def test_a_turn_off_grips_again_only_while_the_stove_is_still_on():
     (a knob at rest lines up with the hand) never does, so LIBERO's single tasks act as
     before."""
     from policies.experts.libero_knob import LET_GO, RELEASE, RETRY_OFF, Knob, KnobExpert, turn_off
-    from policies.experts.libero_scripted import OPEN, LiberoScriptedParams
+    from policies.experts.libero_pick import OPEN, LiberoScriptedParams
 
     obs = np.zeros(20)
     obs[0:7] = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]  # the hand, already at the bar
@@ -205,7 +205,7 @@ def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():
     """A moka pot (8.2 cm across, wider than the open hand) is gripped on its handle, 7.4
     cm out along the pot's own +y: a pot turned 180 degrees about z has it on world -y."""
     from policies.experts.libero_geometry import GEOMETRY
-    from policies.experts.libero_scripted import LiberoScriptedParams, PickPlace, PickPlaceExpert
+    from policies.experts.libero_pick import LiberoScriptedParams, PickPlace, PickPlaceExpert
 
     obs = np.zeros(40)
     obs[20:27] = [0.1, 0.2, 0.966, 0.0, 0.0, 1.0, 0.0]  # the pot, turned 180 degrees (xyzw)
@@ -230,7 +230,7 @@ def test_a_pan_grip_slides_along_its_handle_clear_of_the_moka_pots_handle_and_ne
     hand, the grip slides along the pan's handle until the hand clears it, and keeps the
     hand square to the handle: turned, the 20 cm pan turned in the hand as it came up."""
     from policies.experts.libero_geometry import GEOMETRY
-    from policies.experts.libero_scripted import (
+    from policies.experts.libero_pick import (
         LiberoScriptedParams,
         PickPlace,
         PickPlaceExpert,
