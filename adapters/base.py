@@ -105,6 +105,34 @@ class SuiteInfo:
     package: str = "dvla-harness"
 
 
+# What a provider raises on bad input (the CLI prints the message, exit 2), beside the
+# contract: below every adapter and the registry, so each imports them from here.
+class UnknownSuiteError(LookupError):
+    """The name matches no suite; the message lists the valid ones."""
+
+
+class SuiteOptionError(UnknownSuiteError):
+    """A `:key=value` suite option is unknown or out of range; the message says which."""
+
+
+class SuiteDataError(ValueError):
+    """A suite's own definition files are wrong (e.g. a chain file naming an unknown
+    subtask); the message names the file, the entry and the fix."""
+
+
+class MissingExtraError(RuntimeError):
+    """The suite's simulator is not installed; the message names the pip extra."""
+
+
+@dataclass(frozen=True)
+class SuiteProvider:
+    prefix: str
+    list_suites: Callable[[], list[SuiteInfo]]
+    # load_suite(name, split): "eval" is the protocol's episodes; "train" gives episodes
+    # disjoint from them where the suite can (for demonstrations), else the same ones.
+    load_suite: Callable[[str, str], Suite]
+
+
 def derive_seed(*parts: object) -> int:
     """A stable 31-bit seed from a tuple of names and numbers.
 

@@ -19,6 +19,7 @@ format), and loading a chain file refuses one whose bytes no longer match: an ed
 damaged file would otherwise change the protocol while the suite keeps its name and version.
 
 This module imports neither LIBERO nor a simulator: listing and validating chains is cheap.
+Only `scene_problem` reads a scene's BDDL, through LIBERO's parser (adapters/libero_sim.py).
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from adapters.registry import SuiteDataError
+from adapters import libero_sim
+from adapters.base import SuiteDataError
 
 DATA = Path(__file__).resolve().parent / "chain_data"
 # CALVIN's protocol (calvin_models/calvin_agent/evaluation/evaluate_policy.py):
@@ -388,6 +390,30 @@ def record_chains_hash(name: str) -> str:
     return actual
 
 
+def libero_task_index(scene: Scene) -> int:
+    names = [t.name for t in libero_sim.benchmark(scene.libero_suite).tasks]
+    if scene.libero_task not in names:
+        raise ChainDataError(
+            f"scene {scene.name!r}: {scene.libero_task!r} is not a task of LIBERO's libero_{scene.libero_suite}"
+        )
+    return names.index(scene.libero_task)
+
+
+@cache
+def scene_problem(scene: Scene) -> dict[str, Any]:
+    """The scene's BDDL problem with every subtask's goal as its goal list, so the state
+    layout (adapters/libero_layout.state_layout) holds every region any subtask names, in one
+    order for the whole scene."""
+    problem = dict(libero_sim.task_problem(scene.libero_suite, libero_task_index(scene)))
+    goals: list[list[str]] = []
+    for s in scene.subtasks:
+        for p in (*s.goal, *s.pre, *s.unless):
+            if list(p) not in goals:
+                goals.append(list(p))
+    problem["goal_state"] = goals
+    return problem
+
+
 def initial_state(problem: dict) -> frozenset[Predicate]:
     """The symbolic start: the BDDL's :init predicates (every chain starts from one of the
     LIBERO task's initial states, which satisfy them; tests check that on the simulator)."""
@@ -425,8 +451,6 @@ def _main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         scene = load_scene(args.scene)
-        from adapters.chains import scene_problem
-
         problem = scene_problem(scene)
         check_scene_names(scene, problem)
         chains = sample_chains(scene, initial_state(problem), args.chains, args.seed, INITIAL_STATES)

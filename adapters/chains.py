@@ -18,7 +18,6 @@ in `info["instruction"]`; the runner gives it to the policy (policies/base.py,
 from __future__ import annotations
 
 import re
-from functools import cache
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -26,9 +25,8 @@ import numpy as np
 
 from adapters import chain_scenes as cs
 from adapters import libero, libero_layout, libero_sim
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.base import EpisodeSpec, Suite, SuiteInfo, SuiteProvider, TaskSpec, UnknownSuiteError
 from adapters.chain_credit import ChainCredit
-from adapters.registry import SuiteProvider, UnknownSuiteError
 
 # 2: CALVIN's credit rule (adapters/chain_credit.py): a subtask whose goal holds at its
 # start fails the chain; version 1 credited it after one step.
@@ -40,30 +38,6 @@ ALL = "all"
 GOAL_POSITIONS = "goal_positions"
 
 
-def libero_task_index(scene: cs.Scene) -> int:
-    names = [t.name for t in libero_sim.benchmark(scene.libero_suite).tasks]
-    if scene.libero_task not in names:
-        raise cs.ChainDataError(
-            f"scene {scene.name!r}: {scene.libero_task!r} is not a task of LIBERO's libero_{scene.libero_suite}"
-        )
-    return names.index(scene.libero_task)
-
-
-@cache
-def scene_problem(scene: cs.Scene) -> dict[str, Any]:
-    """The scene's BDDL problem with every subtask's goal as its goal list, so the state
-    layout (adapters/libero_layout.state_layout) holds every region any subtask names, in one
-    order for the whole scene."""
-    problem = dict(libero_sim.task_problem(scene.libero_suite, libero_task_index(scene)))
-    goals: list[list[str]] = []
-    for s in scene.subtasks:
-        for p in (*s.goal, *s.pre, *s.unless):
-            if list(p) not in goals:
-                goals.append(list(p))
-    problem["goal_state"] = goals
-    return problem
-
-
 def subtask_problem(scene_name: str, instruction: str) -> tuple[dict[str, Any], dict[str, slice]]:
     """For experts reading privileged state: the scene's problem with one subtask's goal
     (found by its instruction, unique within a scene), and where each entity and goal
@@ -72,7 +46,7 @@ def subtask_problem(scene_name: str, instruction: str) -> tuple[dict[str, Any], 
     matches = [s for s in scene.subtasks if s.instruction == instruction]
     if not matches:
         raise cs.ChainDataError(f"scene {scene_name!r} has no subtask with the instruction {instruction!r}")
-    problem = scene_problem(scene)
+    problem = cs.scene_problem(scene)
     slices = {name: slice(a, b) for name, a, b in libero_layout.state_layout(problem)}
     return dict(problem, goal_state=[list(p) for p in matches[0].goal]), slices
 
@@ -124,10 +98,10 @@ class ChainEpisodeEnv(gym.Env):
     def __init__(self, scene: cs.Scene, options: Any, with_goal_positions: bool = False):
         self.scene = scene
         self.with_goal_positions = with_goal_positions
-        self.problem = scene_problem(scene)
+        self.problem = cs.scene_problem(scene)
         self.inner = libero.LiberoEpisodeEnv(
             scene.libero_suite,
-            libero_task_index(scene),
+            cs.libero_task_index(scene),
             options,
             problem=self.problem,
             horizon=SETTLE_AND_CHAIN_STEPS,
@@ -226,7 +200,7 @@ def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
     from adapters.libero_states import FRESH_EPISODES_PER_TASK, fresh_seed
 
     chains = cs.load_chains(scene.name)
-    problem = scene_problem(scene)
+    problem = cs.scene_problem(scene)
     cs.check_scene_names(scene, problem)
     start = cs.initial_state(problem)
     for j, chain in enumerate(chains.chains):

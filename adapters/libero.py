@@ -29,7 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from adapters import libero_pro
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
+from adapters.base import EpisodeSpec, Suite, SuiteInfo, SuiteProvider, TaskSpec, UnknownSuiteError
 from adapters.libero_layout import (
     PROPRIO_DIM,
     entity_names,
@@ -56,7 +56,6 @@ from adapters.libero_sim import (
     benchmark,
     choose_render_backend,
     installed,
-    task_files,
     task_problem,
 )
 from adapters.libero_states import (
@@ -66,7 +65,6 @@ from adapters.libero_states import (
     draw_fresh,
     fresh_seed,
 )
-from adapters.registry import SuiteProvider, UnknownSuiteError
 
 SUITE_VERSION = "1"
 
@@ -105,6 +103,15 @@ def suite_task_problem(suite: str, task_index: int) -> dict[str, Any]:
     return bddl_problem(
         str(libero_pro.task_bddl(key, options.perturb, task.bddl_file, task.init_states_file))
     )
+
+
+def task_files(key: str, task_index: int, perturb: tuple[str, ...]) -> tuple[str, Any]:
+    """(BDDL path, initial states) of a task, standard or under a LIBERO-PRO perturbation."""
+    bench = benchmark(key)
+    if not perturb:
+        return bench.get_task_bddl_file_path(task_index), bench.get_task_init_states(task_index)
+    task = bench.get_task(task_index)
+    return libero_pro.task_files(key, perturb, task.bddl_file, task.init_states_file)
 
 
 class LiberoEpisodeEnv(gym.Env):

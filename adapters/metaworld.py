@@ -37,8 +37,17 @@ from typing import Any
 import gymnasium as gym
 from gymnasium.utils import seeding
 
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec, derive_seed
-from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
+from adapters.base import (
+    EpisodeSpec,
+    MissingExtraError,
+    Suite,
+    SuiteInfo,
+    SuiteOptionError,
+    SuiteProvider,
+    TaskSpec,
+    UnknownSuiteError,
+    derive_seed,
+)
 from harness.plugins import install_hint
 
 SUITE_VERSION = "1"
@@ -119,10 +128,6 @@ MT10 = (
     "window-close-v3",
 )
 MT50 = tuple(INSTRUCTIONS)
-
-
-class SuiteOptionError(UnknownSuiteError):
-    """A `:key=value` suite option is unknown or out of range; the message says which."""
 
 
 @dataclass(frozen=True)

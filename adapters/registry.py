@@ -7,41 +7,23 @@ importing its simulator: which suites it has, and how to load one by name.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
-from dataclasses import dataclass
+import importlib
 
-from adapters.base import Suite, SuiteInfo
+# The suite contract's SuiteProvider and errors (adapters/base.py), which plugins and the
+# CLI import from here (docs/plugins.md).
+from adapters.base import MissingExtraError as MissingExtraError
+from adapters.base import Suite, SuiteInfo, SuiteProvider, UnknownSuiteError
+from adapters.base import SuiteDataError as SuiteDataError
 from harness.plugins import HARNESS, load_plugins, warn
 
 ENTRY_POINT_GROUP = "dvla_harness.adapters"
-
-
-class UnknownSuiteError(LookupError):
-    """The name matches no suite; the message lists the valid ones."""
-
-
-class SuiteDataError(ValueError):
-    """A suite's own definition files are wrong (e.g. a chain file naming an unknown
-    subtask); the message names the file, the entry and the fix."""
-
-
-class MissingExtraError(RuntimeError):
-    """The suite's simulator is not installed; the message names the pip extra."""
-
-
-@dataclass(frozen=True)
-class SuiteProvider:
-    prefix: str
-    list_suites: Callable[[], list[SuiteInfo]]
-    # load_suite(name, split): "eval" is the protocol's episodes; "train" gives episodes
-    # disjoint from them where the suite can (for demonstrations), else the same ones.
-    load_suite: Callable[[str, str], Suite]
+# The built-in providers, by module (each has a PROVIDER): imported when suites are asked
+# for, the way a plugin's entry point is, so no adapter needs to import the registry.
+BUILTIN = ("adapters.metaworld", "adapters.libero", "adapters.chains", "adapters.simpler")
 
 
 def _builtin_providers() -> list[SuiteProvider]:
-    from adapters import chains, libero, metaworld, simpler
-
-    return [metaworld.PROVIDER, libero.PROVIDER, chains.PROVIDER, simpler.PROVIDER]
+    return [importlib.import_module(module).PROVIDER for module in BUILTIN]
 
 
 # Who provided each suite prefix, as of the last providers(): "dvla-harness" or a plugin's

@@ -29,8 +29,16 @@ import gymnasium as gym
 import numpy as np
 
 from adapters import simpler_variants as sv
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec, derive_seed
-from adapters.registry import MissingExtraError, SuiteProvider, UnknownSuiteError
+from adapters.base import (
+    EpisodeSpec,
+    MissingExtraError,
+    Suite,
+    SuiteInfo,
+    SuiteProvider,
+    TaskSpec,
+    UnknownSuiteError,
+    derive_seed,
+)
 from harness.plugins import install_hint
 
 SUITE_VERSION = "1"

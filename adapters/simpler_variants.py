@@ -19,7 +19,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from adapters.registry import SuiteDataError, UnknownSuiteError
+from adapters.base import SuiteDataError, UnknownSuiteError
 
 VARIANTS_FILE = Path(__file__).parent / "simpler_data" / "variants.toml"
 CANONICAL = "canonical"

@@ -50,7 +50,7 @@ def libero_expert(suite_name: str, task):
     """What a hand-written LIBERO loop would use: the scripted expert's state machine."""
     from types import SimpleNamespace
 
-    from policies.experts.libero_scripted import LiberoScriptedParams, PickPlaceExpert
+    from policies.experts.libero_pick import LiberoScriptedParams, PickPlaceExpert
     from policies.experts.libero_select import plan_for
 
     plan = plan_for(SimpleNamespace(suite=suite_name, task=task.name))

@@ -11,16 +11,20 @@ from __future__ import annotations
 
 import dataclasses
 import fractions
+import importlib
 import json
 import math
 import typing
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from harness.plugins import HARNESS, load_plugins, warn
-from policies.base import Policy
+
+# The policy contract (policies/spec.py), which plugins import from here (docs/plugins.md).
+from policies.spec import NoParams as NoParams
+from policies.spec import PolicySpec
+from policies.spec import param as param
 
 ENTRY_POINT_GROUP = "dvla_harness.policies"
 # The shipped checkpoint sets (policies.dvla.policy.SHIPPED), named in `list policies`.
@@ -35,53 +39,26 @@ class PolicyParamError(ValueError):
     """A parameter is unknown, of the wrong type or out of range; the message says which."""
 
 
-def param(
-    default: Any,
-    help: str,
-    *,
-    low: float | None = None,
-    high: float | None = None,
-    choices: tuple[Any, ...] | None = None,
-    identity: bool = True,
-) -> Any:
-    """A policy parameter: a dataclass field with its help text and valid range.
-
-    `identity=False` marks a parameter that says how to reach a policy, not what it is
-    (where a secret is read from): it is left out of the recorded parameters, so it never
-    changes a configuration's id, and a run resumes across a rotated or moved key."""
-    metadata = {"help": help, "low": low, "high": high, "choices": choices, "identity": identity}
-    return field(default=default, metadata=metadata)
-
-
-@dataclass(frozen=True)
-class PolicySpec:
-    name: str
-    summary: str
-    params: type  # a frozen dataclass built from `param(...)` fields
-    build: Callable[[Any], Policy]
-    # Suite name prefixes this policy can act in; empty means any suite.
-    suites: tuple[str, ...] = ()
-    extra: str = ""
-
-
-@dataclass(frozen=True)
-class NoParams:
-    pass
+# The built-in policies, as "module:NAME" (a PolicySpec, or a list of them: one per dVLA
+# decoder), in the order `list policies` shows them: imported when policies are asked
+# for, the way a plugin's entry point is, so the policies need not import the registry.
+BUILTIN = (
+    "policies.experts.scripted:SCRIPTED",
+    "policies.experts.scripted:RANDOM",
+    "policies.experts.libero_scripted:LIBERO_SCRIPTED",
+    "policies.experts.maniskill_scripted:MANISKILL_SCRIPTED",
+    "policies.remote:REMOTE",
+    "policies.dvla.policy:SPECS",
+)
 
 
 def _builtin_specs() -> list[PolicySpec]:
-    from policies import remote
-    from policies.dvla import policy as dvla
-    from policies.experts import libero_scripted, maniskill_scripted, scripted
-
-    return [
-        scripted.SCRIPTED,
-        scripted.RANDOM,
-        libero_scripted.LIBERO_SCRIPTED,
-        maniskill_scripted.MANISKILL_SCRIPTED,
-        remote.REMOTE,
-        *dvla.SPECS,
-    ]
+    specs: list[PolicySpec] = []
+    for where in BUILTIN:
+        module, _, name = where.partition(":")
+        found = getattr(importlib.import_module(module), name)
+        specs += found if isinstance(found, list) else [found]
+    return specs
 
 
 def all_policies() -> dict[str, PolicySpec]:

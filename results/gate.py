@@ -40,16 +40,16 @@ docs/ci-gate.md explains the rules; in short:
   when its whole bootstrap interval lies beyond the allowed slowdown, "inconclusive"
   (a warning, no failure) when it straddles it; the closed-loop ratio is then reported.
 
-Here: the success, chain-length, NFE and counted-work tests and the verdict. The
-per-side measures of a pair's episodes are results/gate_measures.py; the speed rules
-(reference decoder, manifests, replay) results/gate_speed.py.
+Here: the success, chain-length, NFE and counted-work tests. The records they fill and
+the verdict those add up to (GateResult.failures) are results/gate_result.py; the
+per-side measures of a pair's episodes, results/gate_measures.py; the speed rules
+(reference decoder, manifests, replay), results/gate_speed.py.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import pandas as pd
@@ -63,9 +63,9 @@ from results.gate_measures import (
     work_per_chunk,
     work_unmeasured,
 )
+from results.gate_result import GateResult, SpeedDiff, TaskDiff
 from results.gate_speed import (
     DEFAULT_REFERENCE,
-    SpeedDiff,
     is_reference,
     machine_notes,
     one_sided_reference,
@@ -74,10 +74,10 @@ from results.gate_speed import (
     speed_comparable,
     with_replay,
 )
-from results.pairing import ConfigPair, check_episodes_match, episode_keys, pair_configs
 from results.pairing import (
     GateInputError as GateInputError,  # raised from here; callers catch it by this name
 )
+from results.pairing import check_episodes_match, episode_keys, pair_configs
 from results.runs import Run, batch_sizes
 from results.simulator_versions import suspect as simulator_suspect
 
@@ -88,114 +88,6 @@ def mcnemar_drop_p(drops: int, gains: int) -> float:
     if drops <= 0:
         return 1.0
     return sum(math.comb(n, k) for k in range(drops, n + 1)) / 2**n
-
-
-@dataclass(frozen=True)
-class TaskDiff:
-    """One configuration pair on one task (or `ALL`)."""
-
-    pair: str
-    task: str
-    episodes: int
-    baseline_successes: int
-    candidate_successes: int
-    drops: int  # baseline succeeded, candidate failed
-    gains: int
-    p_value: float
-    alpha: float  # the level this row is tested at
-    baseline_nfe: float | None  # passes per chunk
-    candidate_nfe: float | None
-    nfe_gated: bool = True
-    baseline_work: float | None = None  # counted FLOPs per chunk; None: not measured
-    candidate_work: float | None = None
-    work_gated: bool = True
-    # Instruction chains only (None otherwise): subtasks completed per chain, paired.
-    baseline_length: float | None = None  # mean over the chains
-    candidate_length: float | None = None
-    length_drops: int = 0  # chains where the candidate completed fewer subtasks
-    length_gains: int = 0
-    length_p: float | None = None
-
-    @property
-    def success_regressed(self) -> bool:
-        return self.p_value <= self.alpha
-
-    @property
-    def length_regressed(self) -> bool:
-        return self.length_p is not None and self.length_p <= self.alpha
-
-    @property
-    def nfe_increased(self) -> bool:
-        if self.baseline_nfe is None or self.candidate_nfe is None:
-            return False
-        return self.candidate_nfe > self.baseline_nfe * (1 + 1e-9) + 1e-12
-
-    @property
-    def work_increased(self) -> bool:
-        if self.baseline_work is None or self.candidate_work is None:
-            return False
-        return self.candidate_work > self.baseline_work * (1 + 1e-9) + 1e-12
-
-
-@dataclass(frozen=True)
-class GateResult:
-    pairs: tuple[ConfigPair, ...]
-    tasks: tuple[TaskDiff, ...]
-    speed: tuple[SpeedDiff, ...]
-    notes: tuple[str, ...] = field(default=())  # skipped comparisons and why
-    # Pairs whose candidate raised in more episodes than the baseline did.
-    raised: tuple[str, ...] = field(default=())
-    # (pair label, why its speed was not compared): "not comparable: ..." in the table
-    not_comparable: tuple[tuple[str, str], ...] = field(default=())
-    reference: str = ""  # the label of the reference pair, whose ratio is 1 by definition
-    warnings: tuple[str, ...] = field(default=())  # runs whose speed figures are unreliable
-    # The runs' simulator versions differ (results/simulator_versions.py): '' or the sentence
-    # naming them, put first among the failures when success drops.
-    simulator_suspect: str = ""
-    # Replay benchmark verdicts (results/replay.py ReplaySpeed), for pairs both runs benched:
-    # these, not the closed-loop ratio in `speed`, decide those pairs' speed.
-    replay: tuple[Any, ...] = field(default=())
-
-    @property
-    def failures(self) -> list[str]:
-        out = list(self.raised)
-        if self.simulator_suspect and any(t.success_regressed for t in self.tasks):
-            out.insert(0, f"success: first suspect: {self.simulator_suspect}")
-        for t in self.tasks:
-            if t.success_regressed:
-                out.append(
-                    f"{t.pair} / {t.task}: success {t.baseline_successes} -> {t.candidate_successes} "
-                    f"of {t.episodes} ({t.drops} drops, {t.gains} gains, p = {t.p_value:.3g} <= {t.alpha:.3g})"
-                )
-            if t.length_regressed:
-                out.append(
-                    f"{t.pair} / {t.task}: subtasks completed per chain {t.baseline_length:.2f} -> "
-                    f"{t.candidate_length:.2f} ({t.length_drops} chains shorter, {t.length_gains} longer, "
-                    f"p = {t.length_p:.3g} <= {t.alpha:.3g})"
-                )
-            if t.nfe_increased and t.nfe_gated:
-                out.append(f"{t.pair} / {t.task}: NFE/chunk {t.baseline_nfe:.3f} -> {t.candidate_nfe:.3f}")
-            if t.work_increased and t.work_gated:
-                out.append(
-                    f"{t.pair} / {t.task}: counted work {t.baseline_work / 1e9:.6g} -> "
-                    f"{t.candidate_work / 1e9:.6g} GFLOP/chunk ({t.candidate_work / t.baseline_work - 1:+.2%})"
-                )
-        by_replay = {r.pair for r in self.replay}
-        for r in self.replay:
-            if r.verdict == "fail":
-                out.append(f"{r.pair}: replay speed relative to the reference {r.describe()}")
-        for s in self.speed:
-            if s.regressed and s.pair not in by_replay:
-                out.append(
-                    f"{s.pair}: tokens/s relative to the reference {s.change:+.1%} "
-                    f"({s.baseline_ratio:.3f} -> {s.candidate_ratio:.3f}x the reference's; "
-                    f"allowed -{s.max_slowdown:.0%})"
-                )
-        return out
-
-    @property
-    def passed(self) -> bool:
-        return not self.failures
 
 
 def _chain_lengths(b: pd.DataFrame, c: pd.DataFrame) -> dict[str, Any]:

@@ -17,46 +17,14 @@ compared only when the caller asks (`speed_across_cpus`).
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import pandas as pd
 
 from results.gate_measures import side_measures, tokens_per_s
+from results.gate_result import GateResult, SpeedDiff
 from results.pairing import PAIR_KEY, ConfigPair
 from results.runs import Run
-
-if TYPE_CHECKING:
-    from results.gate import GateResult
-
-
-@dataclass(frozen=True)
-class SpeedDiff:
-    """tokens/s relative to the in-run reference decoder's, per pair: candidate run vs baseline run."""
-
-    pair: str
-    baseline_tokens_per_s: float
-    candidate_tokens_per_s: float
-    baseline_reference: float  # the reference decoder's tokens/s in the baseline run
-    candidate_reference: float  # ... and in the candidate run, over the same episodes
-    max_slowdown: float
-
-    @property
-    def baseline_ratio(self) -> float:
-        return self.baseline_tokens_per_s / self.baseline_reference
-
-    @property
-    def candidate_ratio(self) -> float:
-        return self.candidate_tokens_per_s / self.candidate_reference
-
-    @property
-    def change(self) -> float:
-        return self.candidate_ratio / self.baseline_ratio - 1.0
-
-    @property
-    def regressed(self) -> bool:
-        return self.change < -self.max_slowdown
-
 
 DEFAULT_REFERENCE = "bidirectional"  # the teacher: every decoder config can run beside it
 

@@ -54,10 +54,6 @@ def split_perturbation(suite: str) -> tuple[str, str]:
     return (f"{base}:{','.join(kept)}" if kept else base), perturb
 
 
-def is_generalization_run(episodes: pd.DataFrame) -> bool:
-    return any(split_perturbation(s)[1] != STANDARD for s in episodes["suite"].unique())
-
-
 @dataclass(frozen=True)
 class Drop:
     """Standard minus perturbed success, with its interval and how it was computed."""

@@ -37,7 +37,7 @@ def test_the_expert_puts_a_trays_next_object_on_its_free_spot():
     """Revision 4 aims at the floor point farthest from what the tray already holds (the
     region's centre when empty); revision 3 aims at the centre whatever is there."""
     from policies.experts.libero_geometry import GEOMETRY
-    from policies.experts.libero_scripted import LiberoScriptedParams, PickPlace, PickPlaceExpert
+    from policies.experts.libero_pick import LiberoScriptedParams, PickPlace, PickPlaceExpert
 
     tray = GEOMETRY["wooden_tray"]
     obs = np.zeros(40)
@@ -65,7 +65,7 @@ def test_the_expert_puts_an_object_on_a_cabinet_top_beside_what_stands_there():
     farther than the centre; revisions 1-4 aimed at the top's centre, where a wine bottle
     (4 cm in radius) meets a bowl (5.5 cm) standing by it (chains/libero_goal)."""
     from policies.experts.libero_geometry import GEOMETRY
-    from policies.experts.libero_scripted import (
+    from policies.experts.libero_pick import (
         ROBOT_XY,
         SURFACE_CLEAR,
         LiberoScriptedParams,

@@ -23,7 +23,7 @@ def _fresh_caches():
 
 
 def start_state() -> frozenset[cs.Predicate]:
-    """The BDDL's :init of KITCHEN_SCENE1 (what adapters.chains.scene_problem reads)."""
+    """The BDDL's :init of KITCHEN_SCENE1 (what adapters.chain_scenes.scene_problem reads)."""
     return frozenset(
         {
             ("on", "akita_black_bowl_1", "kitchen_table_akita_black_bowl_init_region"),
@@ -73,7 +73,7 @@ def test_the_suite_loads_and_re_checks_the_chains_from_the_bddl():
     suite = chains.load_suite(f"chains/{SCENE}")
     (task,) = suite.tasks
     assert [e.chain for e in task.episodes] == list(cs.load_chains(SCENE).chains)
-    assert cs.initial_state(chains.scene_problem(cs.load_scene(SCENE))) == start_state()
+    assert cs.initial_state(cs.scene_problem(cs.load_scene(SCENE))) == start_state()
     assert suite.name == f"chains/{SCENE}:seeding=openvla"
 
 

@@ -18,7 +18,7 @@ from tests.chain_live import expert_plays_a_pair
 
 needs_libero = pytest.mark.skipif(not lb.installed(), reason="needs the libero extra")
 STOVE = ("turnon", "flat_stove_1"), ("turnoff", "flat_stove_1")
-# The BDDL's :init of each stove scene (what adapters.chains.scene_problem reads).
+# The BDDL's :init of each stove scene (what adapters.chain_scenes.scene_problem reads).
 STARTS = {
     "kitchen_scene3": frozenset(
         {
@@ -145,7 +145,7 @@ def test_the_scene_loads_and_re_checks_its_chains_from_the_bddl(name):
     suite = chains.load_suite(f"chains/{name}")
     (task,) = suite.tasks
     assert [e.chain for e in task.episodes] == list(cs.load_chains(name).chains)
-    assert cs.initial_state(chains.scene_problem(cs.load_scene(name))) == STARTS[name]
+    assert cs.initial_state(cs.scene_problem(cs.load_scene(name))) == STARTS[name]
 
 
 @needs_libero
@@ -178,7 +178,7 @@ def test_a_turn_off_grips_again_only_while_the_stove_is_still_on():
     (a knob at rest lines up with the hand) never does, so LIBERO's single tasks act as
     before."""
     from policies.experts.libero_knob import LET_GO, RELEASE, RETRY_OFF, Knob, KnobExpert, turn_off
-    from policies.experts.libero_scripted import OPEN, LiberoScriptedParams
+    from policies.experts.libero_pick import OPEN, LiberoScriptedParams
 
     obs = np.zeros(20)
     obs[0:7] = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]  # the hand, already at the bar
@@ -205,7 +205,7 @@ def test_a_pot_is_gripped_by_its_handle_wherever_the_pot_is_turned():
     """A moka pot (8.2 cm across, wider than the open hand) is gripped on its handle, 7.4
     cm out along the pot's own +y: a pot turned 180 degrees about z has it on world -y."""
     from policies.experts.libero_geometry import GEOMETRY
-    from policies.experts.libero_scripted import LiberoScriptedParams, PickPlace, PickPlaceExpert
+    from policies.experts.libero_pick import LiberoScriptedParams, PickPlace, PickPlaceExpert
 
     obs = np.zeros(40)
     obs[20:27] = [0.1, 0.2, 0.966, 0.0, 0.0, 1.0, 0.0]  # the pot, turned 180 degrees (xyzw)
@@ -230,7 +230,7 @@ def test_a_pan_grip_slides_along_its_handle_clear_of_the_moka_pots_handle_and_ne
     hand, the grip slides along the pan's handle until the hand clears it, and keeps the
     hand square to the handle: turned, the 20 cm pan turned in the hand as it came up."""
     from policies.experts.libero_geometry import GEOMETRY
-    from policies.experts.libero_scripted import (
+    from policies.experts.libero_pick import (
         LiberoScriptedParams,
         PickPlace,
         PickPlaceExpert,

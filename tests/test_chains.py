@@ -263,7 +263,7 @@ def test_the_suite_is_the_stored_chains_from_the_scene_tasks_initial_states():
     assert task.max_steps == 5 * 360 and suite.name == f"chains/{SCENE}:seeding=openvla"
     # The stored chains are what their recorded command samples.
     scene = cs.load_scene(SCENE)
-    start = cs.initial_state(chains.scene_problem(scene))
+    start = cs.initial_state(cs.scene_problem(scene))
     assert cs.sample_chains(scene, start, len(stored.chains), stored.seed, cs.INITIAL_STATES) == list(
         stored.chains
     )

@@ -206,7 +206,7 @@ def test_collect_writes_demonstrations_train_can_read(cli, tmp_path):
 def test_the_drawer_expert_narrows_its_fingers_with_a_fixed_count_then_holds(cli, tmp_path):
     # Spatial task 4 (bowl in the top drawer): a fixed count is what a policy that runs a
     # chunk open loop can learn; a feedback loop on the finger joint was not.
-    from policies.experts.libero_scripted import CLOSE, DRAWER_CLOSE_STEPS, HOLD, OPEN
+    from policies.experts.libero_pick import CLOSE, DRAWER_CLOSE_STEPS, HOLD, OPEN
 
     out = tmp_path / "drawer"
     code, _, err = cli(
@@ -227,7 +227,7 @@ def test_the_drawer_expert_narrows_its_fingers_with_a_fixed_count_then_holds(cli
 def test_the_expert_lifts_in_the_step_its_grip_settles(cli, tmp_path, revision, waits):
     # Observations that repeat while the demonstrated action is "stay" teach a policy that
     # decodes its chunk left to right to stay for ever (revision 1 waited 12 steps).
-    from policies.experts.libero_scripted import CLOSE, MIN_CLOSE, SETTLE
+    from policies.experts.libero_pick import CLOSE, MIN_CLOSE, SETTLE
 
     out = tmp_path / "demo"
     code, _, err = cli(
@@ -252,7 +252,7 @@ def test_the_expert_grasps_and_lets_go_once_its_hand_has_stopped(cli, tmp_path, 
     # episode 1 the bowl comes to rest on the plate's rim ~2 cm from its centre. Revision 2
     # sat on one observation each time until a timer ran out (40 and 60 steps), which a
     # policy cannot see coming; revision 3 acts after STOPPED_STEPS still steps.
-    from policies.experts.libero_scripted import CLOSE, OPEN, STOP_Z, STOPPED_STEPS
+    from policies.experts.libero_pick import CLOSE, OPEN, STOP_Z, STOPPED_STEPS
 
     out = tmp_path / "demo"
     code, _, err = cli(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from policies.experts.libero_drawer import HANDLES, drawer_plan, pitched_rotation
-from policies.experts.libero_scripted import rotation_error
+from policies.experts.libero_pick import rotation_error
 
 SLICES = {
     "wooden_cabinet_1": slice(16, 23),

@@ -19,7 +19,7 @@ import numpy as np
 from policies.base import ChunkBatch, EpisodeContext, Observation
 from policies.dvla.schedules import CACHE_MODES, CONFIDENCES, SCHEDULES
 from policies.observations import cameras_of
-from policies.registry import PolicySpec, param
+from policies.spec import PolicySpec, param
 
 SHIPPED = Path(__file__).resolve().parent.parent / "checkpoints"
 

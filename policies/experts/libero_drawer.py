@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from policies.experts.libero_geometry import category
-from policies.experts.libero_scripted import (
+from policies.experts.libero_pick import (
     CLOSE,
     HAND_HALF,
     MAX_DELTA_RAD,

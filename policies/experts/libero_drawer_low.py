@@ -28,7 +28,7 @@ from policies.experts.libero_drawer import (
     drawer_state,
     leaning_out,
 )
-from policies.experts.libero_scripted import CLOSE, LiberoScriptedParams, rotation_error
+from policies.experts.libero_pick import CLOSE, LiberoScriptedParams, rotation_error
 
 # Per cabinet category, the drawers opened this way: the ones whose handle is too near
 # the table for the pitched hand (measured: the wooden cabinet's bottom bar).

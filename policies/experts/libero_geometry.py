@@ -1,7 +1,7 @@
 """Object geometry for the scripted LIBERO experts, per object category: where a body's
 origin sits relative to its bottom and top, where to grip it, and the areas things are
 put in or on. Measured once from each category's collision geoms in the simulator
-(docs/libero.md, "Scripted experts"); policies/experts/libero_scripted.py uses it.
+(docs/libero.md, "Scripted experts"); policies/experts/libero_pick.py uses it.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.experts.libero_scripted import (
+from policies.experts.libero_pick import (
     CLOSE,
     MAX_DELTA_RAD,
     OPEN,

@@ -6,7 +6,7 @@ closed fingers press on its inner rim (PushExpert says why from inside), re-aimi
 every step from where the plate is now (a round plate moved at one point drifts
 sideways). It aims at the point of the region nearest the plate, `MARGIN` inside its
 edge, so the plate travels as little as possible past the other objects. Reads only
-the state vector and the BDDL, like the pick-and-place expert (policies/experts/libero_scripted.py).
+the state vector and the BDDL, like the pick-and-place expert (policies/experts/libero_pick.py).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.experts.libero_scripted import (
+from policies.experts.libero_pick import (
     CLOSE,
     MAX_DELTA_RAD,
     STOP_Z,

@@ -2,7 +2,7 @@
 next subtask starts (`Handover`).
 
 The experts themselves live beside this module: pick-and-place in
-policies/experts/libero_scripted.py, the drawer, drag and knob experts in libero_drawer.py,
+policies/experts/libero_pick.py, the drawer, drag and knob experts in libero_drawer.py,
 libero_push.py and libero_knob.py. This module reads the task's BDDL problem (in a chain
 suite, the scene's problem with the goal of the subtask in force) and the state layout,
 and builds the one that fits.
@@ -17,7 +17,7 @@ import numpy as np
 
 from policies.base import EpisodeContext
 from policies.experts.libero_geometry import category, geometry
-from policies.experts.libero_scripted import (
+from policies.experts.libero_pick import (
     MAX_DELTA_RAD,
     OPEN,
     LiberoScriptedParams,

@@ -21,7 +21,7 @@ import numpy as np
 
 from adapters.simpler import TASKS, state_layout
 from policies.base import ChunkBatch, EpisodeContext, Observation
-from policies.registry import PolicySpec, param
+from policies.spec import PolicySpec, param
 
 OPEN, CLOSE = 1.0, -1.0
 STEP_M, STEP_RAD = 0.1, 0.1  # what an action of 1.0 does in one step

@@ -10,7 +10,7 @@ import numpy as np
 
 from adapters.base import derive_seed
 from policies.base import ChunkBatch, EpisodeContext, Observation
-from policies.registry import PolicySpec, param
+from policies.spec import PolicySpec, param
 
 
 @dataclass(frozen=True)
