@@ -148,7 +148,7 @@ class EpisodeRow:
         metadata=column(
             pa.int64(),
             "FLOP",
-            "Counted work: floating-point operations of the matrix products (linear layers, convolutions, attention; 2 per multiply-accumulate) of every forward pass, counted by the NFE hooks from the tensors' shapes (harness/work.py; for a remote policy, by the serving dvla-harness's hooks). Identical on every machine and load. A batched call's work is split equally among the episodes it served (each one's row). Null when not measured: a remote server that reports none, a model holding a layer of a kind whose products are not counted, rows written before it was recorded.",
+            "Counted work: floating-point operations of the matrix products (linear layers, convolutions, attention; 2 per multiply-accumulate) of every forward pass, counted by the NFE hooks from the tensors' shapes (harness/episode/work.py; for a remote policy, by the serving dvla-harness's hooks). Identical on every machine and load. A batched call's work is split equally among the episodes it served (each one's row). Null when not measured: a remote server that reports none, a model holding a layer of a kind whose products are not counted, rows written before it was recorded.",
         )
     )
     flops_per_chunk: float | None = field(metadata=column(pa.float64(), "FLOP", "flops_total / chunks."))
