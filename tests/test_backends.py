@@ -330,6 +330,8 @@ from harness.run.folder import OpenMode
 from harness.run.runner import run
 from tests.fakes import FakeBuild
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 if __name__ == "__main__":
     build = FakeBuild(episodes=6, tasks=2, delay=0.15)
     run(build(), Path(sys.argv[1]), execution=Execution(backend=sys.argv[2], workers=2, rebuild=build))

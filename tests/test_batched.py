@@ -24,6 +24,8 @@ from harness.run.runner import run
 from policies.base import ChunkBatch, EpisodeContext
 from tests.fakes import ChunkPolicy, CountdownEnv, context, fake_resolved, run_batch
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 
 def length(index: int) -> int:
     """Episode `index` succeeds on this step: lengths 2..8, never a multiple of the chunk
@@ -276,7 +278,6 @@ def test_gate_warns_when_baseline_and_candidate_ran_at_different_batch_sizes(cli
     assert "batch sizes differ" not in out
 
 
-@pytest.mark.metaworld
 def test_shipped_bidirectional_decodes_the_same_episodes_batched(tmp_path):
     """MT10 with the shipped bidirectional checkpoint: batch 4 gives the unbatched rows.
 

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 ROOT = Path(__file__).resolve().parent.parent
 # The paper's chunk (8 steps x 7-D actions = 56 tokens), so the committed traces fit;
 # everything else tiny (prefix of 8 positions where the recording model had 22).

@@ -7,8 +7,9 @@ import pytest
 
 from tests.test_plugins import installed_plugin  # noqa: F401  (the fixture)
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
 
-@pytest.mark.metaworld
+
 def test_builtin_suite_and_policy_pass(cli):
     # Before its fix, Meta-World's env returned the goal outside its own observation space.
     code, out, _ = cli("check", "suite", "metaworld/mt1/reach-v3", "--steps", "20")

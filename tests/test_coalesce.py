@@ -12,6 +12,8 @@ import pytest
 from harness.serving.coalesce import Coalescer
 from policies.base import ChunkBatch
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 
 class Recorder:
     """A batch policy that answers row i with its observation's value, records each

@@ -15,6 +15,8 @@ from harness.collect import collect
 from harness.errors import UsageError
 from tests.fakes import ChunkPolicy, fake_resolved
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 
 def test_collect_keeps_successful_episodes_from_the_train_split(cli, tmp_path):
     out = tmp_path / "demos"

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 ROOT = Path(__file__).resolve().parent.parent
 CKPT = ROOT / "policies" / "checkpoints"
 

@@ -15,6 +15,8 @@ from harness.errors import UsageError
 from policies.registry import NoParams, PolicySpec
 from tests.fakes import ChunkPolicy, fake_resolved
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 NO_GPU = not torch.cuda.is_available()
 
 

@@ -14,6 +14,8 @@ from policies.dvla.model import ActionTokenModel, ModelConfig
 from policies.dvla.tokenizer import ActionTokenizer
 from results.store import RunDir
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--quiet"]
 
 

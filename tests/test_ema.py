@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from policies.dvla.checkpoint import load
 from policies.dvla.recipes import TrainConfig
 from policies.dvla.training import train
 from tests.fakes import TINY_TRAIN
+
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
 
 
 def _weights(path) -> dict[str, torch.Tensor]:

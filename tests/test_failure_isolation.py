@@ -26,6 +26,8 @@ from policies.base import ChunkBatch
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, FakeBuild, fake_resolved
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 SUITE = "metaworld/mt1/reach-v3"
 MT1 = ["run", "--suite", SUITE, "--policy", "random", "--episodes-per-task", "1"]
 REPO = Path(__file__).resolve().parent.parent

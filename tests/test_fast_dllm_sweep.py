@@ -11,6 +11,8 @@ import pytest
 
 from policies.dvla.policy import FastDLLMParams, blocks_error
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 ROOT = Path(__file__).resolve().parent.parent
 SWEEP = ROOT / "benchmarks" / "results" / "fast-dllm-sweep.json"
 

@@ -19,6 +19,8 @@ from results.gate import GateInputError, gate, mcnemar_drop_p
 from results.schema import COLUMN_NAMES, SCHEMA_VERSION_KEY, arrow_schema
 from results.store import rows_to_table
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 REPO = Path(__file__).resolve().parent.parent
 BASELINE = REPO / "results" / "baselines" / "metaworld-mt10-smoke"
 BASELINE_CONFIG = REPO / "results" / "baselines" / "metaworld-mt10-smoke.toml"
@@ -480,7 +482,6 @@ def one_torch_thread():
     torch.set_num_threads(threads)
 
 
-@pytest.mark.metaworld
 def test_fresh_run_passes_and_degraded_run_fails_against_committed_baseline(cli, tmp_path, one_torch_thread):
     pytest.importorskip("metaworld")
     base = str(BASELINE)

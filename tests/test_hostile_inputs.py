@@ -13,6 +13,8 @@ from policies.dvla.checkpoint import CheckpointError, load
 from policies.registry import PolicyParamError, get_policy, params_json, parse_params
 from tests.test_dvla_policies import make_checkpoint
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 
 def _rewrite(src, dst, edit=None, raw=None, tensors=None):
     """A copy of checkpoint `src` with its header edited (or replaced by `raw` text)."""

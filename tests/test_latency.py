@@ -24,6 +24,8 @@ from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
 from tests.fakes import CountdownEnv, context, fake_resolved, run_one
 from tests.test_remote import serve_process  # noqa: F401  (a fixture)
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 HZ = 10.0  # the fake suite's control frequency: 100 ms a step
 
 

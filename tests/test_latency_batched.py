@@ -23,6 +23,8 @@ from tests.fakes import CountdownEnv, context, fake_resolved, run_batch, run_one
 from tests.test_latency import rows_of
 from tests.test_remote import serve_process  # noqa: F401  (a fixture)
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 HZ = 10.0  # 100 ms a control step
 MAX_STEPS = 24
 EPISODES = 7

@@ -15,6 +15,8 @@ from policies.dvla.recipes import TrainConfig
 from policies.dvla.training import train
 from tests.fakes import TINY_TRAIN, tiny_model
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 TINY = TINY_TRAIN
 
 

@@ -14,6 +14,8 @@ from adapters.registry import load_suite
 from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS, arrow_schema
 from results.store import RunDir
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 NOT_RESULTS = sorted(TIMING_COLUMNS | PROVENANCE_COLUMNS)
 
 

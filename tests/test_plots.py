@@ -15,6 +15,8 @@ from results import plots
 from results.store import TRACES, RunDir
 from tests.real_sweep import real_sweep
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
@@ -75,7 +77,6 @@ def test_labels_show_a_lone_configurations_non_default_parameters():
     assert plots.config_labels(default) == {"a": "fast_dvla"}  # the default says nothing
 
 
-@pytest.mark.metaworld
 def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
     frame = plots.plot_frame(RunDir(sweep.path).read_episodes())
     assert set(frame["block_size"]) == {4, 8} and set(frame["param.tau_conf"]) == {0.5}
@@ -89,7 +90,6 @@ def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
 # ---------------------------------------------------------------- figures from the real sweep
 
 
-@pytest.mark.metaworld
 def test_ablation_png_and_svg(sweep, cli, tmp_path):
     out = tmp_path / "figs" / "ablation.png"
     code, _, err = cli(
@@ -109,7 +109,6 @@ def test_ablation_png_and_svg(sweep, cli, tmp_path):
     assert text.startswith("<?xml") and "<svg" in text and "drawer-close-v3" in text
 
 
-@pytest.mark.metaworld
 def test_pareto_has_one_marker_per_configuration(sweep, cli, tmp_path):
     episodes = RunDir(sweep.path).read_episodes()
     fig = plots.pareto_plot(episodes)  # the signature other outputs (the HTML report) use
@@ -127,7 +126,6 @@ def test_pareto_has_one_marker_per_configuration(sweep, cli, tmp_path):
     assert again.read_bytes() == out.read_bytes()  # same rows, same file
 
 
-@pytest.mark.metaworld
 def test_decoding_order_from_recorded_traces(sweep, cli, tmp_path):
     out = tmp_path / "order.png"
     code, _, err = cli("plot", "decoding-order", str(sweep.path), "--out", str(out))
@@ -139,7 +137,6 @@ def test_decoding_order_from_recorded_traces(sweep, cli, tmp_path):
     assert image.shape[1] == 32 and np.allclose(image.sum(), image.shape[1])  # each position once a chunk
 
 
-@pytest.mark.metaworld
 @pytest.mark.parametrize(
     ("kind", "extra", "out_name", "message"),
     [
@@ -163,7 +160,6 @@ def test_bad_inputs_exit_2_with_the_valid_choices_and_write_nothing(
     assert not out.parent.exists() or not any(out.parent.iterdir())
 
 
-@pytest.mark.metaworld
 def test_a_run_without_traces_or_no_run_at_all_exits_2(sweep, cli, tmp_path):
     copy = tmp_path / "untraced"
     shutil.copytree(sweep.path, copy)
@@ -178,7 +174,6 @@ def test_a_run_without_traces_or_no_run_at_all_exits_2(sweep, cli, tmp_path):
 # ---------------------------------------------------------------- noise schedule via checkpoints
 
 
-@pytest.mark.metaworld
 def test_a_noise_schedule_ablation_sweeps_checkpoints_and_plots_by_header(cli, tmp_path):
     """Two checkpoints whose headers differ in the training noise schedule: the sweep
     records each one's header fields in the manifest, and --hue noise_schedule uses them."""
@@ -209,7 +204,6 @@ def test_a_noise_schedule_ablation_sweeps_checkpoints_and_plots_by_header(cli, t
     assert out.read_bytes()[:8] == PNG
 
 
-@pytest.mark.metaworld
 def test_experts_say_why_there_is_no_pareto_or_decoding_order(cli, tmp_path):
     out = tmp_path / "r"
     code, _, err = cli(

@@ -20,6 +20,8 @@ from adapters.registry import SuiteProvider
 from policies.base import ChunkBatch
 from policies.registry import PolicySpec, param
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 @dataclass(frozen=True)
 class Params:
     value: float = param(0.5, "the constant action", low=-1.0, high=1.0)

@@ -20,6 +20,8 @@ from results.leaderboard import leaderboards
 from results.runs import load_run
 from tests.test_leaderboard import BIDI, FAST, MANIFEST, episodes, write_run
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 REPO = Path(__file__).resolve().parent.parent
 
 

@@ -29,6 +29,8 @@ from websockets.sync.server import serve
 
 from policies.wire import pack, unpack
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 SUITE = "metaworld/mt1/reach-v3"
 # counted work (harness/episode/work.py): the server's hooks count it and report it with each reply
 WORK = ("flops_total", "query_tokens_total", "kv_tokens_total", "kv_cached_tokens_total")

@@ -22,6 +22,8 @@ from results.replay import (
 )
 from tests.test_gate import with_reference, write_run
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 
 def ratios(median: float, spread: float, n: int, seed: int) -> np.ndarray:
     """Per-round paired ratios: lognormal around `median`, relative spread `spread`."""
@@ -224,7 +226,6 @@ def one_torch_thread():
     torch.set_num_threads(threads)
 
 
-@pytest.mark.metaworld
 def test_bench_on_a_tiny_run_writes_figures_the_gate_uses(cli, tmp_path, one_torch_thread):
     pytest.importorskip("metaworld")
     run = tmp_path / "run"

@@ -21,6 +21,8 @@ from harness.run.runner import run
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 REPO = Path(__file__).resolve().parent.parent
 ARGS = [
     "run",

@@ -28,6 +28,8 @@ from results.lock import RunLock
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 REPO = Path(__file__).resolve().parent.parent
 MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--policy", "random", "--quiet"]
 

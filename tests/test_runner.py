@@ -15,6 +15,8 @@ from results.schema import COLUMN_NAMES
 from results.store import RunDir
 from tests.fakes import ChunkPolicy, fake_resolved
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 
 def test_rows_are_written_one_per_episode(tmp_path):
     resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=3, succeed_at=5)

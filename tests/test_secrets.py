@@ -19,6 +19,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 pytest.importorskip("websockets")
 pytest.importorskip("msgpack")
 pytest.importorskip("metaworld")

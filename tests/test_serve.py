@@ -17,6 +17,8 @@ from harness.commands.serve import build_served
 from harness.serving.server import make_server
 from policies.wire import WireError, pack, unpack
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 SUITE, TASK = "metaworld/mt10", "reach-v3"
 
 

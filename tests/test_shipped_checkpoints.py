@@ -11,6 +11,8 @@ from policies.dvla.checkpoint import load
 from policies.dvla.policy import SHIPPED
 from results.store import RunDir
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 EXPECTED = {
     "bidirectional": "bidirectional",
     "fast_dvla": "block_causal",

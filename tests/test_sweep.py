@@ -20,6 +20,8 @@ from tests.fakes import ChunkPolicy, fake_resolved
 from tests.real_sweep import INTERRUPT_AFTER, SWEEP_ARGS, real_sweep
 from tests.test_plugins import installed_plugin  # noqa: F401  (a fixture)
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 MT1 = ["--suite", "metaworld/mt1/reach-v3", "--episodes-per-task", "1", "--quiet"]
 
 
@@ -175,7 +177,6 @@ def sweep(tmp_path_factory):
     return real_sweep(tmp_path_factory)
 
 
-@pytest.mark.metaworld
 def test_a_real_sweep_resumes_and_its_rows_carry_each_grid_point(sweep):
     assert sweep.executed_before_interrupt == INTERRUPT_AFTER and sweep.resume_exit == 0
     rows = RunDir(sweep.path).read_episodes()
@@ -193,7 +194,6 @@ def test_a_real_sweep_resumes_and_its_rows_carry_each_grid_point(sweep):
     assert all(f["block_size"] == 4 and f["action_tokens"] == 32 for f in fields)
 
 
-@pytest.mark.metaworld
 def test_the_real_sweeps_traces_cover_every_chunk_and_forward_pass(sweep):
     run_dir = RunDir(sweep.path)
     rows, traces = run_dir.read_episodes(), run_dir.read_traces()
@@ -206,7 +206,6 @@ def test_the_real_sweeps_traces_cover_every_chunk_and_forward_pass(sweep):
             assert sorted(p for step in passes for p in step) == list(range(32))
 
 
-@pytest.mark.metaworld
 def test_resuming_a_finished_sweep_runs_nothing_and_another_grid_is_refused(sweep, cli, tmp_path):
     copy = tmp_path / "copy"
     shutil.copytree(sweep.path, copy)

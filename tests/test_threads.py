@@ -14,6 +14,8 @@ import pytest
 
 from harness.threads import default_threads, physical_cores
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 REPO = Path(__file__).resolve().parent.parent
 
 

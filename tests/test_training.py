@@ -16,6 +16,8 @@ from policies.dvla.training import train
 from results.store import RunDir
 from tests.fakes import TINY_TRAIN
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 TINY = TINY_TRAIN
 
 
