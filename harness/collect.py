@@ -293,7 +293,7 @@ def _worker_job(
 
         apply_threads(None, workers)  # the worker's share of the cores, before torch loads
         check_checkpoints(pins, advice=COLLECT_ADVICE)
-        _WORKER_RUN = resolve(config)
+        _WORKER_RUN = resolve(config, announce=False)
         check_checkpoints(pins, _WORKER_RUN, advice=COLLECT_ADVICE)
     return _collect_job(_WORKER_RUN, job, action_noise, None)
 

@@ -13,6 +13,7 @@ import hashlib
 import importlib.util
 import json
 import tomllib
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from functools import partial
@@ -35,6 +36,7 @@ from policies.registry import (
     get_policy,
     params_json,
     parse_params,
+    shipped_changed,
 )
 
 # batch_envs is how to execute (like --workers), read by `run` into its Execution: it is
@@ -328,7 +330,10 @@ def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
     return suite, tuple(unique.values())
 
 
-def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
+def resolve_policy(choice: PolicyChoice, suite: Suite, announce: bool = True) -> PolicyRun:
+    """`choice` built for `suite`: parameters validated, checkpoint hashed, policy built.
+    announce: say what the writing process should say once (a shipped checkpoint whose
+    bytes changed); workers resolve the run again without it."""
     try:
         spec = get_policy(choice.name)
         params = parse_params(spec, choice.params)
@@ -348,6 +353,9 @@ def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
             f"shipped set: {', '.join(shipped_sets())}"
         )
     digest = sha256_file(checkpoint) if checkpoint else ""
+    changed = shipped_changed(checkpoint, digest) if announce else ""
+    if changed:
+        warnings.warn(changed, UserWarning, stacklevel=2)
     pjson = params_json(params)
     config_id = policy_config_id(spec.name, pjson, digest)
     try:
@@ -427,9 +435,10 @@ def check_checkpoints(
             )
 
 
-def resolve(config: RunConfig) -> ResolvedRun:
+def resolve(config: RunConfig, announce: bool = True) -> ResolvedRun:
+    """`config` made real: suite, tasks and policies (announce: as resolve_policy)."""
     suite, tasks = resolve_suite(config)
-    runs = [resolve_policy(choice, suite) for choice in config.policies]
+    runs = [resolve_policy(choice, suite, announce) for choice in config.policies]
     seen: dict[str, str] = {}
     for run in runs:
         if run.config_id in seen:
@@ -442,5 +451,5 @@ def resolve(config: RunConfig) -> ResolvedRun:
 def rebuild_from_config(config: RunConfig) -> ResolvedRun:
     """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`):
     the same config resolved again in its own process (a built policy is not sent
-    between processes)."""
-    return resolve(config)
+    between processes); what the writing process said once is not said again."""
+    return resolve(config, announce=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import fractions
+import functools
 import importlib
 import json
 import math
@@ -125,6 +126,42 @@ def show_number(value: Any) -> str:
         return short
     frac = fractions.Fraction(value).limit_denominator(64)
     return f"{short} ({frac})" if abs(float(frac) - value) < 1e-12 else short
+
+
+# The known sha256 of every shipped checkpoint, in `sha256sum` format (`sha256sum -c
+# checkpoints.sha256` in the folder checks them too); a test keeps it equal to the files.
+SHIPPED_SUMS = "checkpoints.sha256"
+
+
+@functools.cache
+def shipped_digests(folder: Path) -> dict[str, str]:
+    """file name -> known sha256 of each checkpoint shipped in `folder` ({} without a list)."""
+    try:
+        lines = (folder / SHIPPED_SUMS).read_text().splitlines()
+    except OSError:
+        return {}
+    pairs = (line.split(None, 1) for line in lines)
+    return {pair[1].strip().lstrip("*"): pair[0] for pair in pairs if len(pair) == 2}
+
+
+def shipped_changed(checkpoint: str, digest: str) -> str:
+    """Why a shipped checkpoint's bytes are not the ones it was shipped with ('' when they
+    are, or the file is not a shipped name). Its rows would carry a sha256 no published
+    figure has, under a name every reader takes for the shipped model."""
+    if not checkpoint:
+        return ""
+    path = Path(checkpoint).resolve()
+    known = (
+        shipped_digests(SHIPPED_CHECKPOINTS).get(path.name) if path.parent == SHIPPED_CHECKPOINTS else None
+    )
+    if known is None or known == digest:
+        return ""
+    return (
+        f"shipped checkpoint {path.name} does not hold the bytes it was shipped with (sha256 "
+        f"{digest[:12]}, known {known[:12]} in {SHIPPED_CHECKPOINTS.name}/{SHIPPED_SUMS}): it was "
+        "modified or damaged, so its rows are not the shipped model's; restore it (git checkout, "
+        "or reinstall dvla-harness)"
+    )
 
 
 def show_default(value: Any) -> str:
