@@ -20,7 +20,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from harness.plugins import HARNESS, load_plugins, warn
+from harness.plugins import HARNESS, load_plugins, origin, warn
 
 # The policy contract (policies/spec.py), which plugins import from here (docs/plugins.md).
 from policies.spec import NoParams as NoParams
@@ -68,6 +68,7 @@ def all_policies() -> dict[str, PolicySpec]:
     both providers, never a silent replacement."""
     specs = {spec.name: spec for spec in _builtin_specs()}
     providers = dict.fromkeys(specs, HARNESS)
+    ENTRY_POINTS.clear()
     for plugin in load_plugins(ENTRY_POINT_GROUP, PolicySpec):
         name = plugin.obj.name
         if name in specs:
@@ -77,6 +78,7 @@ def all_policies() -> dict[str, PolicySpec]:
             )
             continue
         specs[name], providers[name] = plugin.obj, plugin.provider
+        ENTRY_POINTS[name] = plugin.entry_point
     PROVIDERS.clear()
     PROVIDERS.update(providers)
     return specs
@@ -85,6 +87,15 @@ def all_policies() -> dict[str, PolicySpec]:
 # Who provided each policy name, as of the last all_policies(): "dvla-harness" or a plugin's
 # "<distribution> <version>"; recorded in every run's manifest.
 PROVIDERS: dict[str, str] = {}
+# A plugin policy's entry point ("'constant' in dvla_harness.policies"), for its errors.
+ENTRY_POINTS: dict[str, str] = {}
+
+
+def plugin_of(name: str) -> str:
+    """The plugin that provides policy `name`, with its entry point; '' for the harness's
+    own policies (an exception from one of those is a bug of the harness: a traceback)."""
+    provider = PROVIDERS.get(name, HARNESS)
+    return "" if provider == HARNESS else origin(provider, ENTRY_POINTS.get(name, ""))
 
 
 def get_policy(name: str) -> PolicySpec:
