@@ -42,6 +42,7 @@ from typing import Any
 
 import pandas as pd
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from results.labels import with_config_labels
@@ -193,15 +194,39 @@ def rows_to_table(rows: Iterable[Mapping[str, Any]]) -> pa.Table:
 
 def _widen(path: Path, table: pa.Table, field: pa.Field) -> pa.Table:
     """A column of an older table in its current type: a struct that has gained fields
-    since (the chain `subtasks` records) reads with them null, so old and new rows concat."""
+    since (the chain `subtasks` records) reads with them null, so old and new rows concat.
+    A cast that changes a value is refused, naming the column and row: a `success` of
+    NaN, cast to bool, would read as a success."""
+    before = table.column(field.name)
     try:
-        column = table.column(field.name).cast(field.type)
+        column = before.cast(field.type)
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
         raise ResultsFileError(
-            f"{path}: column {field.name!r} is {table.schema.field(field.name).type}, which this "
+            f"{path}: column {field.name!r} is {before.type}, which this "
             f"dvla-harness cannot read as {field.type} ({exc})"
         ) from None
+    if not pa.types.is_nested(field.type):
+        _refuse_changed_values(path, field, before, column)
     return table.set_column(table.column_names.index(field.name), field, column)
+
+
+def _refuse_changed_values(
+    path: Path, field: pa.Field, before: pa.ChunkedArray, after: pa.ChunkedArray
+) -> None:
+    """ResultsFileError when reading `before` as `field.type` changed a value (it does not
+    come back as itself: NaN or 0.5 read as True)."""
+    try:
+        same = pc.equal(after.cast(before.type), before)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        return  # no way back to compare: the cast itself was allowed
+    changed = pc.and_(pc.is_valid(before), pc.invert(pc.fill_null(same, False)))
+    if pc.any(changed).as_py():
+        row = pc.index(changed, True).as_py()
+        raise ResultsFileError(
+            f"{path}: column {field.name!r} holds {before[row].as_py()!r} in row {row}, which is not "
+            f"a {field.type} value (it would read as {after[row].as_py()!r}); the file was not written "
+            "by dvla-harness as it is"
+        )
 
 
 def read_table(path: Path) -> pa.Table:
