@@ -30,15 +30,15 @@ from typing import Any
 
 import pandas as pd
 
-from harness.config import ResolvedRun, build_config
+from harness.config import ResolvedRun
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.run.manifest import build_manifest, now, record_end_calibration
+from harness.run.recorded import fingerprint_of, recorded_disagreements
 from harness.run.resume import (
     adopt_moved_checkpoints,
     adopt_recorded_params,
     changed_checkpoints,
     config_changes,
-    config_data,
     run_again,
 )
 from results.lock import RunLock, RunLockedError
@@ -236,6 +236,12 @@ class RunFolder:
                 f"--resume: {'; '.join(changed)}; the run's rows came from the old file, so "
                 "restore it, or use another --out"
             )
+        disagreements = recorded_disagreements(manifest, recorded, resolved)
+        if disagreements:
+            raise UsageError(
+                f"--resume: {str(out)!r}: its manifest.json disagrees with the rows it holds "
+                f"({'; '.join(disagreements)}); was it edited by hand? Restore it, or use another --out"
+            )
         folder = cls(run_dir, lock, manifest, recorded)
         folder._take_over()
         manifest["resumed_at"].append(now())
@@ -274,9 +280,8 @@ class RunFolder:
         says why that is safe): the manifest's config says the new count, and the change is kept."""
         before, after = counts
         manifest = self.manifest
-        config = build_config(config_data(manifest["config"]))
         manifest["config"]["episodes_per_task"] = after
-        manifest["config_fingerprint"] = dataclasses.replace(config, episodes_per_task=after).fingerprint()
+        manifest["config_fingerprint"] = fingerprint_of(manifest["config"])
         manifest.setdefault("extended", []).append({"at": now(), "episodes_per_task": [before, after]})
         self.run_dir.log_event("run_extended", episodes_per_task=[before, after])
         shown = "the whole protocol" if after is None else f"{after} episodes per task"
