@@ -11,6 +11,8 @@ import pytest
 from adapters.registry import list_suites, load_suite
 from policies.registry import all_policies, get_policy
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 PLUGIN = """
 from dataclasses import dataclass
 import gymnasium as gym

@@ -33,6 +33,7 @@ from typing import Any
 
 import pandas as pd
 
+from harness.backends.jobs import EpisodeJob, job_key, normalised_key
 from harness.config import ResolvedRun
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.run.manifest import build_manifest, now, record_end_calibration
@@ -46,6 +47,7 @@ from harness.run.resume import (
 )
 from results.lock import RunLock, RunLockedError
 from results.manifest_check import RESUME_FIELDS
+from results.schema import EPISODE_KEY
 from results.store import ResultsFileError, RunDir
 
 
@@ -161,8 +163,12 @@ class Counts:
 class RunFolder:
     """An open run folder: its writer lock held, its manifest owned, its rows appended."""
 
-    def __init__(self, run_dir: RunDir, lock: RunLock, manifest: dict[str, Any], recorded: pd.DataFrame):
+    def __init__(
+        self, run_dir: RunDir, lock: RunLock, manifest: dict[str, Any], recorded: pd.DataFrame, mode: OpenMode
+    ):
         self.run_dir, self.lock, self.manifest, self.recorded = run_dir, lock, manifest, recorded
+        self.mode = mode
+        self.suite = ""  # the resolved suite's name (an episode key's first field), set by open
         self.counts = Counts()
         self.written = False  # whether this session wrote the manifest (it then says how the run ended)
 
@@ -191,7 +197,7 @@ class RunFolder:
         existed = out.is_dir()
         if existed:
             acquire(lock)  # a folder another process writes is refused, naming it
-        folder = cls(run_dir, lock, {}, pd.DataFrame())
+        folder = cls(run_dir, lock, {}, pd.DataFrame(), mode)
         try:
             _check_contents(run_dir, mode)
             if not existed:
@@ -214,6 +220,7 @@ class RunFolder:
             folder.fail_quietly(f"{type(exc).__name__}: {exc}")
             lock.release()
             raise
+        folder.suite = resolved.suite.name
         return folder
 
     def _resume(self, resolved: ResolvedRun, traces: bool) -> None:
@@ -310,13 +317,15 @@ class RunFolder:
 
     # ---- while it runs -----------------------------------------------------------------
 
-    def recorded_keys(self, retry_failed: bool) -> pd.DataFrame:
-        """The recorded rows that stay recorded: all but lost workers' and servers' episodes
-        (and, retrying failures, every failed one), which run again."""
+    def unrecorded(self, jobs: list[EpisodeJob]) -> list[EpisodeJob]:
+        """The jobs this session runs: all but those whose row stays recorded (lost
+        workers' and servers' episodes run again, and with --retry-failed every failed one)."""
         recorded = self.recorded
-        if len(recorded):
-            recorded = recorded[~run_again(recorded["failure_reason"], retry_failed)]
-        return recorded
+        if not len(recorded):
+            return list(jobs)
+        recorded = recorded[~run_again(recorded["failure_reason"], self.mode is OpenMode.RETRY_FAILED)]
+        done = {normalised_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")}
+        return [job for job in jobs if job_key(self.suite, job) not in done]
 
     def write_manifest(self) -> None:
         """The manifest, whole and atomically; a failed write is one line and exit 3."""
@@ -340,7 +349,7 @@ class RunFolder:
             self.manifest["warm_up"] = [*(self.manifest.get("warm_up") or []), record]
             self.write_manifest()
 
-    def record_execution(self, record: dict[str, Any]) -> None:
+    def record_session(self, record: dict[str, Any]) -> None:
         """This session's backend and workers (harness/backends Execution.record), appended
         to the manifest's `execution` list."""
         self.manifest["execution"] = [*(self.manifest.get("execution") or []), record | {"started_at": now()}]
