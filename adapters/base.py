@@ -115,6 +115,23 @@ class SuiteOptionError(UnknownSuiteError):
     """A `:key=value` suite option is unknown or out of range; the message says which."""
 
 
+def refuse_repeated_options(text: str) -> None:
+    """Refuse a suite option given twice (`perturb=swap,perturb=lan`): a parser keeping the
+    last value would run another suite than the one written first, and pass a value the
+    rules for combining options never saw (LIBERO-PRO's `task`, which combines with nothing)."""
+    seen: set[str] = set()
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        key = item.partition("=")[0].strip()
+        if key in seen:
+            raise SuiteOptionError(
+                f"suite option {key!r} is given twice in {text!r}; give each option once "
+                "(several LIBERO-PRO perturbations are one option: perturb=swap+lan)"
+                if key == "perturb"
+                else f"suite option {key!r} is given twice in {text!r}; give each option once"
+            )
+        seen.add(key)
+
+
 class SuiteDataError(ValueError):
     """A suite's own definition files are wrong (e.g. a chain file naming an unknown
     subtask); the message names the file, the entry and the fix."""

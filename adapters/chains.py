@@ -25,7 +25,15 @@ import numpy as np
 
 from adapters import chain_scenes as cs
 from adapters import libero, libero_layout, libero_sim
-from adapters.base import EpisodeSpec, Suite, SuiteInfo, SuiteProvider, TaskSpec, UnknownSuiteError
+from adapters.base import (
+    EpisodeSpec,
+    Suite,
+    SuiteInfo,
+    SuiteProvider,
+    TaskSpec,
+    UnknownSuiteError,
+    refuse_repeated_options,
+)
 from adapters.chain_credit import ChainCredit
 
 # 2: CALVIN's credit rule (adapters/chain_credit.py): a subtask whose goal holds at its
@@ -250,6 +258,7 @@ def load_suite(name: str, split: str = "eval") -> Suite:
     from adapters.libero_options import SuiteOptionError, parse_options, resolve_initial_states
 
     names, key, opts = _split_name(name)
+    refuse_repeated_options(opts)
     opts, with_goal = split_chain_options(opts)
     try:
         options = resolve_initial_states(parse_options(opts), split)

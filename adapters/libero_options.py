@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
-from adapters.base import SuiteOptionError
+from adapters.base import SuiteOptionError, refuse_repeated_options
 from adapters.libero_seeding import DEFAULT_SEEDING, SEEDINGS
 from adapters.libero_states import DEFAULT_STATES_SEED, INITIAL_STATES
 
@@ -80,6 +80,7 @@ def parse_bool(key: str, text: str) -> bool:
 
 
 def parse_options(text: str) -> Options:
+    refuse_repeated_options(text)
     values: dict[str, Any] = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
         key, eq, value = (s.strip() for s in item.partition("="))

@@ -47,6 +47,7 @@ from adapters.base import (
     TaskSpec,
     UnknownSuiteError,
     derive_seed,
+    refuse_repeated_options,
 )
 from harness.plugins import install_hint
 
@@ -146,6 +147,7 @@ _OPTIONS_HELP = "valid options: layouts=fixed|upstream, seed=N (upstream only)"
 
 
 def parse_options(text: str) -> Options:
+    refuse_repeated_options(text)
     values: dict[str, Any] = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
         key, eq, value = (s.strip() for s in item.partition("="))

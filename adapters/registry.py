@@ -14,7 +14,7 @@ import importlib
 from adapters.base import MissingExtraError as MissingExtraError
 from adapters.base import Suite, SuiteInfo, SuiteProvider, UnknownSuiteError
 from adapters.base import SuiteDataError as SuiteDataError
-from harness.plugins import HARNESS, load_plugins, warn
+from harness.plugins import HARNESS, load_plugins, origin, warn
 
 ENTRY_POINT_GROUP = "dvla_harness.adapters"
 # The built-in providers, by module (each has a PROVIDER): imported when suites are asked
@@ -29,6 +29,8 @@ def _builtin_providers() -> list[SuiteProvider]:
 # Who provided each suite prefix, as of the last providers(): "dvla-harness" or a plugin's
 # "<distribution> <version>"; recorded in every run's manifest.
 PROVIDED_BY: dict[str, str] = {}
+# A plugin prefix's entry point ("'line' in dvla_harness.adapters"), for its errors.
+ENTRY_POINTS: dict[str, str] = {}
 
 
 def providers() -> list[SuiteProvider]:
@@ -37,6 +39,7 @@ def providers() -> list[SuiteProvider]:
     never allowed to shadow it."""
     found = _builtin_providers()
     by = dict.fromkeys((p.prefix for p in found), HARNESS)
+    ENTRY_POINTS.clear()
     for plugin in load_plugins(ENTRY_POINT_GROUP, SuiteProvider):
         prefix = plugin.obj.prefix
         clash = next((p for p in by if prefix.startswith(p) or p.startswith(prefix)), None)
@@ -48,6 +51,7 @@ def providers() -> list[SuiteProvider]:
             continue
         found.append(plugin.obj)
         by[prefix] = plugin.provider
+        ENTRY_POINTS[prefix] = plugin.entry_point
     PROVIDED_BY.clear()
     PROVIDED_BY.update(by)
     return found
@@ -56,6 +60,12 @@ def providers() -> list[SuiteProvider]:
 def provider_for(name: str) -> str:
     """Who provides the suite `name` ("dvla-harness" or a plugin), for manifests and errors."""
     return next((who for prefix, who in PROVIDED_BY.items() if name.startswith(prefix)), HARNESS)
+
+
+def origin_for(name: str) -> str:
+    """Who provides the suite `name`, with a plugin's entry point, for its errors."""
+    prefix = next((p for p in PROVIDED_BY if name.startswith(p)), "")
+    return origin(PROVIDED_BY.get(prefix, HARNESS), ENTRY_POINTS.get(prefix, ""))
 
 
 def list_suites() -> list[SuiteInfo]:

@@ -38,6 +38,7 @@ from adapters.base import (
     TaskSpec,
     UnknownSuiteError,
     derive_seed,
+    refuse_repeated_options,
 )
 from harness.plugins import install_hint
 
@@ -412,6 +413,7 @@ _OPTIONS_HELP = (
 
 
 def parse_options(text: str) -> Options:
+    refuse_repeated_options(text)
     values: dict[str, Any] = {}
     for item in filter(None, (t.strip() for t in text.split(","))):
         key, _, value = item.partition("=")

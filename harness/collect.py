@@ -40,13 +40,14 @@ import pyarrow.parquet as pq
 
 from adapters.base import EpisodeSpec, TaskSpec
 from adapters.libero_states import InitialStateOverlap
-from harness.config import CheckpointPin, ResolvedRun, check_checkpoints, checkpoint_pins
+from harness.collect_pool import Job, collect_in_processes
+from harness.config import ResolvedRun
 from harness.episode.context import episode_context
 from harness.episode.loop import run_episode
 from harness.episode.outcome import EpisodeOutcome
 from harness.episode.plan import ExecutionPlan
 from harness.episode.timed import TimedPolicy
-from harness.errors import HarnessError, UsageError
+from harness.errors import UsageError
 from harness.run.manifest import environment, now
 from policies.observations import cameras_of, png, unpng
 
@@ -202,7 +203,7 @@ def collect(
     if workers == 1:
         done = [_collect_job(resolved, job, action_noise, tick) for job in jobs]
     else:
-        done = _collect_in_processes(resolved, jobs, action_noise, tick, workers)
+        done = collect_in_processes(_collect_job, resolved, jobs, action_noise, tick, workers)
     return _merge_and_write(resolved, out, done, action_noise)
 
 
@@ -224,9 +225,6 @@ class JobResult:
     state_positions: list[int]
     proprio_dim: int
     episodes: list[EpisodeDemo]
-
-
-Job = tuple[int, int, int]  # task's position, first and end position in its episode list
 
 
 def _jobs(resolved: ResolvedRun, workers: int) -> list[Job]:
@@ -273,66 +271,6 @@ def _collect_job(
     finally:
         env.close()
         policy.close_counter()
-
-
-_WORKER_RUN: ResolvedRun | None = None
-COLLECT_ADVICE = "nothing was written; put the original back, or collect again for the new file"
-
-
-def _worker_job(
-    job: Job, action_noise: float, config: Any, pins: tuple[CheckpointPin, ...], workers: int = 1
-) -> JobResult:
-    """A collection worker (a fresh `spawn` interpreter) builds its policy and suite on its
-    first range, from the checkpoint bytes the parent hashed (`check_checkpoints`, as run's
-    workers do): a file swapped mid-collection stops it instead of mixing two models' data.
-    Built here, not in the pool's initializer, so its errors reach the parent whole."""
-    global _WORKER_RUN
-    if _WORKER_RUN is None:
-        from harness.config import resolve
-        from harness.threads import apply_threads
-
-        apply_threads(None, workers)  # the worker's share of the cores, before torch loads
-        check_checkpoints(pins, advice=COLLECT_ADVICE)
-        _WORKER_RUN = resolve(config)
-        check_checkpoints(pins, _WORKER_RUN, advice=COLLECT_ADVICE)
-    return _collect_job(_WORKER_RUN, job, action_noise, None)
-
-
-def _collect_in_processes(
-    resolved: ResolvedRun,
-    jobs: list[Job],
-    action_noise: float,
-    tick: Callable[[bool], None] | None,
-    workers: int,
-) -> list[JobResult]:
-    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
-    from concurrent.futures.process import BrokenProcessPool
-    from multiprocessing import get_context
-
-    results: list[JobResult | None] = [None] * len(jobs)
-    pins = checkpoint_pins(resolved)
-    pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
-    try:
-        pending = {
-            pool.submit(_worker_job, job, action_noise, resolved.config, pins, workers): n
-            for n, job in enumerate(jobs)
-        }
-        while pending:
-            finished, _ = wait(pending, return_when=FIRST_EXCEPTION)
-            for future in finished:
-                n = pending.pop(future)
-                results[n] = future.result()  # a job's error stops the collection here
-                for demo in results[n].episodes:
-                    if tick:
-                        tick(demo.success)
-    except BrokenProcessPool as exc:
-        raise HarnessError(
-            f"a collection worker process died ({exc}; the out-of-memory killer, a kill, or a "
-            "crash); nothing was written"
-        ) from None
-    finally:  # an error or Ctrl-C: queued ranges are dropped, nothing is written
-        pool.shutdown(wait=True, cancel_futures=True)
-    return [r for r in results if r is not None]
 
 
 def _merge_and_write(
@@ -461,6 +399,24 @@ def _write(
     staging = out.with_name(out.name + ".tmp")
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
+    try:
+        _write_staged(resolved, staging, table, report, cameras, action_noise)
+    except BaseException:  # a full disk, Ctrl-C: no half folder left beside the output
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    if out.exists():
+        shutil.rmtree(out)
+    staging.rename(out)
+
+
+def _write_staged(
+    resolved: ResolvedRun,
+    staging: Path,
+    table: pa.Table,
+    report: CollectReport,
+    cameras: list[str],
+    action_noise: float,
+) -> None:
     pq.write_table(table, staging / STEPS)
     digest = hashlib.sha256((staging / STEPS).read_bytes()).hexdigest()
     p = resolved.policies[0]
@@ -501,6 +457,3 @@ def _write(
     from results.store import strict_json
 
     (staging / MANIFEST).write_text(json.dumps(strict_json(manifest), indent=2, allow_nan=False) + "\n")
-    if out.exists():
-        shutil.rmtree(out)
-    staging.rename(out)

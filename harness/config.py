@@ -13,6 +13,7 @@ import hashlib
 import importlib.util
 import json
 import tomllib
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from functools import partial
@@ -21,12 +22,19 @@ from pathlib import Path
 from typing import Any
 
 from adapters.base import EpisodeSpec, Suite, TaskSpec
-from adapters.registry import MissingExtraError, SuiteDataError, UnknownSuiteError, load_suite, provider_for
+from adapters.registry import (
+    MissingExtraError,
+    SuiteDataError,
+    UnknownSuiteError,
+    load_suite,
+    origin_for,
+    provider_for,
+)
 from harness.episode.actions import DEFAULT_OUT_OF_SPACE, check_rule
 from harness.episode.latency import check_execution, parse_latency
 from harness.episode.latency import check_run as check_latency
 from harness.errors import HarnessError, UsageError
-from harness.plugins import HARNESS, install_hint
+from harness.plugins import HARNESS, install_hint, one_line
 from policies.base import Policy
 from policies.registry import (
     PolicyParamError,
@@ -35,6 +43,8 @@ from policies.registry import (
     get_policy,
     params_json,
     parse_params,
+    plugin_of,
+    shipped_changed,
 )
 
 # batch_envs is how to execute (like --workers), read by `run` into its Execution: it is
@@ -298,8 +308,7 @@ def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
         raise UsageError(str(exc)) from None
     except Exception as exc:  # a provider's own bug: name it, exit 2 (1 is an episode that raised)
         raise UsageError(
-            f"suite {config.suite!r}: its provider ({provider_for(config.suite)}) raised "
-            f"{type(exc).__name__}: {exc}"
+            f"suite {config.suite!r}: its provider ({origin_for(config.suite)}) raised {one_line(exc)}"
         ) from None
     who = provider_for(config.suite)
     what = f"suite {suite.name!r}" + ("" if who == HARNESS else f" (from {who})")
@@ -328,12 +337,17 @@ def resolve_suite(config: RunConfig) -> tuple[Suite, tuple[TaskSpec, ...]]:
     return suite, tuple(unique.values())
 
 
-def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
+def resolve_policy(choice: PolicyChoice, suite: Suite, announce: bool = True) -> PolicyRun:
+    """`choice` built for `suite`: parameters validated, checkpoint hashed, policy built.
+    announce: say what the writing process should say once (a shipped checkpoint whose
+    bytes changed); workers resolve the run again without it."""
     try:
         spec = get_policy(choice.name)
         params = parse_params(spec, choice.params)
     except (UnknownPolicyError, PolicyParamError) as exc:
         raise UsageError(str(exc)) from None
+    except Exception as exc:  # a plugin's own parameter check raised
+        raise policy_error(choice.name, "checking its parameters", exc) from None
     if spec.suites and not any(suite.name.startswith(p) for p in spec.suites):
         raise UsageError(
             f"policy {spec.name!r} cannot act in suite {suite.name!r}; it supports: "
@@ -348,15 +362,32 @@ def resolve_policy(choice: PolicyChoice, suite: Suite) -> PolicyRun:
             f"shipped set: {', '.join(shipped_sets())}"
         )
     digest = sha256_file(checkpoint) if checkpoint else ""
+    changed = shipped_changed(checkpoint, digest) if announce else ""
+    if changed:
+        warnings.warn(changed, UserWarning, stacklevel=2)
     pjson = params_json(params)
     config_id = policy_config_id(spec.name, pjson, digest)
     try:
         policy = spec.build(params)
-    except (ValueError, OSError) as exc:
-        raise UsageError(f"policy {spec.name!r} could not be built: {exc}") from None
+    except Exception as exc:
+        raise policy_error(spec.name, "building it", exc) from None
     if checkpoint:  # what was loaded is what was hashed: the file did not change meanwhile
         check_checkpoints(((spec.name, checkpoint, digest),))
     return PolicyRun(spec, params, pjson, checkpoint, digest, config_id, policy)
+
+
+def policy_error(name: str, doing: str, exc: Exception) -> Exception:
+    """An exception from a policy's own code as one line and exit 2: a plugin's names the
+    plugin and its entry point, whatever it raised (RuntimeError, ImportError, a CUDA
+    error), since the fix is there and not in the harness; a built-in policy's says why
+    it could not be built (a bad value or file), and anything else from one is a bug of
+    the harness, re-raised with its traceback."""
+    plugin = plugin_of(name)
+    if plugin:
+        return UsageError(f"policy {name!r}: its plugin ({plugin}) raised {one_line(exc)} while {doing}")
+    if isinstance(exc, (ValueError, OSError)) and doing == "building it":
+        return UsageError(f"policy {name!r} could not be built: {exc}")
+    return exc
 
 
 def policy_config_id(name: str, pjson: str, digest: str) -> str:
@@ -427,9 +458,10 @@ def check_checkpoints(
             )
 
 
-def resolve(config: RunConfig) -> ResolvedRun:
+def resolve(config: RunConfig, announce: bool = True) -> ResolvedRun:
+    """`config` made real: suite, tasks and policies (announce: as resolve_policy)."""
     suite, tasks = resolve_suite(config)
-    runs = [resolve_policy(choice, suite) for choice in config.policies]
+    runs = [resolve_policy(choice, suite, announce) for choice in config.policies]
     seen: dict[str, str] = {}
     for run in runs:
         if run.config_id in seen:
@@ -442,5 +474,5 @@ def resolve(config: RunConfig) -> ResolvedRun:
 def rebuild_from_config(config: RunConfig) -> ResolvedRun:
     """What a worker runs to get its own ResolvedRun (the default `Execution.rebuild`):
     the same config resolved again in its own process (a built policy is not sent
-    between processes)."""
-    return resolve(config)
+    between processes); what the writing process said once is not said again."""
+    return resolve(config, announce=False)

@@ -43,6 +43,19 @@ _warned: set[str] = set()
 class Plugin(Generic[T]):
     obj: T
     provider: str  # "<distribution> <version>", e.g. "dvla-line-plugin 0.1"
+    entry_point: str = ""  # "'constant' in dvla_harness.policies": where the package names it
+
+
+def origin(provider: str, entry_point: str = "") -> str:
+    """Who to blame for a plugin's object, in words: its package and the entry point that
+    names it (what its author looks up), e.g. "dvla-line-plugin 0.1, entry point 'constant'
+    in dvla_harness.policies"."""
+    return f"{provider}, entry point {entry_point}" if entry_point else provider
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as `Type: message` on one line (a CUDA error's text spans several)."""
+    return " ".join(f"{type(exc).__name__}: {exc}".split())
 
 
 def provider_of(ep: EntryPoint) -> str:
@@ -71,5 +84,5 @@ def load_plugins(group: str, kind: type[T]) -> list[Plugin[T]]:
         if not isinstance(obj, kind):
             warn(f"{where} must name a {kind.__name__}, got {type(obj).__name__}; skipped")
             continue
-        found.append(Plugin(obj, provider_of(ep)))
+        found.append(Plugin(obj, provider_of(ep), f"{ep.name!r} in {group}"))
     return found

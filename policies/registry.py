@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import fractions
+import functools
 import importlib
 import json
 import math
@@ -19,7 +20,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from harness.plugins import HARNESS, load_plugins, warn
+from harness.plugins import HARNESS, load_plugins, origin, warn
 
 # The policy contract (policies/spec.py), which plugins import from here (docs/plugins.md).
 from policies.spec import NoParams as NoParams
@@ -67,6 +68,7 @@ def all_policies() -> dict[str, PolicySpec]:
     both providers, never a silent replacement."""
     specs = {spec.name: spec for spec in _builtin_specs()}
     providers = dict.fromkeys(specs, HARNESS)
+    ENTRY_POINTS.clear()
     for plugin in load_plugins(ENTRY_POINT_GROUP, PolicySpec):
         name = plugin.obj.name
         if name in specs:
@@ -76,6 +78,7 @@ def all_policies() -> dict[str, PolicySpec]:
             )
             continue
         specs[name], providers[name] = plugin.obj, plugin.provider
+        ENTRY_POINTS[name] = plugin.entry_point
     PROVIDERS.clear()
     PROVIDERS.update(providers)
     return specs
@@ -84,6 +87,15 @@ def all_policies() -> dict[str, PolicySpec]:
 # Who provided each policy name, as of the last all_policies(): "dvla-harness" or a plugin's
 # "<distribution> <version>"; recorded in every run's manifest.
 PROVIDERS: dict[str, str] = {}
+# A plugin policy's entry point ("'constant' in dvla_harness.policies"), for its errors.
+ENTRY_POINTS: dict[str, str] = {}
+
+
+def plugin_of(name: str) -> str:
+    """The plugin that provides policy `name`, with its entry point; '' for the harness's
+    own policies (an exception from one of those is a bug of the harness: a traceback)."""
+    provider = PROVIDERS.get(name, HARNESS)
+    return "" if provider == HARNESS else origin(provider, ENTRY_POINTS.get(name, ""))
 
 
 def get_policy(name: str) -> PolicySpec:
@@ -125,6 +137,42 @@ def show_number(value: Any) -> str:
         return short
     frac = fractions.Fraction(value).limit_denominator(64)
     return f"{short} ({frac})" if abs(float(frac) - value) < 1e-12 else short
+
+
+# The known sha256 of every shipped checkpoint, in `sha256sum` format (`sha256sum -c
+# checkpoints.sha256` in the folder checks them too); a test keeps it equal to the files.
+SHIPPED_SUMS = "checkpoints.sha256"
+
+
+@functools.cache
+def shipped_digests(folder: Path) -> dict[str, str]:
+    """file name -> known sha256 of each checkpoint shipped in `folder` ({} without a list)."""
+    try:
+        lines = (folder / SHIPPED_SUMS).read_text().splitlines()
+    except OSError:
+        return {}
+    pairs = (line.split(None, 1) for line in lines)
+    return {pair[1].strip().lstrip("*"): pair[0] for pair in pairs if len(pair) == 2}
+
+
+def shipped_changed(checkpoint: str, digest: str) -> str:
+    """Why a shipped checkpoint's bytes are not the ones it was shipped with ('' when they
+    are, or the file is not a shipped name). Its rows would carry a sha256 no published
+    figure has, under a name every reader takes for the shipped model."""
+    if not checkpoint:
+        return ""
+    path = Path(checkpoint).resolve()
+    known = (
+        shipped_digests(SHIPPED_CHECKPOINTS).get(path.name) if path.parent == SHIPPED_CHECKPOINTS else None
+    )
+    if known is None or known == digest:
+        return ""
+    return (
+        f"shipped checkpoint {path.name} does not hold the bytes it was shipped with (sha256 "
+        f"{digest[:12]}, known {known[:12]} in {SHIPPED_CHECKPOINTS.name}/{SHIPPED_SUMS}): it was "
+        "modified or damaged, so its rows are not the shipped model's; restore it (git checkout, "
+        "or reinstall dvla-harness)"
+    )
 
 
 def show_default(value: Any) -> str:

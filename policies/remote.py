@@ -30,8 +30,12 @@ Keys: a server that wants one (`serve --token-env`, openpi's `api_key`) gets it 
 openpi's header, read from an environment variable (`token_env=NAME`) or a file
 (`token_file=PATH`) at every connection. Where the key comes from is no part of the
 configuration (`identity=False`: not in the rows, the config id or resume's match), so a
-rotated key resumes the same run; an inline `token=` or a password in the url is
-refused, since the manifest records the config and the command line.
+rotated key resumes the same run; an inline `token=`, a password in the url or a
+credential in its query (`?api_key=`) is refused, since the manifest records the config
+and the command line.
+
+What a server reports (NFE, counted work, tokens, its own time) is checked before it
+enters a row: a figure that is not a count in range fails the episode naming the value.
 
 Batches: with `--batch-envs K`, a server whose metadata says `"act_batch": true` (a
 dvla-harness server serving a decoder) gets the K observations, each with its episode's
@@ -43,13 +47,16 @@ does. Against any other server `--batch-envs K > 1` is refused before anything r
 from __future__ import annotations
 
 import importlib.util
+import math
+import numbers
 import os
+import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 import gymnasium as gym
 import numpy as np
@@ -63,6 +70,14 @@ from policies.registry import PolicySpec, param
 
 RESET = "dvla/reset"
 BATCH = "dvla/batch"
+# The most one reply may report. A chunk decoded in a million forward passes is no
+# measurement, and 2**53 (FLOPs, positions, tokens) is the largest integer every JSON
+# reader keeps exactly; past these a server's figure would only corrupt the run's totals.
+MAX_REPORTED_PASSES = 1_000_000
+MAX_REPORTED_COUNT = 2**53
+# Query parameter names that carry a credential (api_key=, token=, sig=, password=...):
+# the url is recorded in the manifest and every row.
+_CREDENTIAL = re.compile(r"key|token|secret|pass|auth|sig|credential|session|jwt|bearer", re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -100,10 +115,19 @@ class RemoteParams:
             )
         if self.token_env and self.token_file:
             raise ValueError("token_env and token_file are both given; pick one")
-        if urlsplit(self.url).password is not None:
+        parts = urlsplit(self.url)
+        if parts.password is not None:
             raise ValueError(
                 "the url carries a password (user:password@), which every row would record; "
                 "pass the key with token_env or token_file"
+            )
+        named = [
+            name for name, _ in parse_qsl(parts.query, keep_blank_values=True) if _CREDENTIAL.search(name)
+        ]
+        if named:
+            raise ValueError(
+                f"the url carries a credential in its query ({named[0]}=...), which the manifest and "
+                "every row would record; pass the key with token_env or token_file"
             )
 
 
@@ -236,12 +260,13 @@ class RemotePolicy:
             raise ConnectionLost(f"{self.params.url}: the server closed the connection ({exc})") from None
         if not isinstance(reply, dict):
             raise WireError(f"the server replied with {type(reply).__name__}, not a map")
-        nfe = reply.get("dvla/nfe")
-        self._totals.nfe = None if nfe is None or self._totals.nfe is None else self._totals.nfe + int(nfe)
-        self._totals.work += Work.from_wire(reply.get(WORK_KEY))  # none reported: not measured
+        nfe = reported_count(reply, "dvla/nfe", MAX_REPORTED_PASSES)
+        work = reported_work(reply)
         # a batching server's queue wait is the server's time too: transport stays transport
-        self._totals.server_time_s += float(reply.get("dvla/policy_time_s", 0.0))
-        self._totals.server_time_s += float(reply.get("dvla/queue_time_s", 0.0))
+        seconds = reported_seconds(reply, "dvla/policy_time_s") + reported_seconds(reply, "dvla/queue_time_s")
+        self._totals.nfe = None if nfe is None or self._totals.nfe is None else self._totals.nfe + nfe
+        self._totals.work += work
+        self._totals.server_time_s += seconds
         return reply
 
     def close(self) -> None:
@@ -314,24 +339,27 @@ class RemotePolicy:
         actions = np.asarray(reply[self.params.actions_key], dtype=np.float64)
         if rows is None:
             actions = actions[None] if actions.ndim == 1 else actions
-            if actions.ndim != 2 or not np.isfinite(actions).all():
-                raise WireError(
-                    f"actions of shape {actions.shape} (or not finite); expected (chunk, action_dim)"
-                )
-            return actions[None]
-        if actions.ndim != 3 or actions.shape[0] != rows or not np.isfinite(actions).all():
+            if actions.ndim != 2:
+                raise WireError(f"actions of shape {actions.shape}; expected (chunk, action_dim)")
+            actions = actions[None]
+        elif actions.ndim != 3 or actions.shape[0] != rows:
             raise WireError(
-                f"a batch of {rows} got actions of shape {actions.shape} (or not finite); "
-                f"expected ({rows}, chunk, action_dim)"
+                f"a batch of {rows} got actions of shape {actions.shape}; expected ({rows}, chunk, action_dim)"
+            )
+        bad = np.argwhere(~np.isfinite(actions))
+        if len(bad):  # the shape was right: say so, and where the first bad value is
+            first = tuple(int(i) for i in bad[0])
+            at = list(first if rows else first[1:])
+            raise WireError(
+                f"actions of shape {actions.shape if rows else actions.shape[1:]} hold {len(bad)} "
+                f"value(s) that are not finite ({actions[first]} at {at} first)"
             )
         return actions
 
     def act(self, observations: Sequence[Observation]) -> ChunkBatch:
         message = {self.params.prompt_key: self._contexts[0].instruction} | self._observation(observations[0])
         reply = self._call(message)
-        return ChunkBatch(
-            actions=self._actions(reply, None), action_tokens=int(reply.get("dvla/action_tokens", 0))
-        )
+        return ChunkBatch(actions=self._actions(reply, None), action_tokens=_tokens(reply))
 
     def _act_batch(
         self, episodes: Sequence[EpisodeContext], observations: Sequence[Observation]
@@ -344,9 +372,7 @@ class RemotePolicy:
             ],
         }
         reply = self._call({BATCH: batch})
-        return ChunkBatch(
-            actions=self._actions(reply, len(episodes)), action_tokens=int(reply.get("dvla/action_tokens", 0))
-        )
+        return ChunkBatch(actions=self._actions(reply, len(episodes)), action_tokens=_tokens(reply))
 
     @property
     def served_by(self) -> str:
@@ -359,6 +385,50 @@ class RemotePolicy:
         every call)."""
         totals, self._totals = self._totals, ServedTotals()
         return totals
+
+
+def reported_count(reply: dict[str, Any], key: str, limit: int = MAX_REPORTED_COUNT) -> int | None:
+    """A count the server reported under `key` (passes, tokens), None when it reports
+    none; anything but an integer in [0, limit] fails the episode naming the value, which
+    would otherwise enter the run's totals (a negative NFE, a NaN time)."""
+    from policies.wire import WireError
+
+    value = reply.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 0 <= value <= limit:
+        raise WireError(f"the server reported {key} = {value!r}; expected an integer in [0, {limit}]")
+    return int(value)
+
+
+def reported_seconds(reply: dict[str, Any], key: str) -> float:
+    """A time the server reported under `key` (0 when it reports none): finite, >= 0."""
+    from policies.wire import WireError
+
+    value = reply.get(key, 0.0)
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < 0:
+        raise WireError(f"the server reported {key} = {value!r}; expected a number of seconds >= 0")
+    return float(value)
+
+
+def reported_work(reply: dict[str, Any]) -> Work:
+    """The passes' counted work the server reported (harness/episode/work.py): absent, or
+    a field null, is not measured; any other field must be a count."""
+    from policies.wire import WireError
+
+    value = reply.get(WORK_KEY)
+    if value is None:
+        return Work.from_wire(None)
+    if not isinstance(value, dict):
+        raise WireError(f"the server reported {WORK_KEY} = {value!r}; expected a map of counts")
+    for f in fields(Work):
+        reported_count(value, f.name)  # a bad field names its value (a WireError)
+    return Work.from_wire(value)
+
+
+def _tokens(reply: dict[str, Any]) -> int:
+    return reported_count(reply, "dvla/action_tokens") or 0
 
 
 def _context_map(ep: EpisodeContext) -> dict[str, Any]:

@@ -88,6 +88,7 @@ class WebSocket:
             sock = ssl.create_default_context().wrap_socket(sock, server_hostname=parts.hostname)
         self._sock = sock
         self._reader = sock.makefile("rb")
+        self._deadline: float | None = None  # when the reply being read must be whole (monotonic)
         self.closed = False
         try:
             self._handshake(parts, port, headers or {})
@@ -150,21 +151,12 @@ class WebSocket:
         one's)."""
         if self.closed:
             raise ConnectionClosed("the connection is closed")
-        deadline = None if timeout is None else time.monotonic() + timeout
+        self._deadline = None if timeout is None else time.monotonic() + timeout
         parts: list[bytes] = []
         opcode_of_message = None
         size = 0
         try:
             while True:
-                # one deadline for the whole message: a server that keeps pinging, or
-                # trickles a reply frame by frame, still times out
-                if deadline is not None:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        raise TimeoutError(f"no reply within {timeout} s")
-                    self._sock.settimeout(left)
-                else:
-                    self._sock.settimeout(None)
                 fin, opcode, payload = self._read_frame(self.max_size - size)
                 if opcode >= _CLOSE:
                     self._control(opcode, payload)
@@ -183,9 +175,9 @@ class WebSocket:
                 if fin:
                     data = b"".join(parts)
                     return data.decode() if opcode_of_message == _TEXT else data
-        except TimeoutError:
+        except TimeoutError:  # the socket's own ("timed out") or the deadline's
             self._drop()
-            raise
+            raise TimeoutError(f"no reply within {timeout} s") from None
         except (OSError, ValueError) as exc:
             if isinstance(exc, ConnectionError):
                 self._drop()
@@ -194,10 +186,24 @@ class WebSocket:
             raise ConnectionClosed(f"reading failed ({exc})") from None
 
     def _read_exactly(self, n: int) -> bytes:
-        data = self._reader.read(n)
-        if data is None or len(data) < n:
-            raise ConnectionClosed("the server closed the connection (no close frame)")
-        return data
+        """n bytes, each read of the socket held to what is left of the reply's deadline:
+        one deadline for the whole message, so a server that keeps pinging, or trickles a
+        reply frame by frame or byte by byte, still times out."""
+        parts: list[bytes] = []
+        while n:
+            if self._deadline is None:
+                self._sock.settimeout(None)
+            else:
+                left = self._deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError("the reply's deadline passed")
+                self._sock.settimeout(left)
+            data = self._reader.read1(n)  # what the buffer holds, else one read of the socket
+            if not data:
+                raise ConnectionClosed("the server closed the connection (no close frame)")
+            parts.append(data)
+            n -= len(data)
+        return b"".join(parts)
 
     def _read_frame(self, room: int) -> tuple[bool, int, bytes]:
         first, second = self._read_exactly(2)

@@ -42,8 +42,10 @@ from typing import Any
 
 import pandas as pd
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
+from results.file_writes import atomic_write, fsync_dir, overwrite_in_place, write_table_atomically
 from results.labels import with_config_labels
 from results.lock import LOCK, RunLock, RunLockedError
 from results.manifest_check import ManifestError, check_manifest
@@ -65,7 +67,7 @@ REPLAY_OBSERVATIONS = "replay_observations.npz"  # ... and the recorded observat
 # Everything the harness writes into a run folder; --overwrite deletes only these (and
 # their temporaries), and refuses a folder that holds anything else.
 HARNESS_FILES = (MANIFEST, EPISODES, EVENTS, PENDING, TRACES, REPLAY, REPLAY_OBSERVATIONS, LOCK)
-# atomic_write's and _write_table's temporaries (".NAME.PID.tmp"), left behind by a kill
+# atomic_write's and write_table_atomically's temporaries (results/file_writes.py) (".NAME.PID.tmp"), left behind by a kill
 _TEMPORARY = re.compile(r"^\.(" + "|".join(re.escape(n) for n in HARNESS_FILES) + r")\.\d+\.tmp$")
 # Fields of every trace line besides what the policy put in its trace ("committed": a
 # list, one entry per forward pass, of the action positions that pass committed).
@@ -76,48 +78,6 @@ TRACE_FIELDS = (
 
 class ResultsFileError(ValueError):
     """A results file or folder is missing, foreign, or of another schema version."""
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _temporary(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write via a temporary file and rename, so readers never see half a file."""
-    tmp = _temporary(path)
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)  # a full disk must not stay full of half a file
-        raise
-    _fsync_dir(path.parent)
-
-
-def _write_table(path: Path, table: pa.Table) -> None:
-    tmp = _temporary(path)
-    try:
-        pq.write_table(table, tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
 
 
 def repair_tail(path: Path) -> tuple[str, bytes] | None:
@@ -193,15 +153,39 @@ def rows_to_table(rows: Iterable[Mapping[str, Any]]) -> pa.Table:
 
 def _widen(path: Path, table: pa.Table, field: pa.Field) -> pa.Table:
     """A column of an older table in its current type: a struct that has gained fields
-    since (the chain `subtasks` records) reads with them null, so old and new rows concat."""
+    since (the chain `subtasks` records) reads with them null, so old and new rows concat.
+    A cast that changes a value is refused, naming the column and row: a `success` of
+    NaN, cast to bool, would read as a success."""
+    before = table.column(field.name)
     try:
-        column = table.column(field.name).cast(field.type)
+        column = before.cast(field.type)
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
         raise ResultsFileError(
-            f"{path}: column {field.name!r} is {table.schema.field(field.name).type}, which this "
+            f"{path}: column {field.name!r} is {before.type}, which this "
             f"dvla-harness cannot read as {field.type} ({exc})"
         ) from None
+    if not pa.types.is_nested(field.type):
+        _refuse_changed_values(path, field, before, column)
     return table.set_column(table.column_names.index(field.name), field, column)
+
+
+def _refuse_changed_values(
+    path: Path, field: pa.Field, before: pa.ChunkedArray, after: pa.ChunkedArray
+) -> None:
+    """ResultsFileError when reading `before` as `field.type` changed a value (it does not
+    come back as itself: NaN or 0.5 read as True)."""
+    try:
+        same = pc.equal(after.cast(before.type), before)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        return  # no way back to compare: the cast itself was allowed
+    changed = pc.and_(pc.is_valid(before), pc.invert(pc.fill_null(same, False)))
+    if pc.any(changed).as_py():
+        row = pc.index(changed, True).as_py()
+        raise ResultsFileError(
+            f"{path}: column {field.name!r} holds {before[row].as_py()!r} in row {row}, which is not "
+            f"a {field.type} value (it would read as {after[row].as_py()!r}); the file was not written "
+            "by dvla-harness as it is"
+        )
 
 
 def read_table(path: Path) -> pa.Table:
@@ -353,7 +337,7 @@ class RunDir:
             if name != LOCK:
                 (self.path / name).unlink(missing_ok=True)
         self.remove_temporaries()
-        _fsync_dir(self.path)
+        fsync_dir(self.path)
 
     def lock(self) -> RunLock:
         return RunLock(self.path)
@@ -388,6 +372,21 @@ class RunDir:
     def write_manifest(self, manifest: Mapping[str, Any]) -> None:
         text = json.dumps(strict_json(manifest), indent=2, allow_nan=False)
         atomic_write(self.manifest_path, (text + "\n").encode())
+
+    def overwrite_manifest(self, manifest: Mapping[str, Any], ending: Mapping[str, Any]) -> None:
+        """The manifest written over the file's own bytes, for a full disk, where the atomic
+        write has no room for its second copy (results/file_writes.py overwrite_in_place):
+        `manifest` indented or compact, else the file's own manifest with only `ending`
+        (status, finished_at) changed; only for saying how a run stopped by a full disk ended."""
+        on_disk = json.loads(self.manifest_path.read_bytes())
+        versions = ((manifest, 2), (manifest, None), ({**on_disk, **ending}, None))
+        overwrite_in_place(
+            self.manifest_path,
+            [
+                json.dumps(strict_json(data), indent=indent, separators=None if indent else (",", ":")) + "\n"
+                for data, indent in versions
+            ],
+        )
 
     def read_manifest(self, required: tuple[str, ...] = ()) -> dict[str, Any]:
         """The manifest, checked (results.manifest_check); `required`: fields it must have."""
@@ -495,6 +494,6 @@ class RunDir:
             df[column] = [value] * len(df)
         df = df.sort_values(["policy_config_id", "task_index", "episode_index"], kind="stable")
         table = pa.Table.from_pandas(df, schema=arrow_schema(), preserve_index=False)
-        _write_table(self.path / EPISODES, table.replace_schema_metadata(arrow_schema().metadata))
+        write_table_atomically(self.path / EPISODES, table.replace_schema_metadata(arrow_schema().metadata))
         pending.unlink(missing_ok=True)
-        _fsync_dir(self.path)
+        fsync_dir(self.path)

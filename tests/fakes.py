@@ -194,7 +194,8 @@ class FaultPolicy(ChunkPolicy):
     A fault written "KIND:once" strikes only the first time its episode starts (a file
     in the folder `marks` remembers it across worker processes), so a retry succeeds.
     A fault's key is an episode index (in every task) or "TASK/INDEX" (that task's only),
-    so one run can suffer different faults in different tasks.
+    so one run can suffer different faults in different tasks. "KIND@N" strikes at the
+    episode's N-th act call instead, after N - 1 chunks have run.
     """
 
     def __init__(
@@ -202,15 +203,26 @@ class FaultPolicy(ChunkPolicy):
     ):
         super().__init__(chunk=chunk, delay=delay)
         self.faults, self.marks = faults, marks
+        self.later: tuple[int, str] | None = None  # (act call, fault) of a "KIND@N"
 
     def reset(self, episodes: Sequence[EpisodeContext]) -> None:
         super().reset(episodes)
+        self.later = None
         self.strike(episodes[0])
+
+    def act(self, observations: Sequence[object]) -> ChunkBatch:
+        if self.later is not None and self.calls + 1 == self.later[0]:
+            suffer(self.later[1])
+        return super().act(observations)
 
     def strike(self, ep: EpisodeContext) -> None:
         """Suffer the fault set for `ep`, if any (and not already suffered, for KIND:once)."""
         kind = self.faults.get(f"{ep.task}/{ep.episode_index}", self.faults.get(ep.episode_index))
         if kind is None:
+            return
+        kind, at, call = kind.partition("@")
+        if at:
+            self.later = (int(call), kind)
             return
         kind, _, once = kind.partition(":")
         if once:
@@ -275,11 +287,18 @@ class FakeBuild:
     succeed_at: int | None = 5
     delay: float = 0.0  # seconds per policy call
     batch: bool = False  # a policy that declares act_batch (BatchFaultPolicy)
+    max_steps: int = 20
 
     def __call__(self) -> ResolvedRun:
         kind = BatchFaultPolicy if self.batch else FaultPolicy
         policy = kind(dict(self.faults), self.marks, delay=self.delay)
-        return fake_resolved(policy, episodes=self.episodes, tasks=self.tasks, succeed_at=self.succeed_at)
+        return fake_resolved(
+            policy,
+            episodes=self.episodes,
+            tasks=self.tasks,
+            succeed_at=self.succeed_at,
+            max_steps=self.max_steps,
+        )
 
 
 def run_one(

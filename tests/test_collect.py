@@ -102,14 +102,14 @@ def test_collect_on_two_workers_writes_the_folder_one_worker_writes(cli, tmp_pat
 def test_a_collection_worker_refuses_a_checkpoint_swapped_after_the_parent_hashed_it(tmp_path):
     """Workers build their policy from the bytes the parent hashed, as run's workers do:
     a file that changed in between stops the collection instead of mixing two models."""
-    import harness.collect as hc
+    import harness.collect_pool as hc
     from harness.config import CheckpointChanged
 
     swapped = tmp_path / "model.safetensors"
     swapped.write_bytes(b"another model")
     pins = (("bidirectional", str(swapped), "0" * 64),)
     with pytest.raises(CheckpointChanged, match="changed during the run") as refused:
-        hc._worker_job((0, 0, 1), 0.0, None, pins)
+        hc._worker_job(None, (0, 0, 1), 0.0, None, pins)
     assert hc._WORKER_RUN is None  # nothing was built from the swapped file
     # the advice is collect's own: it has no --resume to offer
     assert "collect again" in str(refused.value) and "--resume" not in str(refused.value)

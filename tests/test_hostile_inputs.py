@@ -367,3 +367,32 @@ def test_the_docs_say_openpi_client_needs_typing_extensions():
     text = (Path(__file__).resolve().parent.parent / "docs" / "remote-policies.md").read_text()
     install = next(line for line in text.splitlines() if "pip install" in line and "openpi-client" in line)
     assert "typing_extensions" in install and "does not" in text.split(install)[1][:400]
+
+
+@pytest.mark.parametrize(
+    ("suite", "key"),
+    [
+        ("libero/spatial:perturb=swap,perturb=lan", "perturb"),
+        ("libero/spatial:perturb=swap,perturb=task", "perturb"),
+        ("libero/spatial:obs=state, obs = images", "obs"),
+        ("metaworld/mt10:layouts=upstream,seed=1,seed=2", "seed"),
+        ("simpler/all:obs=images,obs=state", "obs"),
+        ("chains/all:goal_positions=on,goal_positions=off", "goal_positions"),
+    ],
+)
+def test_a_suite_option_given_twice_is_refused_not_read_as_its_last_value(suite, key):
+    from adapters.base import SuiteOptionError
+    from adapters.registry import load_suite
+
+    with pytest.raises(SuiteOptionError, match=f"suite option '{key}' is given twice"):
+        load_suite(suite)
+
+
+def test_the_cli_refuses_a_repeated_suite_option_in_one_line_with_nothing_written(cli, tmp_path):
+    out = tmp_path / "run"
+    code, _, err = cli(
+        "run", "--suite", "metaworld/mt1/reach-v3:layouts=upstream,layouts=fixed", "--policy", "random",
+        "--out", str(out), "--quiet",
+    )  # fmt: skip
+    assert code == 2 and "'layouts' is given twice" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()

@@ -196,6 +196,32 @@ class LatencyBuild:
         return dataclasses.replace(resolved, config=config, suite=suite)
 
 
+@pytest.mark.parametrize(
+    ("given", "recorded", "ms", "fixed_ms"),
+    [
+        ("passes:1000000", "passes:1000000", 1e6, 0.0),
+        ("passes:1e6", "passes:1000000", 1e6, 0.0),
+        ("passes:4.1234567", "passes:4.1234567", 4.1234567, 0.0),
+        ("passes:1e+3+5", "passes:1000+5", 1000.0, 5.0),
+        ("passes:2.5+0.001", "passes:2.5+0.001", 2.5, 0.001),
+        ("passes:1e20", "passes:1e20", 1e20, 0.0),
+    ],
+)
+def test_a_latency_is_recorded_in_a_form_every_later_reading_takes_as_the_same(
+    tmp_path, given, recorded, ms, fixed_ms
+):
+    """The config records the value's text, and the plan, each worker and --resume parse
+    that text again: it must read back as the very numbers the user gave."""
+    from harness.config import build_config
+
+    config = build_config({"suite": "fake", "policy": [{"name": "random"}], "inference_latency": given})
+    assert config.inference_latency == recorded
+    again = parse_latency(config.inference_latency)
+    assert (again.text, again.ms_per_pass, again.fixed_ms) == (recorded, ms, fixed_ms)
+    rows = rows_of(run(LatencyBuild(config.inference_latency)(), tmp_path / "r"))
+    assert set(rows["inference_latency"]) == {recorded}
+
+
 def test_rows_record_the_mode_and_passes_zero_rows_equal_none_rows(tmp_path):
     none = rows_of(run(LatencyBuild("none", "async")(), tmp_path / "a"))
     zero = rows_of(run(LatencyBuild("passes:0", "async")(), tmp_path / "b"))

@@ -53,6 +53,8 @@ PROVIDER = SuiteProvider(
 NOT_A_SPEC = object()
 """
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 
 @pytest.fixture
 def installed_plugin(tmp_path, monkeypatch):
@@ -180,8 +182,47 @@ def test_a_provider_that_raises_is_exit_2_naming_the_plugin(installed_plugin, cl
     code, _, err = cli("run", "--suite", "line/walk", "--policy", "constant", "--out", str(out))
     assert code == 2 and not out.exists()
     assert (
-        "suite 'line/walk': its provider (dvla-line-plugin 0.1) raised RuntimeError: the plugin is broken"
-        in err
+        "suite 'line/walk': its provider (dvla-line-plugin 0.1, entry point 'line' in "
+        "dvla_harness.adapters) raised RuntimeError: the plugin is broken" in err
+    )
+
+
+RAISED = [
+    (
+        "RuntimeError('CUDA error: out of memory\\nCompile with TORCH_USE_CUDA_DSA')",
+        "RuntimeError: CUDA error: out of memory Compile with TORCH_USE_CUDA_DSA",
+    ),
+    ("ImportError('No module named flash_attn')", "ImportError: No module named flash_attn"),
+    ("KeyError('weights')", "KeyError: 'weights'"),
+]
+
+
+@pytest.mark.parametrize(
+    ("where", "raised", "shown"),
+    [
+        *(("build", r, s) for r, s in RAISED),
+        ("build", "ValueError('no such checkpoint')", "ValueError: no such checkpoint"),
+        # a ValueError from check_spaces is the contract's "cannot act in this suite": its own message
+        *(("check_spaces", r, s) for r, s in RAISED),
+    ],
+)
+def test_any_exception_from_a_plugins_build_or_check_is_exit_2_naming_plugin_entry_point_and_exception(
+    installed_plugin, cli, tmp_path, where, raised, shown
+):
+    module = installed_plugin.parent / "dvla_line_plugin.py"
+    init = "    def __init__(self, params): self.params = params\n"
+    if where == "build":
+        hook = f"    def __init__(self, params): raise {raised}\n"
+    else:
+        hook = init + f"    def check_spaces(self, observation_space, action_space): raise {raised}\n"
+    module.write_text(module.read_text().replace(init, hook))
+    out = tmp_path / "r"
+    code, _, err = cli("run", "--suite", "line/walk", "--policy", "constant", "--out", str(out), "--quiet")
+    doing = "building it" if where == "build" else "checking the suite's spaces (check_spaces)"
+    assert code == 2 and not out.exists() and len(err.strip().splitlines()) == 1, err
+    assert (
+        "policy 'constant': its plugin (dvla-line-plugin 0.1, entry point 'constant' in "
+        f"dvla_harness.policies) raised {shown} while {doing}" in err
     )
 
 

@@ -310,3 +310,34 @@ class UnknownAfterReady(ScriptedWorkers):
 def test_the_scheduler_refuses_an_event_kind_it_has_no_case_for(monkeypatch):
     with pytest.raises(HarnessError, match=r"unknown kind 'finished'"):
         run(monkeypatch, stand_ins(1, 2), UnknownAfterReady(), workers=1)
+
+
+def test_timed_out_and_lost_rows_record_what_the_worker_last_said_it_had_done(monkeypatch):
+    from harness.episode.outcome import Progress
+
+    jobs = stand_ins(1, 3)
+    ids = [job_id(j) for j in jobs]
+    far = Progress(
+        steps=12, chunks=3, nfe_total=30, action_tokens_total=96, policy_time_s=0.6, env_time_s=0.2
+    )
+
+    def script(worker_id: str, group: list[JobId], alone: bool) -> list[Say]:
+        if group == [ids[1]]:  # says how far it got at 4 s, then hangs
+            return [
+                (2.0, "stepped", ((ids[1], Progress(steps=4, chunks=1)),)),
+                (4.0, "stepped", ((ids[1], far),)),
+            ]
+        if group == [ids[2]]:  # says how far it got, then its worker is lost
+            return [(1.0, "stepped", ((ids[2], far),)), (3.0, "lost", "killed by SIGKILL")]
+        return runs_each(worker_id, group, alone)
+
+    workers = ScriptedWorkers(script)
+    done = dict(run(monkeypatch, jobs, workers, workers=1, episode_timeout=10, max_retries=0))
+    timed_out, lost = done[ids[1]], done[ids[2]]
+    assert reason(timed_out) == "timeout: ran past --episode-timeout 10 s"
+    assert reason(lost).startswith("worker lost: killed by SIGKILL")
+    for row in (timed_out, lost):
+        assert (row.steps, row.chunks, row.nfe_total, row.action_tokens_total) == (12, 3, 30, 96)
+        assert (row.policy_time_s, row.env_time_s) == (0.6, 0.2)
+    assert timed_out.wall_clock_s == pytest.approx(10.0, abs=0.01)  # from its start to its timeout
+    assert lost.wall_clock_s == pytest.approx(3.0, abs=0.01)

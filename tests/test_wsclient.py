@@ -156,8 +156,9 @@ def test_a_message_over_max_size_is_refused() -> None:
 
 
 @contextmanager
-def raw_server(reply: Callable[[bytes], bytes]) -> Iterator[str]:
-    """A TCP server that reads the handshake and answers whatever `reply` makes of it."""
+def raw_server(reply: Callable[[bytes], bytes], trickle: bytes = b"", gap_s: float = 0.0) -> Iterator[str]:
+    """A TCP server that reads the handshake and answers whatever `reply` makes of it,
+    then sends `trickle` one byte every `gap_s` seconds (until the client hangs up)."""
     listener = socket.create_server(("127.0.0.1", 0))
 
     def run() -> None:
@@ -166,6 +167,12 @@ def raw_server(reply: Callable[[bytes], bytes]) -> Iterator[str]:
         while b"\r\n\r\n" not in request:
             request += conn.recv(4096)
         conn.sendall(reply(request))
+        for byte in trickle:
+            time.sleep(gap_s)
+            try:
+                conn.sendall(bytes([byte]))
+            except OSError:
+                break
         time.sleep(0.5)
         conn.close()
 
@@ -224,3 +231,15 @@ def test_a_server_that_drops_the_socket_without_a_close_frame() -> None:
         ws = WebSocket(url)
         with pytest.raises(ConnectionClosed, match="no close frame"):
             ws.recv(timeout=5)
+
+
+def test_a_reply_trickled_inside_one_frame_still_times_out() -> None:
+    """The deadline bounds the whole reply, not each read: a server that sends one byte
+    of a frame every 0.1 s (each read answered well within the timeout) is cut off."""
+    header = bytes([0x82, 60])  # a final binary frame of 60 bytes: 6 s at this pace
+    with raw_server(lambda request: upgraded(request) + header, trickle=b"x" * 60, gap_s=0.1) as url:
+        ws = WebSocket(url)
+        started = time.monotonic()
+        with pytest.raises(TimeoutError, match=r"no reply within 0\.8 s"):
+            ws.recv(timeout=0.8)
+        assert time.monotonic() - started < 2.0 and ws.closed

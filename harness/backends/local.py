@@ -32,6 +32,9 @@ if TYPE_CHECKING:
 HOST = socket.gethostname()  # the `host` column: where an episode ran
 IN_PROCESS = "main"  # the `worker_id` of episodes run by the process that writes the run
 WARMING = "warming"  # a worker's event: it calls this policy (config id) for its warm-up
+# How often a worker says how far its running episodes have got (at most; a step that
+# takes longer says it when it ends): what a lost or timed-out episode's row records.
+PROGRESS_S = 0.25
 
 
 class EpisodeRunner:
@@ -121,10 +124,10 @@ class Worker:
     A group sent `alone` runs one episode at a time, as without batching: every group
     with --batch-envs 1, and with K > 1 each episode that was in flight when its batch's
     worker was lost or stalled (run alone, a second loss or hang names the episode that
-    causes it); only its ends are sent. Any other group (one task, one policy) runs K at
-    a time, saying when each episode starts (the scheduler re-runs exactly those if the
-    worker is lost) and, with --episode-timeout, that the batch still moves at least
-    every `heartbeat_s` seconds."""
+    causes it); its ends are sent, and how far it has got every PROGRESS_S seconds. Any
+    other group (one task, one policy) runs K at a time, saying when each episode starts
+    (the scheduler re-runs exactly those if the worker is lost) and that the batch still
+    moves (with --episode-timeout at least every `heartbeat_s` seconds)."""
 
     def __init__(
         self,
@@ -154,20 +157,25 @@ class Worker:
             yield WARMING, p.config_id
 
     def run(self, group: Sequence[JobId], alone: bool) -> Iterator[tuple[str, Any]]:
-        """Yields ("started", id), ("stepped", None) and ("done", (id, outcome))."""
+        """Yields ("started", id), ("stepped", ((id, Progress), ...)) and ("done", (id,
+        outcome)). "stepped" goes out at most every PROGRESS_S seconds (a batch with
+        --episode-timeout: every `heartbeat_s`), saying how far each running episode has
+        got: the scheduler writes it into the row of an episode whose worker is lost or
+        runs past its time."""
         jobs = [self.jobs[key] for key in group]
         said = time.monotonic()
-        steps = not alone and self.heartbeat_s is not None
-        for kind, payload in self.runner.loop.events(self.runner.episodes(jobs), alone, steps):
+        every = PROGRESS_S if alone or self.heartbeat_s is None else min(PROGRESS_S, self.heartbeat_s)
+        for kind, payload in self.runner.loop.events(self.runner.episodes(jobs), alone, steps=True):
             if kind is EpisodeEvent.DONE:
                 index, outcome = payload
                 payload = (group[index], outcome)
-            elif alone or (
-                kind is EpisodeEvent.STEPPED
-                and (self.heartbeat_s is None or time.monotonic() - said < self.heartbeat_s)
-            ):
-                continue
-            elif kind is EpisodeEvent.STARTED:
+            elif kind is EpisodeEvent.STEPPED:
+                if time.monotonic() - said < every:
+                    continue
+                payload = tuple((group[index], progress) for index, progress in payload)
+            elif alone:
+                continue  # an episode sent alone is known to start
+            else:
                 payload = group[payload]
             said = time.monotonic()
             yield kind.value, payload

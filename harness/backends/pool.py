@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import os
 import signal
 from multiprocessing import connection, get_context
 from typing import Any
@@ -44,18 +45,21 @@ def lost_reason(exitcode: int | None) -> str:
     return f"exited with status {exitcode}"
 
 
-def _die_with_parent() -> None:
+def die_with_parent(parent: int | None = None) -> None:
     """Linux: the kernel sends SIGKILL to this worker if the parent dies (a SIGKILLed
-    parent cannot stop its workers itself; --resume re-runs what they held)."""
+    parent cannot stop its workers itself; --resume re-runs what they held). `parent`:
+    the parent's pid, to catch a parent that died before this call took effect."""
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if parent is not None and os.getppid() != parent:
+        os._exit(1)
 
 
 def worker_main(conn: Any, worker_id: str, spec: WorkerSpec) -> None:
     """A worker's life: start (harness/backends/local.py `start_worker`), warm up, say
     ready, run groups of episodes until told to stop, sending each event as it happens (a
     finished episode's row is written by the parent while the rest of its batch runs)."""
-    _die_with_parent()
+    die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the parent, which stops us
     try:
         worker, record = start_worker(spec, worker_id)

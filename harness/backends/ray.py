@@ -212,7 +212,7 @@ def _one_line(text: str) -> str:
 
 class EpisodeActor:
     """A Ray worker: the run rebuilt once, then one episode per `run` call, or a batch of
-    a task's episodes per `run_batch` call, whose events stream back as they happen."""
+    a task's episodes per `run_batch` call; both stream their events back as they happen."""
 
     def __init__(self, worker_id: str, spec: WorkerSpec):
         from harness.backends.local import start_worker
@@ -233,9 +233,10 @@ class EpisodeActor:
         yield from self.worker.warming()
         yield "ready", self.record | {"warm_up": self.worker.warm_up}
 
-    def run(self, jid: JobId) -> tuple[str, Any]:
-        (event,) = self.worker.run([jid], alone=True)
-        return event
+    def run(self, jid: JobId) -> Iterator[tuple[str, Any]]:
+        """A Ray streaming generator, as run_batch: how far the episode has got (every
+        PROGRESS_S, for its row should the actor die), then its end."""
+        yield from self.worker.run([jid], alone=True)
 
     def run_batch(self, group: list[JobId]) -> Iterator[tuple[str, Any]]:
         """A Ray streaming generator: each event reaches the scheduler as it is yielded."""
@@ -294,7 +295,7 @@ class RayWorkers:
         actor = self.actors[slot]
         if alone:
             for jid in group:
-                self.refs[actor.run.remote(jid)] = (slot, actor)
+                self.refs[self._stream(actor.run, jid)] = (slot, actor)
         else:
             self.refs[self._stream(actor.run_batch, group)] = (slot, actor)
 

@@ -8,6 +8,9 @@ Unbatched, a worker holds one episode at a time; what it held when it was lost (
 segfault, the kernel's out-of-memory killer, an exit) is run again on a fresh worker, up
 to `max_retries` times, then recorded as a failure row saying why. An episode past
 `episode_timeout` is a failure row with reason `timeout: ...` and its worker is replaced.
+Such a row records what the episode had done as its worker last said (a worker reports
+its running episodes' steps, chunks, NFE and times every quarter second) and the wall
+clock it held the worker, not zeros.
 A worker's warm-up (each policy's first calls, before it reports ready) is held to the
 same limit, policy by policy: past it the worker is replaced and the next episode of the
 policy it was calling gets the `timeout` row (`warm_up_victim`), so a policy that hangs on
@@ -72,7 +75,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from harness.backends.jobs import EpisodeJob, JobId, job_id
 from harness.episode.loop import EpisodeEvent
-from harness.episode.outcome import EpisodeOutcome, failure_outcome
+from harness.episode.outcome import EpisodeOutcome, Progress, failure_outcome
 from harness.errors import HarnessError
 
 if TYPE_CHECKING:
@@ -88,7 +91,7 @@ class EventKind(Enum):
     READY = "ready"  # the worker's record (host, pid, threads, warm-up)
     # what the episode loop says (harness/episode/loop.py EpisodeEvent), forwarded by a worker:
     STARTED = EpisodeEvent.STARTED.value  # the JobId of an episode its batch started (batched only)
-    STEPPED = EpisodeEvent.STEPPED.value  # None: its batch still moves
+    STEPPED = EpisodeEvent.STEPPED.value  # ((JobId, Progress), ...): its episodes still move, this far
     DONE = EpisodeEvent.DONE.value  # (JobId, outcome)
     LOST = "lost"  # why the worker is gone
     ERROR = "error"  # why it could not start
@@ -151,6 +154,7 @@ class Slot:
     unit: deque[JobId] = field(default_factory=deque)  # the task's episodes not yet sent
     solo: deque[JobId] = field(default_factory=deque)  # to run alone next (lost in a batch)
     held: dict[JobId, tuple[float, datetime]] = field(default_factory=dict)  # started, not back
+    progress: dict[JobId, Progress] = field(default_factory=dict)  # how far held ones got, as last said
     queued: list[JobId] = field(default_factory=list)  # sent in a batch, not started
     heard: float = 0.0  # monotonic time the worker last said something
     warming: str | None = None  # the policy (config id) a WARMING worker calls
@@ -176,7 +180,7 @@ class Slot:
         """Its worker is gone (lost, or killed past its deadline) and what it held was
         dealt with: rows handed on, or episodes put back to run again."""
         self.state, self.warming = SlotState.STOPPED, None
-        self.held, self.queued = {}, []
+        self.held, self.queued, self.progress = {}, [], {}
 
     def submit(self, group: list[JobId], alone: bool, now: float) -> None:
         self.heard = now
@@ -203,9 +207,16 @@ class Slot:
             self.queued.remove(jid)
             self.held[jid] = (now, datetime.now(UTC))
 
+    def hear_stepped(self, progress: tuple[tuple[JobId, Progress], ...] | None) -> None:
+        """How far its running episodes have got (None from a worker that does not say)."""
+        for jid, done in progress or ():
+            if jid in self.held:
+                self.progress[jid] = done
+
     def hear_done(self, jid: JobId) -> None:
         """Also of an episode it no longer holds (one already timed out or re-run)."""
         self.held.pop(jid, None)
+        self.progress.pop(jid, None)
         if jid in self.queued:
             self.queued.remove(jid)
         if self.state in RUNNING and not self.busy:
@@ -238,9 +249,21 @@ class Slot:
             return self.heard + limit
         return None
 
-    def failure(self, reason: str, started_at: datetime | None) -> EpisodeOutcome:
-        """The row of an episode its worker did not return."""
-        return failure_outcome(reason, started_at, host=self.host, worker_id=self.worker_id)
+    def failure(self, reason: str, jid: JobId | None = None) -> EpisodeOutcome:
+        """The row of an episode its worker did not return: its steps, chunks, NFE and
+        times as the worker last said (at most PROGRESS_S before), its wall clock from
+        its start to now (nothing counted for one that never started: a warm-up's victim)."""
+        if jid is None or jid not in self.held:
+            return failure_outcome(reason, None, host=self.host, worker_id=self.worker_id)
+        started, started_at = self.held[jid]
+        return failure_outcome(
+            reason,
+            started_at,
+            host=self.host,
+            worker_id=self.worker_id,
+            progress=self.progress.get(jid),
+            wall_clock_s=time.monotonic() - started,
+        )
 
 
 def units_by_task(jobs: list[EpisodeJob], workers: int = 1) -> deque[deque[JobId]]:
@@ -365,7 +388,7 @@ class Scheduler:
             case EventKind.STARTED:
                 self.started(event.slot, event.payload)
             case EventKind.STEPPED:
-                self.stepped(event.slot)
+                self.stepped(event.slot, event.payload)
             case EventKind.DONE:
                 self.done(event.slot, event.payload)
             case EventKind.LOST:
@@ -387,8 +410,10 @@ class Scheduler:
         slot = self.slots[i]
         slot.hear_started(jid, slot.heard)
 
-    def stepped(self, i: int) -> None:
-        """Nothing more: a batch that still moves was heard (`hear`), so its deadline moved."""
+    def stepped(self, i: int, progress: tuple[tuple[JobId, Progress], ...] | None) -> None:
+        """A batch that still moves was heard (`hear`), so its deadline moved; and how far
+        the slot's episodes have got is kept for their rows, should the worker be lost."""
+        self.slots[i].hear_stepped(progress)
 
     def done(self, i: int, payload: tuple[JobId, EpisodeOutcome]) -> None:
         jid, outcome = payload
@@ -416,11 +441,11 @@ class Scheduler:
     def retry(self, slot: Slot, why: str) -> None:
         """The episode a worker held alone when it was lost: a try counted against it;
         the same slot runs it again first, or past max_retries it is a failure row."""
-        for jid, (_, started_at) in slot.held.items():
+        for jid in slot.held:
             self.attempts[jid] += 1
             if self.attempts[jid] > self.execution.max_retries:
                 reason = f"worker lost: {why} (tried {self.attempts[jid]} times)"
-                self.hand_on(jid, slot.failure(reason, started_at))
+                self.hand_on(jid, slot.failure(reason, jid))
             else:
                 slot.solo.appendleft(jid)
 
@@ -440,11 +465,11 @@ class Scheduler:
             jid = warm_up_victim(slot, self.units, str(slot.warming))
             if jid is not None:
                 reason = f"timeout: its policy's warm-up call ran past --episode-timeout {self.limit:g} s"
-                self.hand_on(jid, slot.failure(reason, None))
+                self.hand_on(jid, slot.failure(reason))
         elif slot.state is SlotState.RUNNING_ALONE:
-            for jid, (_, started_at) in slot.held.items():
+            for jid in slot.held:
                 reason = f"timeout: ran past --episode-timeout {self.limit:g} s"
-                self.hand_on(jid, slot.failure(reason, started_at))
+                self.hand_on(jid, slot.failure(reason, jid))
         else:  # a stalled batch
             slot.give_back(self.execution.batch_envs)
 

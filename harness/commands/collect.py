@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import signal
 from pathlib import Path
 from typing import Any
 
 from rich.table import Table
 
-from harness.console import console, episode_progress
+from harness.console import console, episode_progress, err_console, raise_interrupt
+from harness.errors import EXIT_INTERRUPTED
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -68,6 +70,22 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_collect(args: argparse.Namespace) -> int:
+    """Ctrl-C or SIGTERM (as CI cancels a job) at any point: the workers are stopped, one
+    line, exit 130; nothing is written (the folder is written once, at the end)."""
+    signal.signal(signal.SIGTERM, raise_interrupt)
+    try:
+        return _collect(args)
+    except KeyboardInterrupt:
+        err_console.print(
+            f"interrupted; nothing was written to {args.out} (collect writes its folder once, at the "
+            "end): run the same command again",
+            soft_wrap=True,
+            highlight=False,
+        )
+        return EXIT_INTERRUPTED
+
+
+def _collect(args: argparse.Namespace) -> int:
     from harness.collect import collect
     from harness.config import build_config, parse_policy_arg, resolve
 

@@ -234,6 +234,7 @@ def _replay_cell(r: ReplaySpeed | None, is_reference: bool) -> str:
 def cmd_gate(args: argparse.Namespace) -> int:
     from harness.console import console, err_console
     from results.gate import GateInputError, gate_runs
+    from results.gate_inputs import check_gate_inputs
     from results.replay import ReplayFileError
     from results.runs import load_run
     from results.store import ResultsFileError
@@ -246,6 +247,7 @@ def cmd_gate(args: argparse.Namespace) -> int:
     for side in ("baseline", "candidate"):
         try:
             runs[side] = load_run(getattr(args, side))
+            check_gate_inputs(runs[side].episodes, getattr(args, side))  # a NaN success, a negative NFE
         except ResultsFileError as exc:
             raise UsageError(f"--{side}: {exc}") from None
     try:

@@ -69,6 +69,24 @@ def _number(text: str, what: str, mode: str) -> float:
     return value
 
 
+def _shown(value: float) -> str:
+    """A milliseconds value as the recorded text: the shortest form that reads back as the
+    same float (Python's repr), integral values without a fraction (`1000000`, not
+    `1e+06`) and exponents without a '+' (which separates FIXED_MS): the text a run
+    records is parsed again by every process and resume, so it must mean the same."""
+    if value == int(value) and abs(value) < 1e16:
+        return str(int(value))
+    return repr(value).replace("e+", "e")
+
+
+def _split_fixed(rest: str) -> tuple[str, str, str]:
+    """`MS+FIXED_MS` at its '+', one not part of an exponent (`1e+3+5` is 1e+3 and 5)."""
+    for i, c in enumerate(rest):
+        if c == "+" and i > 0 and rest[i - 1] not in "eE":
+            return rest[:i], "+", rest[i + 1 :]
+    return rest, "", ""
+
+
 def parse_latency(mode: Any) -> LatencyMode:
     """A --inference-latency value checked, or a UsageError naming the valid modes."""
     if not isinstance(mode, str):
@@ -77,10 +95,10 @@ def parse_latency(mode: Any) -> LatencyMode:
     if kind in ("none", "measured") and not colon:
         return LatencyMode(text=kind, kind=kind)
     if kind == "passes" and colon:
-        per_pass, plus, fixed = rest.partition("+")
+        per_pass, plus, fixed = _split_fixed(rest)
         ms = _number(per_pass, "MS (milliseconds per forward pass)", mode)
         fixed_ms = _number(fixed, "FIXED_MS", mode) if plus else 0.0
-        text = f"passes:{ms:g}" + (f"+{fixed_ms:g}" if plus else "")
+        text = f"passes:{_shown(ms)}" + (f"+{_shown(fixed_ms)}" if plus else "")
         return LatencyMode(text=text, kind="passes", ms_per_pass=ms, fixed_ms=fixed_ms)
     if kind == "profile" and colon:
         profiles = load_profiles()

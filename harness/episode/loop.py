@@ -68,7 +68,7 @@ class EpisodeEvent(Enum):
     """What `EpisodeLoop.events` yields, with its payload (the values cross process pipes)."""
 
     STARTED = "started"  # the position of an episode about to start
-    STEPPED = "stepped"  # None: a lockstep step ended
+    STEPPED = "stepped"  # ((position, Progress), ...) of the running episodes: a lockstep step ended
     DONE = "done"  # (position, EpisodeOutcome): an episode ended
 
 
@@ -165,9 +165,10 @@ class EpisodeLoop:
         """Run every episode of `episodes` (in order; batched, all of one task and one
         policy) through plan.batch_envs slots, or one slot when `alone`. Yields
         (STARTED, position) before an episode's env is taken, (DONE, (position, outcome))
-        as each episode ends, exactly once, and with `steps` (STEPPED, None) after each
-        lockstep step (a batched worker's sign of life). The consumer's time between
-        events is charged to no episode."""
+        as each episode ends, exactly once, and with `steps` (STEPPED, progress) after each
+        lockstep step, progress being each running episode's (position, Progress): a
+        worker's sign of life, and what a lost or timed-out episode had done. The
+        consumer's time between events is charged to no episode."""
         k = 1 if alone else self.plan.batch_envs
         queue = deque(enumerate(episodes))
         running: dict[int, Slot] = {}
@@ -196,7 +197,7 @@ class EpisodeLoop:
                     for slot in order:
                         slot.overhead_s += overhead
                     if steps:
-                        yield EpisodeEvent.STEPPED, None
+                        yield EpisodeEvent.STEPPED, tuple((slot.index, slot.out.progress()) for slot in order)
                 ended = [i for i in sorted(running) if running[i].done]
                 for i in ended:  # every ended episode's row before any slot starts another
                     yield EpisodeEvent.DONE, self._end(running.pop(i), kept, i)

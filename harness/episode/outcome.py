@@ -60,6 +60,17 @@ class EpisodeOutcome:
     # (served policies, GPU policies).
     policy_cpu_time_s: float | None = None
 
+    def progress(self) -> Progress:
+        """How far it has got (a worker reports it while the episode runs)."""
+        return Progress(
+            self.steps,
+            self.chunks,
+            self.nfe_total,
+            self.action_tokens_total,
+            self.policy_time_s,
+            self.env_time_s,
+        )
+
     def fail(self, exc: BaseException, trace: str | None = None) -> None:
         """End the episode on `exc`: its failure row's reason (the traceback goes to the
         run's events.jsonl)."""
@@ -68,16 +79,37 @@ class EpisodeOutcome:
         self.success = False
 
 
+@dataclass(frozen=True)
+class Progress:
+    """What a running episode has done so far: the counts and times its row would have."""
+
+    steps: int = 0
+    chunks: int = 0
+    nfe_total: int | None = 0
+    action_tokens_total: int = 0
+    policy_time_s: float = 0.0
+    env_time_s: float = 0.0
+
+
 def failure_outcome(
     reason: str,
     started_at: datetime | None = None,
     host: str = "",
     worker_id: str = "",
+    progress: Progress | None = None,
+    wall_clock_s: float = 0.0,
 ) -> EpisodeOutcome:
     """The outcome of an episode that did not run to an end (its worker was lost, it ran
-    past its time): nothing counted, a reason."""
+    past its time): a reason, and what it had done as its worker last reported it
+    (`progress`; none: nothing counted) over the `wall_clock_s` it held the worker."""
+    done = dataclasses.asdict(progress or Progress())
     return EpisodeOutcome(
-        started_at=started_at or datetime.now(UTC), failure_reason=reason, host=host, worker_id=worker_id
+        started_at=started_at or datetime.now(UTC),
+        failure_reason=reason,
+        host=host,
+        worker_id=worker_id,
+        wall_clock_s=wall_clock_s,
+        **done,
     )
 
 

@@ -11,13 +11,16 @@ session adds (warm-up, execution, a worker), and at the end. Rows and traces go 
 results/store.py's `RunDir`: appended and flushed as each episode ends, compacted into
 episodes.parquet at the end with the run's speed verdict already in every row.
 
-A failed write is a `HarnessError` (exit 3) naming the folder, what was being written
-and, for a full disk, the free space; rows recorded before it are kept and --resume
-continues.
+A failed write, any of them (the manifest's session records and the event log at the
+start included), is a `HarnessError` (exit 3) naming the folder, what was being written
+and, for a full disk, the free space; the manifest then says `failed` (written over its
+own bytes when the disk has no room for the atomic write's second copy), rows recorded
+before it are kept and --resume continues.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import os
@@ -31,15 +34,15 @@ from typing import Any
 import pandas as pd
 
 from harness.backends.jobs import EpisodeJob, job_key, normalised_key
-from harness.config import ResolvedRun, build_config
+from harness.config import ResolvedRun
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.run.manifest import build_manifest, now, record_end_calibration
+from harness.run.recorded import fingerprint_of, recorded_disagreements
 from harness.run.resume import (
     adopt_moved_checkpoints,
     adopt_recorded_params,
     changed_checkpoints,
     config_changes,
-    config_data,
     run_again,
 )
 from results.lock import RunLock, RunLockedError
@@ -167,6 +170,7 @@ class RunFolder:
         self.mode = mode
         self.suite = ""  # the resolved suite's name (an episode key's first field), set by open
         self.counts = Counts()
+        self.written = False  # whether this session wrote the manifest (it then says how the run ended)
 
     @property
     def path(self) -> Path:
@@ -186,12 +190,14 @@ class RunFolder:
     @classmethod
     def open(cls, out: Path, mode: OpenMode, resolved: ResolvedRun, traces: bool = False) -> RunFolder:
         """Check, lock and create or continue the folder; nothing is written before every
-        check has passed. The lock is released if opening fails."""
+        check has passed. The lock is released if opening fails, and a manifest already
+        written (status running) then says `failed`."""
         _check_path(out, mode)
         run_dir, lock = RunDir(out), RunLock(out)
         existed = out.is_dir()
         if existed:
             acquire(lock)  # a folder another process writes is refused, naming it
+        folder = cls(run_dir, lock, {}, pd.DataFrame(), mode)
         try:
             _check_contents(run_dir, mode)
             if not existed:
@@ -202,27 +208,23 @@ class RunFolder:
                 acquire(lock)
                 _check_contents(run_dir, mode)  # another process may have written it meanwhile
             if mode.resumes:
-                folder = cls._resumed(run_dir, lock, resolved, mode, traces)
+                folder._resume(resolved, traces)
             else:
-                folder = cls._started(run_dir, lock, resolved, mode, traces)
+                folder._start(resolved, mode, traces)
         except OSError as exc:
+            failure = io_error(out, "opening the run folder", exc)
+            folder.fail_quietly(str(failure))
             lock.release()
-            raise io_error(out, "opening the run folder", exc) from None
-        except BaseException:
+            raise failure from None
+        except BaseException as exc:
+            folder.fail_quietly(f"{type(exc).__name__}: {exc}")
             lock.release()
             raise
         folder.suite = resolved.suite.name
         return folder
 
-    @classmethod
-    def _resumed(
-        cls,
-        run_dir: RunDir,
-        lock: RunLock,
-        resolved: ResolvedRun,
-        mode: OpenMode,
-        traces: bool,
-    ) -> RunFolder:
+    def _resume(self, resolved: ResolvedRun, traces: bool) -> None:
+        run_dir = self.run_dir
         out = run_dir.path
         try:
             manifest = run_dir.read_manifest(required=RESUME_FIELDS)
@@ -250,54 +252,49 @@ class RunFolder:
                 f"--resume: {'; '.join(changed)}; the run's rows came from the old file, so "
                 "restore it, or use another --out"
             )
-        folder = cls(run_dir, lock, manifest, recorded, mode)
-        folder._take_over()
+        disagreements = recorded_disagreements(manifest, recorded, resolved)
+        if disagreements:
+            raise UsageError(
+                f"--resume: {str(out)!r}: its manifest.json disagrees with the rows it holds "
+                f"({'; '.join(disagreements)}); was it edited by hand? Restore it, or use another --out"
+            )
+        self.manifest, self.recorded = manifest, recorded
+        self._take_over()
         manifest["resumed_at"].append(now())
         manifest["status"] = "running"
         if traces:
             manifest["traces"] = True
         if extended is not None:
-            folder._extend(extended)
-        folder.write_manifest()
-        run_dir.log_event("run_resumed", recorded=len(recorded))
+            self._extend(extended)
+        self.write_manifest()
+        self.log("run_resumed", recorded=len(recorded))
         for notice in notices:
             _say(notice)
-            run_dir.log_event("policy_params_matched_at_defaults", notice=notice)
+            self.log("policy_params_matched_at_defaults", notice=notice)
         for notice in moved:
             _say(notice)
-            run_dir.log_event("checkpoint_matched_at_another_path", notice=notice)
-        return folder
+            self.log("checkpoint_matched_at_another_path", notice=notice)
 
-    @classmethod
-    def _started(
-        cls,
-        run_dir: RunDir,
-        lock: RunLock,
-        resolved: ResolvedRun,
-        mode: OpenMode,
-        traces: bool,
-    ) -> RunFolder:
-        folder = cls(run_dir, lock, {}, pd.DataFrame(), mode)
-        folder._take_over()
+    def _start(self, resolved: ResolvedRun, mode: OpenMode, traces: bool) -> None:
+        run_dir = self.run_dir
+        self._take_over()
         if mode is OpenMode.OVERWRITE and not run_dir.is_empty():
             run_dir.remove_recorded()  # only what the harness wrote: _check_contents refused others
         run_id = datetime.now(UTC).strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6]
         run_dir.create()
-        folder.manifest = build_manifest(resolved, run_id) | ({"traces": True} if traces else {})
-        folder.write_manifest()
-        run_dir.log_event("run_started", run_id=run_id)
-        return folder
+        self.manifest = build_manifest(resolved, run_id) | ({"traces": True} if traces else {})
+        self.write_manifest()
+        self.log("run_started", run_id=run_id)
 
     def _extend(self, counts: tuple[int | None, int | None]) -> None:
         """Record that a resumed run now covers more episodes per task (harness/run/resume.py
         says why that is safe): the manifest's config says the new count, and the change is kept."""
         before, after = counts
         manifest = self.manifest
-        config = build_config(config_data(manifest["config"]))
         manifest["config"]["episodes_per_task"] = after
-        manifest["config_fingerprint"] = dataclasses.replace(config, episodes_per_task=after).fingerprint()
+        manifest["config_fingerprint"] = fingerprint_of(manifest["config"])
         manifest.setdefault("extended", []).append({"at": now(), "episodes_per_task": [before, after]})
-        self.run_dir.log_event("run_extended", episodes_per_task=[before, after])
+        self.log("run_extended", episodes_per_task=[before, after])
         shown = "the whole protocol" if after is None else f"{after} episodes per task"
         _say(
             f"--resume: extending the run from {before} to {shown}; the recorded episodes are kept "
@@ -331,7 +328,19 @@ class RunFolder:
         return [job for job in jobs if job_key(self.suite, job) not in done]
 
     def write_manifest(self) -> None:
-        self.run_dir.write_manifest(self.manifest)
+        """The manifest, whole and atomically; a failed write is one line and exit 3."""
+        try:
+            self.run_dir.write_manifest(self.manifest)
+        except OSError as exc:
+            raise io_error(self.path, "writing manifest.json", exc) from None
+        self.written = True
+
+    def log(self, event: str, **fields: Any) -> None:
+        """One event in events.jsonl; a failed write is one line and exit 3, as any other."""
+        try:
+            self.run_dir.log_event(event, **fields)
+        except OSError as exc:
+            raise io_error(self.path, f"writing events.jsonl ({event})", exc) from None
 
     def record_warm_up(self, record: dict[str, Any] | None) -> None:
         """This session's warm-up, appended to the manifest's `warm_up` list (a resumed run
@@ -350,7 +359,7 @@ class RunFolder:
         """A worker that reported ready: its host, pid, threads and warm-up."""
         self.manifest["execution"][-1]["worker_threads"].append(record)
         self.write_manifest()
-        self.run_dir.log_event("worker_started", **record)
+        self.log("worker_started", **record)
 
     def append(
         self, row: dict[str, Any], traces: list[dict[str, Any]], failure: dict[str, Any] | None
@@ -393,9 +402,9 @@ class RunFolder:
             stopped, status = True, "interrupted"
         self.manifest.update(status=status, finished_at=now())
         try:
-            self.write_manifest()
-        except OSError as exc:
-            failure = failure or io_error(self.path, "writing manifest.json", exc)
+            self._write_end()
+        except HarnessError as exc:
+            failure = failure or exc
         except KeyboardInterrupt:
             raise self._stopped() from None
         try:
@@ -407,6 +416,35 @@ class RunFolder:
             raise failure
         if stopped:
             raise self._stopped()
+
+    def _write_end(self) -> None:
+        """The manifest that says how the run ended. On a full disk the atomic write finds
+        no room for a second copy of the manifest, so the end is written over the file's
+        own blocks (RunDir.overwrite_manifest), which needs none: a run stopped by a full
+        disk says `failed` (and --resume continues it), never a `running` left behind."""
+        try:
+            self.run_dir.write_manifest(self.manifest)
+        except OSError as exc:
+            failure = io_error(self.path, "writing manifest.json", exc)
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT) or not self.run_dir.is_run():
+                raise failure from None
+            try:
+                ending = {k: self.manifest.get(k) for k in ("status", "finished_at")}
+                self.run_dir.overwrite_manifest(self.manifest, ending)
+            except (OSError, ValueError):  # no room even so, or a manifest that is not JSON
+                raise failure from None
+        self.written = True
+
+    def fail_quietly(self, reason: str) -> None:
+        """Mark a manifest this session wrote (status running) `failed`, when opening the
+        folder stopped on an error after writing it: that error is the one reported, so a
+        failure here is let go."""
+        if not self.written or self.manifest.get("status") != "running":
+            return
+        self.manifest.update(status="failed", finished_at=now())
+        with contextlib.suppress(HarnessError, OSError):
+            self._write_end()
+            self.run_dir.log_event("run_failed", reason=reason)
 
     def _rows(self) -> Any:
         """The run's rows for its speed verdict; None when they cannot be read (the verdict

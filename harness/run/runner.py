@@ -24,7 +24,7 @@ import gymnasium as gym
 
 from harness.backends import Execution, Sink, execute
 from harness.backends.jobs import EpisodeJob, plan_jobs
-from harness.config import ResolvedRun
+from harness.config import ResolvedRun, policy_error
 from harness.episode.outcome import EpisodeOutcome
 from harness.episode.plan import ExecutionPlan
 from harness.episode.timed import BoundedCalls, CallTimedOut
@@ -73,6 +73,9 @@ def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob], bounded: BoundedCal
             raise UsageError(
                 f"policy {p.spec.name} cannot act in {resolved.suite.name} (task {jobs[0].task.name}): {exc}"
             ) from None
+        except Exception as exc:  # a plugin's check that raised: its fault, exit 2 (a built-in's: a bug)
+            env.close()
+            raise policy_error(p.spec.name, "checking the suite's spaces (check_spaces)", exc) from None
     return {jobs[0].task.name: env}
 
 
