@@ -276,17 +276,20 @@ def print_table(summary: list[dict[str, Any]]) -> None:
 
 
 def refuse_another_cpu() -> None:
-    """The gate compares speed only on the baseline's CPU model (docs/ci-gate.md), so on
+    """The gate compares speed only on the baseline's CPU (docs/ci-gate.md), so on
     another every trial would pass untimed and the rates would mean nothing."""
-    from harness.run.manifest import cpu_model
+    from harness.run.manifest import environment
+    from results.cpu_identity import cpu_difference
 
     manifest = json.loads((ROOT / BASELINE / "manifest.json").read_text())
-    theirs, ours = (manifest.get("environment") or {}).get("cpu"), cpu_model()
-    if theirs and theirs != ours:
+    theirs, ours = manifest.get("environment") or {}, environment()
+    differ = cpu_difference(theirs, ours)
+    if differ:
         raise SystemExit(
-            f"error: this machine's CPU ({ours}) is not the committed baseline's ({theirs}); the gate "
-            "does not compare speed across CPU models, so every trial would pass untimed. Regenerate "
-            "the baseline here first (results/baselines/README.md), and do not commit it"
+            f"error: this machine's CPU ({ours.get('cpu')}) is not the committed baseline's "
+            f"({theirs.get('cpu')}: {differ}); the gate does not compare speed across CPUs, so every "
+            "trial would pass untimed. Regenerate the baseline here first (results/baselines/README.md), "
+            "and do not commit it"
         )
 
 

@@ -55,15 +55,13 @@ def test_it_refuses_a_machine_whose_cpu_is_not_the_baselines(monkeypatch):
     bench = load_benchmark()
     import harness.run.manifest
 
-    recorded = json.loads((ROOT / bench.BASELINE / "manifest.json").read_text())["environment"]["cpu"]
-    monkeypatch.setattr(harness.run.manifest, "cpu_model", lambda: "Some Other CPU")
-    with pytest.raises(
-        SystemExit,
-        match=re.escape(f"this machine's CPU (Some Other CPU) is not the committed baseline's ({recorded})"),
-    ):
+    recorded = json.loads((ROOT / bench.BASELINE / "manifest.json").read_text())["environment"]
+    other = {"cpu": "Some Other CPU", "cpu_identity": {"model_name": "Some Other CPU", "family": 6}}
+    monkeypatch.setattr(harness.run.manifest, "environment", lambda: other)
+    with pytest.raises(SystemExit, match=re.escape("this machine's CPU (Some Other CPU) is not the committed")):
         bench.refuse_another_cpu()
-    monkeypatch.setattr(harness.run.manifest, "cpu_model", lambda: recorded)
-    bench.refuse_another_cpu()  # the same model: no objection
+    monkeypatch.setattr(harness.run.manifest, "environment", lambda: recorded)
+    bench.refuse_another_cpu()  # the same CPU: no objection
 
 
 def test_unknown_conditions_and_candidates_are_refused():
