@@ -9,10 +9,13 @@ and counts the gate's verdicts:
 - candidates: `unchanged` (this tree); `slow15` (`fast_dvla` that spins, on the CPU, for
   a fixed fraction of every forward pass: NFE and counted work unchanged, only time);
   `morework` (`fast_dvla` that decodes every observation twice in one batch and keeps
-  one copy: the same actions and NFE, twice the counted work per pass). The two test
-  policies live here, not in the product: the child process that runs the CLI swaps
-  them in for the shipped `fast_dvla` (same name, params and checkpoint), so the gate
-  pairs them with the baseline's `fast_dvla` exactly as it would a changed decoder;
+  one copy: the same actions and NFE, twice the counted work per pass); `rawmatmul`
+  (`fast_dvla`'s decoder running a `torch.matmul` on bare tensors after every forward
+  pass, outside any module: about 16% more FLOPs per pass that the module hooks do not
+  see, the same actions and NFE). The test policies live here, not in the product: the
+  child process that runs the CLI swaps them in for the shipped `fast_dvla` (same name,
+  params and checkpoint), so the gate pairs them with the baseline's `fast_dvla`
+  exactly as it would a changed decoder;
 - conditions: `idle`; `busy2` (two `python -c 'while True: pass'` beside it, both cores
   taken); `tests` (the test suite running beside it, restarted when it ends). Every
   load is started and killed here, also on Ctrl-C.
@@ -58,7 +61,7 @@ CI_COMMANDS: tuple[tuple[str, ...], ...] = (
     ("bench", "{out}", "--observations", BASELINE, "--quiet"),
     ("gate", "--baseline", BASELINE, "--candidate", "{out}", "--max-slowdown", "0.10"),
 )
-CANDIDATES = ("unchanged", "slow15", "morework")
+CANDIDATES = ("unchanged", "slow15", "morework", "rawmatmul")
 CONDITIONS = ("idle", "busy2", "tests")
 BUSY_LOOP = "while True: pass"
 
@@ -116,6 +119,39 @@ class DoubledBatch:
         return self.act(observations)
 
 
+class ProductAfterEachPass:
+    """A decoder's model with a raw product after every forward pass: `torch.matmul` of a
+    (16, width) by a (width, 6.5 width) tensor, held by no module (about 3.4 MFLOP at the
+    shipped width 128, 16% of a fast_dvla pass's counted FLOPs). The decoder sees the
+    model it had: same outputs, same passes."""
+
+    def __init__(self, model: Any):
+        import torch
+
+        self.model = model
+        width = model.cfg.width
+        self.left, self.right = torch.ones(16, width), torch.ones(width, int(6.5 * width))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.model, name)
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        import torch
+
+        out = self.model(*args, **kwargs)
+        torch.matmul(self.left, self.right)
+        return out
+
+
+def with_raw_product(decode: Any) -> Any:
+    """A decoder (`decode_fast_dvla`) whose step runs ProductAfterEachPass's extra product."""
+
+    def decode_with_product(model: Any, *args: Any, **kwargs: Any) -> Any:
+        return decode(ProductAfterEachPass(model), *args, **kwargs)
+
+    return decode_with_product
+
+
 def install_candidate(candidate: str, slowdown: float) -> None:
     """Swap the test policy in for the shipped `fast_dvla` in this process's registry."""
     import dataclasses
@@ -123,6 +159,11 @@ def install_candidate(candidate: str, slowdown: float) -> None:
     from policies.dvla import policy as dvla
 
     if candidate == "unchanged":
+        return
+    if candidate == "rawmatmul":
+        from policies.dvla import fast_dvla
+
+        fast_dvla.decode_fast_dvla = with_raw_product(fast_dvla.decode_fast_dvla)
         return
     index = next(i for i, spec in enumerate(dvla.SPECS) if spec.name == "fast_dvla")
     shipped_build = dvla.SPECS[index].build

@@ -148,18 +148,28 @@ def machine_notes(manifests: dict[str, dict[str, Any]], speed_across_cpus: bool 
     return []
 
 
-def with_replay(result: GateResult, baseline: Run, candidate: Run, max_slowdown: float) -> GateResult:
+def with_replay(result: GateResult, baseline: Run, candidate: Run, options: dict[str, Any]) -> GateResult:
     """The replay benchmark's verdicts (results/replay.py) when both runs were benched
-    against a comparable reference; the result unchanged otherwise."""
+    against a comparable reference, and the work its decodes counted at the dispatcher
+    whenever both were benched; the result unchanged otherwise. `options`: the gate's
+    max_slowdown, allow_work_increase."""
     from results.replay import (
         load_replay,
         replay_comparable,
         replay_notes,
         replay_verdicts,
         replay_warnings,
+        replay_work,
     )
 
+    max_slowdown = options.get("max_slowdown", 0.10)
+
     benches = [load_replay(run.path) for run in (baseline, candidate)]
+    if None not in benches:  # counted work needs no reference and no CPU in common
+        work, notes = replay_work(
+            result.pairs, benches[0], benches[1], not options.get("allow_work_increase")
+        )
+        result = dataclasses.replace(result, replay_work=tuple(work), notes=(*result.notes, *notes))
     reference = next((p for p in result.pairs if p.label == result.reference), None)
     if reference is None or None in benches:
         if reference is not None and any(benches):

@@ -475,16 +475,6 @@ def test_committed_baseline_is_the_committed_config():
     assert manifest["calibration"]["torch_threads"] == 1 and manifest["speed_reliable"] is True
 
 
-@pytest.fixture
-def one_torch_thread():
-    """The baseline was made with OMP_NUM_THREADS=1; CI machines have more cores."""
-    torch = pytest.importorskip("torch")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_fresh_run_passes_and_degraded_run_fails_against_committed_baseline(cli, tmp_path, one_torch_thread):
     pytest.importorskip("metaworld")
     base = str(BASELINE)
