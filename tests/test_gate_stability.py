@@ -44,6 +44,10 @@ def test_verdicts_are_read_from_the_gate_exit_and_its_warning():
     assert bench.verdict(0, "warning: fast_dvla: replay speed inconclusive") == "inconclusive"
     assert bench.verdict(1, "gate failed:\n  fast_dvla: ...") == "fail"
     assert bench.verdict(2, "error: ...") == "error (exit 2)"
+    wrapped = "note: x\nverdict: fast_dvla: speed pass on the replay, -1.0%; figure\ndoubtful: load\ngate passed: ok"
+    assert bench.verdict_lines(wrapped) == [
+        "verdict: fast_dvla: speed pass on the replay, -1.0%; figure doubtful: load"
+    ]
     assert bench.failing_lines("table\ngate failed:\n  fast_dvla: NFE up") == [
         "gate failed:",
         "fast_dvla: NFE up",
@@ -68,7 +72,7 @@ def test_it_refuses_a_machine_whose_cpu_is_not_the_baselines(monkeypatch):
 
 def test_unknown_conditions_and_candidates_are_refused():
     bench = load_benchmark()
-    with pytest.raises(SystemExit, match="valid: idle, busy2, tests"):
+    with pytest.raises(SystemExit, match="valid: idle, busy2, busy8, tests"):
         bench.choices("idle,noisy", bench.CONDITIONS, "conditions")
 
 
