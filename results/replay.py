@@ -213,6 +213,9 @@ def load_replay(run_path: str | Path) -> dict[str, Any] | None:
     configs = data.get("configurations")
     if not isinstance(configs, list) or not configs:
         raise ReplayFileError(f"{path}: no timed configurations")
+    sequential, cap = data.get("sequential"), data.get("max_rounds")
+    if not (sequential is None or isinstance(sequential, dict)) or not (cap is None or type(cap) is int):
+        raise ReplayFileError(f"{path}: sequential must be an object or null, max_rounds a whole number")
     for entry in configs:
         rounds = entry.get("round_chunk_s") if isinstance(entry, dict) else None
         if (

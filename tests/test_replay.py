@@ -266,6 +266,21 @@ def test_benches_at_different_thread_counts_are_not_compared(cli, tmp_path):
             "round_chunk_s",
         ),
         ("not json", "JSON"),
+        (
+            '{"replay_version": 1, "configurations": [{"policy_config_id": "x", "round_chunk_s": [1, 1], '
+            '"round_cpu_chunk_s": [1]}]}',
+            "round_cpu_chunk_s",
+        ),
+        (
+            '{"replay_version": 1, "configurations": [{"policy_config_id": "x", "round_chunk_s": [1, 1], '
+            '"flops_per_chunk": -5}]}',
+            "flops_per_chunk",
+        ),
+        (
+            '{"replay_version": 1, "sequential": [], "configurations": [{"policy_config_id": "x", '
+            '"round_chunk_s": [1, 1]}]}',
+            "sequential",
+        ),
     ],
 )
 def test_a_broken_replay_file_exits_2_naming_it(cli, tmp_path, text, message):

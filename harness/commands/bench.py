@@ -339,7 +339,7 @@ def _bench(args: argparse.Namespace, run_dir: Any, sources: tuple, own: Path) ->
     return 0
 
 
-def _timed_rounds(args: argparse.Namespace, timed: list, decoded: tuple, rule: Any) -> dict:
+def _timed_rounds(args: argparse.Namespace, timed: list, decoded: tuple, rule: Any) -> Any:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from harness import bench
@@ -411,7 +411,7 @@ def _payload(
             "observation by observation with a rotating start; round_chunk_s = mean seconds of "
             "act per observation in that round (reset untimed); one untimed warm-up pass first"
         ),
-        "rounds": args.rounds,
+        "rounds": None,  # the rounds timed, set once they are
         "max_rounds": args.rounds,
         "observations": observations,
         "configurations": configurations,

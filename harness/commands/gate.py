@@ -42,7 +42,8 @@ What fails the gate:
             same run, episode by episode, against the same ratio in the baseline run:
             the machine's speed and load cancel out, its CPU model does not. Where no
             such reference exists (not in both runs, changed, different torch thread
-            counts) or the manifests name different CPU models (unless
+            counts) or the manifests name different CPUs (family, model, stepping,
+            microcode, caches, flags; the model name for older manifests) (unless
             --speed-across-cpus), the table says "not comparable" with the reason, and
             speed does not fail the gate.
   replay    when both runs were benched (`dvla-harness bench`, replay.json), speed is
@@ -121,8 +122,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--speed-across-cpus",
         action="store_true",
-        help="judge speed even when the runs' manifests name different CPU models (by default "
-        "not comparable: the CPU model alone moves a decoder's speed over its reference)",
+        help="judge speed even when the runs' manifests name different CPUs (by default not "
+        "comparable: the CPU alone moves a decoder's speed over its reference)",
     )
     p.add_argument(
         "--inconclusive",
