@@ -214,6 +214,58 @@ def episode_contexts(resolved: ResolvedRun, recorded: Recorded) -> list[EpisodeC
     return out
 
 
+def portable_params(p: Any) -> dict[str, Any]:
+    """The configuration's parameters with a shipped checkpoint by its set name: a bench of
+    a committed baseline then records no folder of the machine it ran on (the figures pair
+    by policy_config_id, so nothing reads this path back)."""
+    from policies.registry import portable_checkpoint
+
+    params = json.loads(p.params_json)
+    if isinstance(params.get("checkpoint"), str):
+        params["checkpoint"] = portable_checkpoint(p.spec, params["checkpoint"])
+    return params
+
+
+def stopping_rule(
+    baseline: dict[str, Any] | None,
+    timed: Sequence[PolicyRun],
+    reference: str,
+    limits: tuple[float, int, int],
+) -> Any:
+    """The sequential rule (results/replay_stop.py) against the baseline bench (its
+    replay.json), with `limits` = (max_slowdown, min_rounds, cap), or None
+    (all `cap` rounds) when there is nothing to judge against: no baseline bench, another
+    torch thread count, no reference on both sides, no configuration paired."""
+    from harness.threads import threads_record
+    from results.replay_stop import JudgedPair, StoppingRule
+
+    max_slowdown, min_rounds, cap = limits
+    if baseline is None or baseline.get("torch_threads") != threads_record().get("torch_intra_op"):
+        return None
+    configs = baseline["configurations"]
+    mine = [p for p in timed if reference in (p.spec.name, p.config_id)]
+    theirs = [c for c in configs if reference in (c["policy"], c["policy_config_id"])]
+    if len(mine) != 1 or len(theirs) != 1:
+        return None
+    pairs = []
+    for p in timed:
+        same = [c for c in configs if c["policy"] == p.spec.name and c is not theirs[0]]
+        exact = [c for c in same if c.get("policy_params") == portable_params(p)]
+        found = exact if len(exact) == 1 else same if len(same) == 1 else []
+        if p is not mine[0] and found:
+            pairs.append(JudgedPair(p.spec.name, p.config_id, found[0]["policy_config_id"]))
+    if not pairs:
+        return None
+    return StoppingRule(
+        {c["policy_config_id"]: c["round_chunk_s"] for c in configs},
+        tuple(pairs),
+        JudgedPair(mine[0].spec.name, mine[0].config_id, theirs[0]["policy_config_id"]),
+        max_slowdown,
+        min_rounds,
+        cap,
+    )
+
+
 # ---- timing -----------------------------------------------------------------------------
 
 
@@ -224,24 +276,47 @@ class Decodes:
     action_tokens: int
     nfe: int | None
     error: str | None = None
+    # FLOPs of every torch product, counted at the dispatcher (harness/episode/op_work.py),
+    # and of the counted modules' products, by the NFE counter's hooks (None: not measured)
+    flops: int | None = None
+    module_flops: int | None = None
 
 
 def warm_up_pass(policy: Any, contexts: Sequence[EpisodeContext], observations: Sequence[Any]) -> Decodes:
-    """Every observation decoded once, untimed; tokens and forward passes counted."""
+    """Every observation decoded once, untimed; tokens, forward passes and work counted.
+
+    The work is counted twice: at the dispatcher, which sees every torch product wherever
+    the policy's code calls it (the figure the gate compares), and by the module hooks
+    that count the episodes' work, so the bench shows when the two part."""
+    from harness.episode.op_work import op_flops
+
     counter = NFECounter()
-    tokens = 0
+    tokens, flops, ops = 0, 0, 0
     try:
         for context, obs in zip(contexts, observations, strict=True):
             policy.reset([context])
             mine = fresh(obs)
-            with counter.counting():
+            with counter.counting(), op_flops() as counted:
                 tokens += int(policy.act([mine]).action_tokens)
+            flops, ops = flops + counted.flops, ops + counted.ops
     except Exception as exc:  # this configuration is left out of the timing, with the reason
         return Decodes(0, None, f"{type(exc).__name__}: {exc}")
     finally:
         passes = counter.take()
+        module_flops = counter.take_work().flops
         counter.close()
-    return Decodes(tokens, passes)
+    # no torch op at all: the decoder's work is not torch's (a remote server's), not measured
+    return Decodes(tokens, passes, flops=flops if ops else None, module_flops=module_flops if ops else None)
+
+
+@dataclass
+class Rounds:
+    """Each configuration's mean seconds per chunk in each round (by policy_config_id):
+    wall-clock, and the CPU time of the same calls (harness/episode/cpu_time.py's clock;
+    None for a configuration whose CPU time is not its work, a GPU policy)."""
+
+    wall: dict[str, list[float]]
+    cpu: dict[str, list[float] | None]
 
 
 def time_rounds(
@@ -250,14 +325,20 @@ def time_rounds(
     observations: Sequence[Any],
     rounds: int,
     tick: Callable[[], None] | None = None,
-) -> dict[str, list[float]]:
-    """Mean seconds per chunk of each configuration in each round (by policy_config_id)."""
+    stop: Callable[[dict[str, list[float]]], bool] | None = None,
+) -> Rounds:
+    """`rounds` rounds, or fewer when `stop`, asked after each round with the wall-clock
+    figures so far, says the verdict is settled (results/replay_stop.py)."""
+    from harness.episode.cpu_time import cpu_clock
+
     clock = time.perf_counter
-    totals: dict[str, list[float]] = {p.config_id: [] for p in policies}
+    cpu = {p.config_id: cpu_clock(p.policy) for p in policies}
+    out = Rounds({p.config_id: [] for p in policies}, {p.config_id: [] for p in policies})
     pairs = list(zip(contexts, observations, strict=True))
     n = len(policies)
     for r in range(rounds):
-        spent = dict.fromkeys(totals, 0.0)
+        spent = dict.fromkeys(out.wall, 0.0)
+        used = dict.fromkeys(out.wall, 0.0)
         gc.collect()
         gc.disable()
         try:
@@ -266,14 +347,21 @@ def time_rounds(
                 for p in [*policies[shift:], *policies[:shift]]:
                     p.policy.reset([context])
                     mine = fresh(obs)
-                    start = clock()
+                    cpu_clock_of = cpu[p.config_id] or clock
+                    start, start_cpu = clock(), cpu_clock_of()
                     p.policy.act([mine])
                     spent[p.config_id] += clock() - start
+                    used[p.config_id] += cpu_clock_of() - start_cpu
         finally:
             gc.enable()
         for config_id, seconds in spent.items():
-            totals[config_id].append(seconds / len(pairs))
+            out.wall[config_id].append(seconds / len(pairs))
+            out.cpu[config_id].append(used[config_id] / len(pairs))
         if tick:
             tick()
-    out = totals
+        if stop is not None and stop(out.wall):
+            break
+    for config_id, clock_of in cpu.items():
+        if clock_of is None:
+            out.cpu[config_id] = None
     return out

@@ -251,17 +251,20 @@ def gate(
 def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
     """`gate` on two loaded runs: thread counts, CPUs, calibration drift and simulator
     versions from their manifests, and the replay benchmark's figures (replay.json) when
-    both runs have them. Runs from different CPU models have their speed compared only
-    with `speed_across_cpus=True` (success, NFE and counted work always are)."""
+    both runs have them. Runs from different CPUs have their speed compared only with
+    `speed_across_cpus=True` (success, NFE and counted work always are); an inconclusive
+    replay verdict fails the gate with `inconclusive="fail"`."""
     manifests = {"baseline": baseline.manifest, "candidate": candidate.manifest}
     across = bool(options.pop("speed_across_cpus", False))
+    inconclusive = options.pop("inconclusive", "pass")
     skipped = options.pop("speed_skipped", "") or speed_comparable(manifests, across)
     result = gate(baseline.episodes, candidate.episodes, speed_skipped=skipped, **options)
-    warnings = tuple(
+    run_warnings = tuple(
         f"{side} {run.label}: speed figures unreliable: {run.speed_warning}"
         for side, run in (("baseline", baseline), ("candidate", candidate))
         if run.speed_warning
     )
+    warnings = run_warnings
     sizes = {
         side: batch_sizes(run.episodes) for side, run in (("baseline", baseline), ("candidate", candidate))
     }
@@ -280,7 +283,26 @@ def gate_runs(baseline: Run, candidate: Run, **options: Any) -> GateResult:
     elif suspect and not moved:
         notes = (suspect, *notes)
     result = dataclasses.replace(result, notes=notes, warnings=warnings, simulator_suspect=suspect)
-    return with_replay(result, baseline, candidate, options.get("max_slowdown", 0.10))
+    result = dataclasses.replace(result, inconclusive=inconclusive)
+    result = with_replay(result, baseline, candidate, options)
+    return _closed_loop_warnings_as_notes(result, run_warnings)
+
+
+def _closed_loop_warnings_as_notes(result: GateResult, run_warnings: tuple[str, ...]) -> GateResult:
+    """A run's "speed figures unreliable" is about its episodes' timings (the calibration,
+    starved episodes). When the replay judged the speed of every pair that was judged,
+    those figures decided nothing: the warning becomes a note saying so, and the replay
+    verdict's own line says how far its figure can be trusted."""
+    replayed = {r.pair for r in result.replay}
+    if not run_warnings or not replayed or not {s.pair for s in result.speed} <= replayed:
+        return result
+    notes = tuple(
+        f"{w.replace('speed figures unreliable', 'closed-loop speed figures unreliable', 1)}; "
+        "not used for the verdict: the replay judged speed"
+        for w in run_warnings
+    )
+    warnings = tuple(w for w in result.warnings if w not in run_warnings)
+    return dataclasses.replace(result, warnings=warnings, notes=(*result.notes, *notes))
 
 
 def _moves(tasks: list[TaskDiff]) -> str:

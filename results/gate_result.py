@@ -106,6 +106,10 @@ class GateResult:
     # Replay benchmark verdicts (results/replay.py ReplaySpeed), for pairs both runs benched:
     # these, not the closed-loop ratio in `speed`, decide those pairs' speed.
     replay: tuple[Any, ...] = field(default=())
+    # ... and the work their decodes ran, counted at torch's dispatcher (ReplayWork)
+    replay_work: tuple[Any, ...] = field(default=())
+    # What an inconclusive replay verdict does: "pass" (a warning) or "fail" (--inconclusive)
+    inconclusive: str = "pass"
 
     @property
     def failures(self) -> list[str]:
@@ -131,10 +135,17 @@ class GateResult:
                     f"{t.pair} / {t.task}: counted work {t.baseline_work / 1e9:.6g} -> "
                     f"{t.candidate_work / 1e9:.6g} GFLOP/chunk ({t.candidate_work / t.baseline_work - 1:+.2%})"
                 )
+        for w in self.replay_work:
+            if w.increased and w.gated:
+                out.append(f"{w.pair}: {w.describe()}")
         by_replay = {r.pair for r in self.replay}
         for r in self.replay:
             if r.verdict == "fail":
                 out.append(f"{r.pair}: replay speed relative to the reference {r.describe()}")
+            elif r.verdict == "inconclusive" and self.inconclusive == "fail":
+                out.append(
+                    f"{r.pair}: replay speed inconclusive, failed as asked (--inconclusive fail): {r.describe()}"
+                )
         for s in self.speed:
             if s.regressed and s.pair not in by_replay:
                 out.append(

@@ -21,6 +21,7 @@ from typing import Any
 
 import pandas as pd
 
+from results.cpu_identity import cpu_difference, describe_cpu
 from results.gate_measures import side_measures, tokens_per_s
 from results.gate_result import GateResult, SpeedDiff
 from results.pairing import PAIR_KEY, ConfigPair
@@ -100,16 +101,18 @@ def _environment(manifest: dict[str, Any] | None) -> dict[str, Any]:
 
 
 def run_cpus(manifests: dict[str, dict[str, Any]]) -> dict[str, str]:
-    """Each side's CPU model and count as its manifest names them (absent: not named)."""
+    """Each side's CPU as its manifest names it (absent: not named)."""
     envs = {side: _environment(m) for side, m in manifests.items()}
-    return {side: f"{e.get('cpu')} ({e.get('cpu_count')} CPUs)" for side, e in envs.items() if e.get("cpu")}
+    return {side: describe_cpu(e) for side, e in envs.items() if e.get("cpu")}
 
 
-def cpus_differ(manifests: dict[str, dict[str, Any]]) -> bool:
-    """Both manifests name a CPU model and the models differ (the count alone does not
-    move a one-thread ratio)."""
-    models = [_environment(m).get("cpu") for m in manifests.values()]
-    return len(models) == 2 and None not in models and models[0] != models[1]
+def cpu_difference_of(manifests: dict[str, dict[str, Any]]) -> str:
+    """'' or how the two runs' CPUs differ: by identity (family, model, stepping,
+    microcode, caches, flags) where both manifests recorded it, else by model name (the
+    CPU count alone does not move a one-thread ratio)."""
+    if len(manifests) != 2:
+        return ""
+    return cpu_difference(_environment(manifests.get("baseline")), _environment(manifests.get("candidate")))
 
 
 def speed_comparable(manifests: dict[str, dict[str, Any]], speed_across_cpus: bool = False) -> str:
@@ -121,40 +124,52 @@ def speed_comparable(manifests: dict[str, dict[str, Any]], speed_across_cpus: bo
             "decoders gain unequally from threads, so their ratio moves (run both with "
             "OMP_NUM_THREADS=1)".format(**threads)
         )
-    if cpus_differ(manifests) and not speed_across_cpus:
+    differ = cpu_difference_of(manifests)
+    if differ and not speed_across_cpus:
         cpus = run_cpus(manifests)
         return (
-            f"not comparable: the runs come from different CPUs (baseline {cpus['baseline']}, "
+            f"not comparable: the runs come from different CPUs ({differ}; baseline {cpus['baseline']}, "
             f"candidate {cpus['candidate']}); a decoder's speed over its reference moves with the "
-            "CPU model (docs/ci-gate.md): gate speed against a baseline run on the same runner, "
+            "CPU (docs/ci-gate.md): gate speed against a baseline run on the same runner, "
             "or pass --speed-across-cpus to judge it anyway"
         )
     return ""
 
 
 def machine_notes(manifests: dict[str, dict[str, Any]], speed_across_cpus: bool = False) -> list[str]:
-    if cpus_differ(manifests) and speed_across_cpus:
+    differ = cpu_difference_of(manifests)
+    if differ and speed_across_cpus:
         cpus = run_cpus(manifests)
         return [
-            f"the runs come from different CPUs (baseline {cpus['baseline']}, candidate "
+            f"the runs come from different CPUs ({differ}; baseline {cpus['baseline']}, candidate "
             f"{cpus['candidate']}): speed compared anyway (--speed-across-cpus), through the "
             "in-run reference; the CPU model alone can move that ratio by more than 10%"
         ]
     return []
 
 
-def with_replay(result: GateResult, baseline: Run, candidate: Run, max_slowdown: float) -> GateResult:
+def with_replay(result: GateResult, baseline: Run, candidate: Run, options: dict[str, Any]) -> GateResult:
     """The replay benchmark's verdicts (results/replay.py) when both runs were benched
-    against a comparable reference; the result unchanged otherwise."""
+    against a comparable reference, and the work its decodes counted at the dispatcher
+    whenever both were benched; the result unchanged otherwise. `options`: the gate's
+    max_slowdown, allow_work_increase."""
     from results.replay import (
         load_replay,
         replay_comparable,
         replay_notes,
         replay_verdicts,
         replay_warnings,
+        replay_work,
     )
 
+    max_slowdown = options.get("max_slowdown", 0.10)
+
     benches = [load_replay(run.path) for run in (baseline, candidate)]
+    if None not in benches:  # counted work needs no reference and no CPU in common
+        work, notes = replay_work(
+            result.pairs, benches[0], benches[1], not options.get("allow_work_increase")
+        )
+        result = dataclasses.replace(result, replay_work=tuple(work), notes=(*result.notes, *notes))
     reference = next((p for p in result.pairs if p.label == result.reference), None)
     if reference is None or None in benches:
         if reference is not None and any(benches):

@@ -25,6 +25,7 @@ The verdict, pure functions so a notebook gets the gate's answer:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -34,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from results.replay_conditions import bench_conditions
 from results.store import REPLAY, REPLAY_OBSERVATIONS  # the file names, beside the run folder's others
 
 __all__ = ["REPLAY", "REPLAY_OBSERVATIONS", "ReplaySpeed", "load_replay", "replay_speed"]
@@ -87,6 +89,8 @@ class ReplaySpeed:
     high: float
     max_slowdown: float
     rounds: tuple[int, int]  # (baseline, candidate)
+    # How far the candidate's figure can be trusted (BenchConditions); None: not known
+    conditions: Any = None
 
     @property
     def change(self) -> float:
@@ -103,11 +107,45 @@ class ReplaySpeed:
             return "inconclusive"
         return "pass"
 
+    def trust(self) -> str:
+        """The verdict in one line with how far its figure can be trusted: the rounds, and
+        what the candidate's bench ran under (results/replay_conditions.py)."""
+        line = f"{self.pair}: speed {self.verdict} on the replay, {self.change:+.1%} [{self.low:+.1%}, {self.high:+.1%}]"
+        if self.conditions is None:
+            return f"{line}, {self.rounds[1]} rounds"
+        doubts = self.conditions.doubts()
+        return f"{line}, {self.conditions.describe(self.rounds[1])}; " + (
+            "figure doubtful: " + "; ".join(doubts) if doubts else "no sign of load in the bench"
+        )
+
     def describe(self) -> str:
         return (
             f"{self.change:+.1%} [{self.low:+.1%}, {self.high:+.1%}] ({self.baseline_ratio:.3f} -> "
             f"{self.candidate_ratio:.3f}x the reference's s/chunk, {self.rounds[0]} and "
             f"{self.rounds[1]} rounds; allowed -{self.max_slowdown:.0%})"
+        )
+
+
+@dataclass(frozen=True)
+class ReplayWork:
+    """One configuration pair's counted work per chunk in the two benches: the FLOPs of
+    every torch product its decodes ran, counted at the dispatcher (harness/episode/op_work.py),
+    which sees a product wherever the decoder's code calls it."""
+
+    pair: str
+    baseline_flops: float
+    candidate_flops: float
+    gated: bool = True  # False: --allow-work-increase
+
+    @property
+    def increased(self) -> bool:
+        return self.candidate_flops > self.baseline_flops * (1 + 1e-9) + 1e-12
+
+    def describe(self) -> str:
+        change = self.candidate_flops / self.baseline_flops - 1 if self.baseline_flops else float("inf")
+        return (
+            f"counted work of every torch product (replay) {self.baseline_flops / 1e9:.6g} -> "
+            f"{self.candidate_flops / 1e9:.6g} GFLOP/chunk ({change:+.2%})"
         )
 
 
@@ -129,14 +167,16 @@ def replay_speed(
     *,
     resamples: int = BOOTSTRAP_RESAMPLES,
     seed: int = BOOTSTRAP_SEED,
+    confidence: float = CONFIDENCE,
 ) -> ReplaySpeed:
-    """The verdict on per-round paired ratios (config / reference seconds per chunk) of two runs."""
+    """The verdict on per-round paired ratios (config / reference seconds per chunk) of two
+    runs, at `confidence` (the gate's 95%; the bench's stopping rule asks at a higher one)."""
     b, c = np.asarray(baseline_ratios, dtype=float), np.asarray(candidate_ratios, dtype=float)
     rng = np.random.default_rng(seed)
     boot_b = np.median(b[rng.integers(0, len(b), size=(resamples, len(b)))], axis=1)
     boot_c = np.median(c[rng.integers(0, len(c), size=(resamples, len(c)))], axis=1)
     changes = boot_b / boot_c - 1.0
-    tail = (1 - CONFIDENCE) / 2 * 100
+    tail = (1 - confidence) / 2 * 100
     low, high = np.percentile(changes, [tail, 100 - tail])
     return ReplaySpeed(
         pair,
@@ -173,6 +213,9 @@ def load_replay(run_path: str | Path) -> dict[str, Any] | None:
     configs = data.get("configurations")
     if not isinstance(configs, list) or not configs:
         raise ReplayFileError(f"{path}: no timed configurations")
+    sequential, cap = data.get("sequential"), data.get("max_rounds")
+    if not (sequential is None or isinstance(sequential, dict)) or not (cap is None or type(cap) is int):
+        raise ReplayFileError(f"{path}: sequential must be an object or null, max_rounds a whole number")
     for entry in configs:
         rounds = entry.get("round_chunk_s") if isinstance(entry, dict) else None
         if (
@@ -184,7 +227,25 @@ def load_replay(run_path: str | Path) -> dict[str, Any] | None:
                 f"{path}: configuration {entry.get('policy_config_id') if isinstance(entry, dict) else entry!r} "
                 "has no usable round_chunk_s (a list of at least 2 positive seconds)"
             )
+        bad = _bad_optional(entry, len(rounds))
+        if bad:
+            raise ReplayFileError(f"{path}: configuration {entry.get('policy_config_id')!r}: {bad}")
     return data
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0
+
+
+def _bad_optional(entry: Mapping[str, Any], rounds: int) -> str:
+    """'' or what is wrong with a configuration's optional figures (absent or null: not measured)."""
+    for key in ("flops_per_chunk", "module_flops_per_chunk"):
+        if entry.get(key) is not None and not _number(entry[key]):
+            return f"{key} is {entry[key]!r}, not a non-negative number"
+    cpu = entry.get("round_cpu_chunk_s")
+    if cpu is not None and not (isinstance(cpu, list) and len(cpu) == rounds and all(map(_number, cpu))):
+        return f"round_cpu_chunk_s is not a list of {rounds} non-negative seconds, one per round"
+    return ""
 
 
 def _rounds_by_config(replay: Mapping[str, Any]) -> dict[str, list[float]]:
@@ -255,7 +316,52 @@ def replay_verdicts(
         except ReplayFileError as exc:
             notes.append(f"replay: {pair.label}: {exc}; closed-loop speed used")
             continue
-        out.append(replay_speed(pair.label, base, cand, max_slowdown))
+        speed = replay_speed(pair.label, base, cand, max_slowdown)
+        conditions = bench_conditions(baseline, candidate, reference.baseline_id, reference.candidate_id)
+        out.append(dataclasses.replace(speed, conditions=conditions))
+    return out, notes
+
+
+def _flops_by_config(replay: Mapping[str, Any], key: str) -> dict[str, float]:
+    return {
+        str(c["policy_config_id"]): float(c[key])
+        for c in replay["configurations"]
+        if isinstance(c.get(key), (int, float)) and not isinstance(c.get(key), bool)
+    }
+
+
+def replay_work(
+    pairs: Sequence[Any], baseline: Mapping[str, Any], candidate: Mapping[str, Any], gated: bool = True
+) -> tuple[list[ReplayWork], list[str]]:
+    """The dispatcher-counted work of every pair (the reference's too) benched on both
+    sides, with notes on pairs left out and on work the module hooks do not see."""
+    b_flops, c_flops = (
+        _flops_by_config(baseline, "flops_per_chunk"),
+        _flops_by_config(candidate, "flops_per_chunk"),
+    )
+    b_timed, c_timed = _rounds_by_config(baseline), _rounds_by_config(candidate)
+    hooked = _flops_by_config(candidate, "module_flops_per_chunk")
+    out, notes, unmeasured = [], [], []
+    for pair in pairs:
+        if pair.baseline_id not in b_timed or pair.candidate_id not in c_timed:
+            continue
+        if pair.baseline_id not in b_flops or pair.candidate_id not in c_flops:
+            unmeasured.append(pair.label)
+            continue
+        out.append(ReplayWork(pair.label, b_flops[pair.baseline_id], c_flops[pair.candidate_id], gated))
+        seen = hooked.get(pair.candidate_id)
+        ops = c_flops[pair.candidate_id]
+        if seen is not None and ops > seen * (1 + 1e-9) + 1e-12:
+            notes.append(
+                f"{pair.label}: {1 - seen / ops:.1%} of its bench's products ran outside the counted "
+                f"modules ({ops / 1e9:.6g} GFLOP/chunk at the dispatcher, {seen / 1e9:.6g} by the module "
+                "hooks): the closed-loop GFLOP/chunk column does not see them"
+            )
+    if unmeasured:
+        notes.append(
+            f"replay: counted work of every torch product not compared for {', '.join(unmeasured)} "
+            "(a bench without it: bench that run again)"
+        )
     return out, notes
 
 

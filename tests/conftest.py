@@ -21,6 +21,16 @@ def cli(capsys):
 
 
 @pytest.fixture
+def one_torch_thread():
+    """One torch thread, as CI and every baseline run (OMP_NUM_THREADS=1); restored after."""
+    torch = pytest.importorskip("torch")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture
 def chain_data(tmp_path, monkeypatch):
     """A copy of the shipped chain data (scenes, chain files, their hashes) that the chain
     loaders read instead, so a test can edit it; the loaders' caches cleared around it."""

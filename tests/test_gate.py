@@ -309,16 +309,18 @@ def write_run(
     cpu: str = "AMD EPYC",
     threads: int = 1,
     end: float | None = None,
+    environment: dict | None = None,
 ) -> Path:
     """A run folder; `calibration` (passes/s at start, and at the end unless `end`) adds
-    the manifest's calibration block, with the CPU and torch threads it names."""
+    the manifest's calibration block, with the CPU (or the whole `environment` block)
+    and torch threads it names."""
     path.mkdir(parents=True)
     pq.write_table(
         pa.Table.from_pandas(df, schema=arrow_schema(), preserve_index=False), path / "episodes.parquet"
     )
     manifest: dict = {"run_id": path.name}
     if calibration:
-        manifest["environment"] = {"cpu": cpu, "cpu_count": 2, "host": "ci"}
+        manifest["environment"] = environment or {"cpu": cpu, "cpu_count": 2, "host": "ci"}
         manifest["calibration"] = {
             "workload": {"name": "tiny-attention-block", "version": 1},
             "torch_threads": threads,
@@ -358,7 +360,8 @@ def test_a_baseline_from_another_cpu_gates_success_and_nfe_but_speed_only_when_a
 
     code, text, err = gate_xeon("slow", with_reference(1500.0, 1184.0))
     assert code == 0, text + err
-    assert "speed not comparable: the runs come from different CPUs (baseline AMD EPYC (2 CPUs), " in text
+    assert "speed not comparable: the runs come from different CPUs (model 'AMD EPYC' vs 'Intel(R) " in text
+    assert "baseline AMD EPYC (2 CPUs), " in text
     assert "candidate Intel(R) Xeon(R) CPU @ 2.20GHz (2 CPUs))" in text
     assert "gate passed" in text and "speed not compared (the note above says why)" in text
     # asked, it is judged through the in-run reference: the same ratio passes, -33% fails
@@ -470,16 +473,6 @@ def test_committed_baseline_is_the_committed_config():
     assert "bidirectional" in [p["name"] for p in config["policy"]]  # the gate's in-run speed reference
     assert manifest["calibration"]["start"] and manifest["calibration"]["end"]
     assert manifest["calibration"]["torch_threads"] == 1 and manifest["speed_reliable"] is True
-
-
-@pytest.fixture
-def one_torch_thread():
-    """The baseline was made with OMP_NUM_THREADS=1; CI machines have more cores."""
-    torch = pytest.importorskip("torch")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_fresh_run_passes_and_degraded_run_fails_against_committed_baseline(cli, tmp_path, one_torch_thread):

@@ -5,6 +5,7 @@ on a tiny real run, and bad input refused with exit 2."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -158,6 +159,91 @@ def test_gate_says_inconclusive_and_passes_when_the_interval_straddles(cli, tmp_
     assert "speed inconclusive for fast_dvla (warning above)" in out
 
 
+def with_work(run: Path, fast_flops: float | None, reference_flops: float = 9.0e8) -> Path:
+    """`run`'s replay.json with each configuration's work per chunk counted at the dispatcher
+    (and by the module hooks, which saw all of it only at the baseline's figure)."""
+    data = json.loads((run / REPLAY).read_text())
+    for c in data["configurations"]:
+        flops = fast_flops if c["policy"] == "fast_dvla" else reference_flops
+        c["flops_per_chunk"] = flops
+        c["module_flops_per_chunk"] = 2.0e8 if c["policy"] == "fast_dvla" else flops
+    (run / REPLAY).write_text(json.dumps(data))
+    return run
+
+
+def test_work_the_module_hooks_miss_fails_the_gate_on_the_replay_count(cli, tmp_path):
+    # a raw torch.matmul per pass, outside any module: the episodes' counted work (module
+    # hooks) and NFE are unchanged, the speed holds, and only the dispatcher count rises
+    base = with_work(benched(tmp_path, "base", 2.0, 0.50, 0.03, seed=1), 2.0e8)
+    cand = with_work(benched(tmp_path, "cand", 2.0, 0.50, 0.03, seed=2), 2.32e8)
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand))
+    assert code == 1, out + err
+    assert "fast_dvla: counted work of every torch product (replay) 0.2 -> 0.232 GFLOP/chunk (+16.00%)" in err
+    assert "FAIL work" in out and "13.8% of its bench's products ran outside the counted modules" in " ".join(
+        out.split()
+    )
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand), "--allow-work-increase")
+    assert code == 0, out + err
+    same = with_work(benched(tmp_path, "same", 2.0, 0.50, 0.03, seed=3), 2.0e8)
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(same))
+    assert code == 0 and "outside the counted modules" not in out, out + err
+    older = benched(tmp_path, "older", 2.0, 0.50, 0.03, seed=4)  # a bench from before the count
+    code, out, err = cli("gate", "--baseline", str(older), "--candidate", str(cand))
+    assert code == 0, out + err
+    assert "counted work of every torch product not compared for fast_dvla, bidirectional" in " ".join(
+        out.split()
+    )
+
+
+def test_inconclusive_fails_the_gate_when_asked(cli, tmp_path):
+    base = benched(tmp_path, "base", 2.0, 0.50, 0.25, seed=3)
+    cand = benched(tmp_path, "cand", 2.0, 0.50 / 0.9, 0.25, seed=4)
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand), "--inconclusive", "fail")
+    assert code == 1, out + err
+    assert "fast_dvla: replay speed inconclusive, failed as asked (--inconclusive fail)" in err
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand), "--inconclusive", "pass")
+    assert code == 0 and "replay speed inconclusive" in out
+    code, _, err = cli("gate", "--baseline", str(base), "--candidate", str(cand), "--inconclusive", "maybe")
+    assert code == 2 and "invalid choice: 'maybe'" in err
+    clear = benched(tmp_path, "clear", 2.0, 0.50, 0.03, seed=5)
+    code, out, err = cli(
+        "gate", "--baseline", str(clear), "--candidate", str(clear), "--inconclusive", "fail"
+    )
+    assert code == 0, out + err  # a settled pass stays a pass
+
+
+def test_the_verdict_says_which_figure_decided_and_how_far_to_trust_it(cli, tmp_path):
+    base = benched(tmp_path, "base", 2.0, 0.50, 0.03, seed=1)
+    cand = write_run(tmp_path / "cand", with_reference(1000.0, 1000.0), calibration=5000.0, end=2000.0)
+    # the reference about twice as slow as in the baseline's bench: a busy machine
+    reference = 0.2 * np.exp(np.random.default_rng(9).normal(0, 0.05, 30))
+    bench_file(
+        cand,
+        reference * ratios(0.50, 0.03, 30, 109),
+        reference,
+        sequential={"stopped": "settled", "rounds": 30},
+        max_rounds=40,
+    )
+    code, out, err = cli("gate", "--baseline", str(base), "--candidate", str(cand))
+    text = " ".join(out.split())
+    assert code == 0, out + err
+    from harness.commands.gate import render
+    from results.gate import gate_runs
+    from results.runs import load_run
+
+    table = render(gate_runs(load_run(base), load_run(cand)), "t")
+    assert "tokens/s vs ref. (closed loop, not judged)" in [c.header for c in table.columns]
+    # the closed-loop run's drift is a note about figures that decided nothing, not a warning
+    assert "warning" not in text
+    assert "closed-loop speed figures unreliable: the calibration moved -60%" in text
+    assert "not used for the verdict: the replay judged speed" in text
+    assert "verdict: fast_dvla: speed pass on the replay, " in text
+    assert re.search(
+        r"30 rounds \(settled early, at most 40\); figure doubtful: the reference decoded [12]\.\d\dx slower",
+        text,
+    )
+
+
 def test_benches_at_different_thread_counts_are_not_compared(cli, tmp_path):
     base = benched(tmp_path, "base", 2.0, 0.50, 0.03, seed=1)
     cand = benched(tmp_path, "cand", 2.0, 0.50 * 1.4, 0.03, seed=2)
@@ -180,6 +266,21 @@ def test_benches_at_different_thread_counts_are_not_compared(cli, tmp_path):
             "round_chunk_s",
         ),
         ("not json", "JSON"),
+        (
+            '{"replay_version": 1, "configurations": [{"policy_config_id": "x", "round_chunk_s": [1, 1], '
+            '"round_cpu_chunk_s": [1]}]}',
+            "round_cpu_chunk_s",
+        ),
+        (
+            '{"replay_version": 1, "configurations": [{"policy_config_id": "x", "round_chunk_s": [1, 1], '
+            '"flops_per_chunk": -5}]}',
+            "flops_per_chunk",
+        ),
+        (
+            '{"replay_version": 1, "sequential": [], "configurations": [{"policy_config_id": "x", '
+            '"round_chunk_s": [1, 1]}]}',
+            "sequential",
+        ),
     ],
 )
 def test_a_broken_replay_file_exits_2_naming_it(cli, tmp_path, text, message):
@@ -217,16 +318,7 @@ def test_bench_help_teaches(cli):
     assert "bootstrap" in out and "dvla-harness gate" in out
 
 
-@pytest.fixture
-def one_torch_thread():
-    torch = pytest.importorskip("torch")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def test_bench_on_a_tiny_run_writes_figures_the_gate_uses(cli, tmp_path, one_torch_thread):
+def test_bench_on_a_tiny_run_writes_figures_the_gate_uses(cli, tmp_path, one_torch_thread, monkeypatch):
     pytest.importorskip("metaworld")
     run = tmp_path / "run"
     policies = ("--policy", "scripted", "--policy", "fast_dvla", "--policy", "bidirectional")
@@ -251,17 +343,39 @@ def test_bench_on_a_tiny_run_writes_figures_the_gate_uses(cli, tmp_path, one_tor
     assert timed["bidirectional"]["nfe_per_chunk"] > timed["fast_dvla"]["nfe_per_chunk"]
     assert {c["policy_params"]["checkpoint"] for c in timed.values()} == {"metaworld-mt10"}  # no machine path
     assert data["observations"]["count"] == 2 and "replay:" in out
-    # a copy benched on the first's observations decodes the same set, and the gate judges on it
+    assert data["sequential"] is None and data["rounds"] == 3  # no baseline bench: fixed
+    assert timed["fast_dvla"]["flops_per_chunk"] == timed["fast_dvla"]["module_flops_per_chunk"] > 0
+    assert len(timed["bidirectional"]["round_cpu_chunk_s"]) == 3
+    # a copy benched on the first's observations decodes the same set, and the gate judges on
+    # it; with the first's bench to judge against, the rounds stop once the verdict settles
     other = tmp_path / "other"
     shutil.copytree(run, other, ignore=shutil.ignore_patterns(REPLAY, "replay_observations.npz"))
-    code, _, err = cli("bench", str(other), "--rounds", "3", "--observations", str(run), "--quiet")
+    code, out, err = cli(
+        "bench", str(other), "--rounds", "5", "--min-rounds", "2", "--max-slowdown", "0.9",
+        "--observations", str(run), "--quiet",
+    )  # fmt: skip
     assert code == 0, err
-    assert (
-        json.loads((other / REPLAY).read_text())["observations"]["sha256"] == data["observations"]["sha256"]
-    )
+    again = json.loads((other / REPLAY).read_text())
+    assert again["observations"]["sha256"] == data["observations"]["sha256"]
+    assert again["sequential"]["stopped"] == "settled" and again["rounds"] == 2 < again["max_rounds"] == 5
+    assert "rounds: 2 of at most 5: settled against the baseline bench" in out
     code, out, err = cli("gate", "--baseline", str(run), "--candidate", str(other), "--max-slowdown", "0.5")
     assert code == 0, out + err
     assert "judged on the replay benchmark" in out and "decoded different" not in out
+    # a raw torch.matmul in the decoder's step, outside any module: the bench counts it at
+    # the dispatcher, and the gate fails on it although NFE and the episodes' work are the same
+    from policies.dvla import fast_dvla
+    from tests.test_gate_stability import load_benchmark
+
+    monkeypatch.setattr(
+        fast_dvla, "decode_fast_dvla", load_benchmark().with_raw_product(fast_dvla.decode_fast_dvla)
+    )
+    code, _, err = cli("bench", str(other), "--rounds", "2", "--observations", str(run), "--quiet")
+    assert code == 0, err
+    code, out, err = cli("gate", "--baseline", str(run), "--candidate", str(other), "--max-slowdown", "0.9")
+    assert code == 1, out + err
+    assert "fast_dvla: counted work of every torch product (replay)" in err
+    assert "NFE/chunk" not in err and "counted work 0" not in err  # only the dispatcher saw it
 
 
 def test_a_policy_that_writes_into_its_observation_leaves_the_recorded_set_alone():
@@ -283,7 +397,7 @@ def test_a_policy_that_writes_into_its_observation_leaves_the_recorded_set_alone
     run = SimpleNamespace(config_id="c", policy=Scribbler())
     assert warm_up_pass(run.policy, [None, None], recorded.observations).action_tokens == 2
     rounds = time_rounds([run], [None, None], recorded.observations, 3)
-    assert len(rounds["c"]) == 3 and recorded.digest() == digest
+    assert len(rounds.wall["c"]) == len(rounds.cpu["c"]) == 3 and recorded.digest() == digest
     assert recorded.observations[1].tolist() == [1.0, 1.0, 1.0]
 
 
@@ -320,14 +434,14 @@ def test_the_committed_replay_file_names_no_machine_path():
 def test_bench_records_a_shipped_checkpoint_by_its_set_name():
     from types import SimpleNamespace
 
-    from harness.commands.bench import _portable_params
+    from harness.bench import portable_params
     from policies.dvla.policy import shipped
     from policies.registry import get_policy, params_json, parse_params, portable_checkpoint
 
     fast = get_policy("fast_dvla")
     run = SimpleNamespace(spec=fast, params_json=params_json(parse_params(fast, {})))
     assert json.loads(run.params_json)["checkpoint"] == shipped("fast_dvla")  # an absolute path
-    assert _portable_params(run)["checkpoint"] == "metaworld-mt10"
+    assert portable_params(run)["checkpoint"] == "metaworld-mt10"
     # the set name must give back the same file for that policy, else the package path
     assert portable_checkpoint(get_policy("bidirectional"), shipped("fast_dvla")) == (
         "policies/checkpoints/metaworld-mt10-fast_dvla.safetensors"

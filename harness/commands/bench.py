@@ -20,6 +20,7 @@ from typing import Any
 from harness.errors import UsageError
 
 DEFAULT_ROUNDS = 30
+DEFAULT_MIN_ROUNDS = 10
 DEFAULT_PER_TASK = 4
 
 DESCRIPTION = """\
@@ -35,12 +36,20 @@ plays the first episode of each task of the run again, and K observations per ta
 (--observations-per-task, evenly spaced over the episode) are kept.
 
 Timing: each configuration decodes every observation once untimed (warm-up; its
-tokens and forward passes are counted), then --rounds rounds: observation by
+tokens, forward passes and work are counted: the FLOPs of every torch product, seen at
+torch's dispatcher wherever the decoder calls it), then rounds: observation by
 observation, every configuration in turn (reset untimed, act timed), starting from a
 different configuration each time, so a load that comes and goes hits all alike.
 Reported per configuration: median and minimum seconds per chunk over the rounds, the
 median's 95% bootstrap interval, and its ratio to the reference in the same rounds.
 Configurations that decode no action tokens (scripted) are not timed.
+
+Rounds: --rounds at most. When the observations come from a benched run (the CI job's
+--observations BASELINE_DIR), bench judges each configuration against that baseline as
+the gate will (--reference, --max-slowdown: give it the gate's) after --min-rounds and
+every 5 rounds after, and stops as soon as every verdict is settled: more rounds only
+while an interval straddles the allowed slowdown. replay.json records the rounds used
+and why timing stopped. --min-rounds N --rounds N times exactly N rounds.
 
 Exit status: 0 benched; 2 unusable input (not a run folder, a run whose policies no
 longer resolve, a foreign observations file, bad flags), nothing written.
@@ -56,7 +65,10 @@ examples:
   dvla-harness gate --baseline results/baselines/metaworld-mt10-smoke --candidate runs/ci
 
   # more rounds on a noisy machine (the gate said "inconclusive")
-  dvla-harness bench runs/ci --rounds 100
+  dvla-harness bench runs/ci --observations results/baselines/metaworld-mt10-smoke --rounds 100
+
+  # exactly 30 rounds, no early stop (a baseline's own bench)
+  dvla-harness bench runs/base --min-rounds 30 --rounds 30
 
   # a run without bidirectional: record from another decoder
   dvla-harness bench runs/sweep --record-from fast_dvla
@@ -79,6 +91,16 @@ def _positive(minimum: int) -> Any:
     return parse
 
 
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a fraction such as 0.10, got {text!r}") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {value}")
+    return value
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "bench",
@@ -93,7 +115,28 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=_positive(2),
         default=DEFAULT_ROUNDS,
         metavar="N",
-        help=f"timed rounds over the observations (default {DEFAULT_ROUNDS}; more: a narrower interval)",
+        help=f"timed rounds over the observations, at most (default {DEFAULT_ROUNDS}; more: a narrower "
+        "interval); all of them unless a baseline bench lets the verdict settle sooner",
+    )
+    p.add_argument(
+        "--min-rounds",
+        type=_positive(2),
+        metavar="M",
+        help=f"rounds before the first look at the verdict (default {DEFAULT_MIN_ROUNDS}, or --rounds if fewer)",
+    )
+    p.add_argument(
+        "--max-slowdown",
+        type=_fraction,
+        default=0.10,
+        metavar="FRACTION",
+        help="the slowdown the gate will allow (its --max-slowdown, default 0.10): the limit the "
+        "verdict settles against",
+    )
+    p.add_argument(
+        "--reference",
+        default="bidirectional",
+        metavar="POLICY|CONFIG_ID",
+        help="the decoder the gate measures speed against (its --reference, default bidirectional)",
     )
     p.add_argument(
         "--observations",
@@ -203,21 +246,40 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise UsageError(
             f"{args.run_dir!r} is not a run folder (no manifest.json; make one with `dvla-harness run`)"
         )
+    if args.min_rounds is None:
+        args.min_rounds = min(DEFAULT_MIN_ROUNDS, args.rounds)
+    elif args.min_rounds > args.rounds:
+        raise UsageError(f"--min-rounds {args.min_rounds} is more than --rounds {args.rounds}")
     source = _source_file(args.observations) if args.observations else None
     given = load_observations(source) if source else None  # a foreign file refused before any work
+    baseline = _baseline_bench(source)
     lock = RunLock(run_dir.path)
     acquire(lock)  # a run still writing the folder is refused, naming it
     try:
-        return _bench(args, run_dir, source, given, run_dir.path / REPLAY_OBSERVATIONS)
+        return _bench(args, run_dir, (source, given, baseline), run_dir.path / REPLAY_OBSERVATIONS)
     finally:
         lock.release()
 
 
-def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: Any, own: Path) -> int:
+def _baseline_bench(source: Path | None) -> dict[str, Any] | None:
+    """The replay.json beside the observations file, when it came from a benched run: the
+    baseline the stopping rule judges against. A broken one is refused before any work."""
+    from results.replay import ReplayFileError, load_replay
+
+    if source is None:
+        return None
+    try:
+        return load_replay(source.parent)
+    except ReplayFileError as exc:
+        raise UsageError(f"--observations: {exc}") from None
+
+
+def _bench(args: argparse.Namespace, run_dir: Any, sources: tuple, own: Path) -> int:
     from harness import bench
     from harness.console import console, err_console
     from harness.threads import threads_record
 
+    source, given, baseline = sources
     resolved, manifest = _resolved(run_dir)
     started = time.perf_counter()
     if given is not None:
@@ -249,7 +311,10 @@ def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: A
         raise UsageError(
             f"{run_dir.path}: no configuration of the run decodes action tokens; nothing to time"
         )
-    rounds = _timed_rounds(args, timed, contexts, recorded.observations)
+    rule = bench.stopping_rule(
+        baseline, timed, args.reference, (args.max_slowdown, args.min_rounds, args.rounds)
+    )
+    rounds = _timed_rounds(args, timed, (contexts, recorded.observations), rule)
     configurations = _configurations(timed, decodes, rounds, len(recorded.observations))
     observations = {
         "file": "replay_observations.npz",
@@ -260,6 +325,8 @@ def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: A
         "source": str(source) if source else None,
     }
     payload = _payload(args, manifest, observations, configurations, not_timed)
+    payload["rounds"] = len(next(iter(rounds.wall.values())))
+    payload["sequential"] = rule.record(rounds.wall) if rule else None
     payload["observations"]["sha256"] = digest
     payload["elapsed_s"] = time.perf_counter() - started
     payload["torch_threads"] = threads_record().get("torch_intra_op")
@@ -267,11 +334,12 @@ def _bench(args: argparse.Namespace, run_dir: Any, source: Path | None, given: A
     console.print(_table(payload, len(recorded.observations)))
     for entry in not_timed:
         console.print(f"not timed: {entry['policy']} ({entry['policy_config_id']}): {entry['reason']}")
+    console.print(_rounds_line(payload))
     console.print(f"replay figures: {run_dir.path / 'replay.json'} ({payload['elapsed_s']:.1f} s)")
     return 0
 
 
-def _timed_rounds(args: argparse.Namespace, timed: list, contexts: list, observations: list) -> dict:
+def _timed_rounds(args: argparse.Namespace, timed: list, decoded: tuple, rule: Any) -> Any:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from harness import bench
@@ -292,13 +360,14 @@ def _timed_rounds(args: argparse.Namespace, timed: list, contexts: list, observa
 
     with progress:
         task = progress.add_task("rounds", total=args.rounds)
-        return bench.time_rounds(timed, contexts, observations, args.rounds, tick)
+        contexts, observations = decoded
+        stop = rule.settled if rule else None
+        return bench.time_rounds(timed, contexts, observations, args.rounds, tick, stop)
 
 
-def _configurations(
-    timed: list, decodes: dict, rounds: dict[str, list[float]], n: int
-) -> list[dict[str, Any]]:
+def _configurations(timed: list, decodes: dict, rounds: Any, n: int) -> list[dict[str, Any]]:
     """Each timed configuration's figures per chunk, from its decodes and rounds."""
+    from harness.bench import portable_params
     from results.replay import chunk_figures
 
     configurations = []
@@ -308,11 +377,17 @@ def _configurations(
             {
                 "policy": p.spec.name,
                 "policy_config_id": p.config_id,
-                "policy_params": _portable_params(p),
+                "policy_params": portable_params(p),
                 "action_tokens_per_chunk": d.action_tokens / n,
                 "nfe_per_chunk": None if d.nfe is None else d.nfe / n,
-                **chunk_figures(rounds[p.config_id]),
-                "round_chunk_s": rounds[p.config_id],
+                # every torch product, at the dispatcher (the gate compares this), and the
+                # counted modules' products, by the hooks the episodes are counted with
+                "flops_per_chunk": None if d.flops is None else d.flops / n,
+                "module_flops_per_chunk": None if d.module_flops is None else d.module_flops / n,
+                **chunk_figures(rounds.wall[p.config_id]),
+                "round_chunk_s": rounds.wall[p.config_id],
+                # the same calls' CPU time: how long the rounds waited for a core (null: a GPU policy)
+                "round_cpu_chunk_s": rounds.cpu[p.config_id],
             }
         )
     return configurations
@@ -336,23 +411,29 @@ def _payload(
             "observation by observation with a rotating start; round_chunk_s = mean seconds of "
             "act per observation in that round (reset untimed); one untimed warm-up pass first"
         ),
-        "rounds": args.rounds,
+        "rounds": None,  # the rounds timed, set once they are
+        "max_rounds": args.rounds,
         "observations": observations,
         "configurations": configurations,
         "not_timed": not_timed,
     }
 
 
-def _portable_params(p: Any) -> dict[str, Any]:
-    """The configuration's parameters with a shipped checkpoint by its set name: a bench of
-    a committed baseline then records no folder of the machine it ran on (the figures pair
-    by policy_config_id, so nothing reads this path back)."""
-    from policies.registry import portable_checkpoint
-
-    params = json.loads(p.params_json)
-    if isinstance(params.get("checkpoint"), str):
-        params["checkpoint"] = portable_checkpoint(p.spec, params["checkpoint"])
-    return params
+def _rounds_line(payload: dict[str, Any]) -> str:
+    """How many rounds were timed, and why no more."""
+    rule = payload["sequential"]
+    if rule is None:
+        return f"rounds: {payload['rounds']} (fixed: no baseline bench to judge against)"
+    verdicts = ", ".join(f"{k} {v}" for k, v in rule["verdicts"].items())
+    if rule["stopped"] == "settled":
+        return (
+            f"rounds: {rule['rounds']} of at most {rule['max_rounds']}: settled against the baseline "
+            f"bench at {rule['look_confidence']:.1%} ({verdicts}; allowed -{rule['max_slowdown']:.0%})"
+        )
+    return (
+        f"rounds: {rule['rounds']}, the cap: not settled sooner against the baseline bench ({verdicts} "
+        f"at {rule['look_confidence']:.1%}; allowed -{rule['max_slowdown']:.0%})"
+    )
 
 
 def _write(run_dir: Any, own: Path, recorded: Any, payload: dict[str, Any]) -> None:
@@ -374,10 +455,11 @@ def _table(payload: dict[str, Any], n: int) -> Any:
     configs = payload["configurations"]
     reference = next((c for c in configs if c["policy"] == "bidirectional"), None)
     table = Table(
-        "configuration", "tokens/chunk", "NFE/chunk", "median ms/chunk [95%]", "min ms/chunk",
-        "vs bidirectional",
+        "configuration", "tokens/chunk", "NFE/chunk", "GFLOP/chunk", "median ms/chunk [95%]",
+        "min ms/chunk", "vs bidirectional",
         title=f"replay: {n} observations x {payload['rounds']} rounds",
-        caption="seconds per chunk over the rounds; vs bidirectional: median of the per-round ratio of its time",
+        caption="seconds per chunk over the rounds; GFLOP/chunk: every torch product, counted at the "
+        "dispatcher; vs bidirectional: median of the per-round ratio of its time",
     )  # fmt: skip
     for c in configs:
         low, high = c["median_chunk_s_interval"]
@@ -391,6 +473,7 @@ def _table(payload: dict[str, Any], n: int) -> Any:
             f"{c['policy']} ({c['policy_config_id']})",
             f"{c['action_tokens_per_chunk']:.1f}",
             "-" if c["nfe_per_chunk"] is None else f"{c['nfe_per_chunk']:.2f}",
+            "-" if c.get("flops_per_chunk") is None else f"{c['flops_per_chunk'] / 1e9:.4f}",
             f"{c['median_chunk_s'] * 1e3:.2f} [{low * 1e3:.2f}, {high * 1e3:.2f}]",
             f"{c['min_chunk_s'] * 1e3:.2f}",
             ratio,

@@ -42,15 +42,23 @@ What fails the gate:
             same run, episode by episode, against the same ratio in the baseline run:
             the machine's speed and load cancel out, its CPU model does not. Where no
             such reference exists (not in both runs, changed, different torch thread
-            counts) or the manifests name different CPU models (unless
+            counts) or the manifests name different CPUs (family, model, stepping,
+            microcode, caches, flags; the model name for older manifests) (unless
             --speed-across-cpus), the table says "not comparable" with the reason, and
             speed does not fail the gate.
   replay    when both runs were benched (`dvla-harness bench`, replay.json), speed is
             judged on the replay benchmark instead: the same ratio, round by round
             over recorded observations, with a 95% bootstrap interval. It fails only
             when the whole interval lies beyond --max-slowdown; when the interval
-            straddles it the gate passes with a warning ("inconclusive"). The
-            closed-loop ratio is then reported, not judged.
+            straddles it the gate passes with a warning ("inconclusive"), or fails
+            with --inconclusive fail. The closed-loop ratio is then reported, not
+            judged, and the verdict line says how far the replay's figure can be
+            trusted (rounds, waiting for a core, the machine's speed).
+  replay work  when both runs were benched, any increase of the work their
+            decodes ran, counted at torch's dispatcher: the FLOPs of every torch
+            product, wherever the decoder's code calls it (the module hooks behind
+            `work` see only the counted modules' products), unless
+            --allow-work-increase.
 
 Episodes pair by (suite, task, episode_index, seed, init_state_id). Policy
 configurations pair by name + params + checkpoint hash; then by name alone when that
@@ -114,8 +122,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--speed-across-cpus",
         action="store_true",
-        help="judge speed even when the runs' manifests name different CPU models (by default "
-        "not comparable: the CPU model alone moves a decoder's speed over its reference)",
+        help="judge speed even when the runs' manifests name different CPUs (by default not "
+        "comparable: the CPU alone moves a decoder's speed over its reference)",
+    )
+    p.add_argument(
+        "--inconclusive",
+        choices=("pass", "fail"),
+        default="pass",
+        help="what a replay speed verdict whose interval straddles --max-slowdown does: pass with a "
+        "warning (default), or fail the gate, for a team that wants such a change to block a merge",
     )
     p.add_argument(
         "--allow-nfe-increase", action="store_true", help="report NFE/chunk increases but do not fail"
@@ -139,11 +154,12 @@ def render(result: GateResult, title: str) -> Table:
     columns = ["configuration", "task", "episodes", "successes", "drops/gains", "p (drop)"]
     columns += ["subtasks/chain (shorter/longer, p)"] if chains else []
     replay = {r.pair: r for r in result.replay}
+    more_work = {w.pair for w in result.replay_work if w.increased and w.gated}
     table = Table(
         *columns,
         "NFE/chunk",
         *(["GFLOP/chunk"] if work else []),
-        "tokens/s vs ref.",
+        "tokens/s vs ref. (closed loop, not judged)" if replay else "tokens/s vs ref.",
         *(["replay vs ref. [95%]"] if replay else []),
         "verdict",
         title=title,
@@ -173,7 +189,7 @@ def render(result: GateResult, title: str) -> Table:
                 ("success", t.success_regressed),
                 ("chain length", t.length_regressed),
                 ("NFE", t.nfe_increased and t.nfe_gated),
-                ("work", t.work_increased and t.work_gated),
+                ("work", (t.work_increased and t.work_gated) or (t.task == "ALL" and t.pair in more_work)),
                 ("speed", r.verdict == "fail" if r is not None else s is not None and s.regressed),
             )
             if hit
@@ -260,6 +276,7 @@ def cmd_gate(args: argparse.Namespace) -> int:
             allow_work_increase=args.allow_work_increase,
             reference=args.reference,
             speed_across_cpus=args.speed_across_cpus,
+            inconclusive=args.inconclusive,
         )
     except GateInputError as exc:
         raise UsageError(f"cannot compare {args.baseline} with {args.candidate}: {exc}") from None
@@ -274,6 +291,8 @@ def cmd_gate(args: argparse.Namespace) -> int:
         console.print(f"note: {note}")
     for warning in result.warnings:
         console.print(f"[yellow]warning[/yellow]: {warning}")
+    for r in result.replay:  # the figure that decided speed, and how far it can be trusted
+        console.print(f"verdict: {r.trust()}")
     if result.passed:
         unsure = [r.pair for r in result.replay if r.verdict == "inconclusive"]
         speed = f"speed inconclusive for {', '.join(unsure)} (warning above)" if unsure else "no slowdown"

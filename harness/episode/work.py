@@ -33,8 +33,9 @@ passes and none of them showed an attention call, its tokens are not measured (n
 
 What the count can miss: work done by functional calls on bare tensors (F.linear on a
 weight held outside any module, a matmul in a policy's own code) is not seen, as such
-calls are not passes either. The shipped models do all their products in the modules
-above.
+calls are not passes either. The replay benchmark counts those too, at torch's
+dispatcher (harness/episode/op_work.py), and the gate compares that count; on the
+shipped models, which do all their products in the modules above, the two agree.
 """
 
 from __future__ import annotations

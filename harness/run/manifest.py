@@ -36,6 +36,7 @@ from harness.plugins import HARNESS
 from harness.threads import threads_record
 from policies.dvla.policy import checkpoint_fields
 from policies.registry import PROVIDERS as POLICY_PROVIDERS
+from results.cpu_identity import read_cpu_identity
 
 MANIFEST_VERSION = 1
 CORE_PACKAGES = ("dvla-harness", "numpy", "torch", "gymnasium", "mujoco", "pandas", "pyarrow")
@@ -58,8 +59,8 @@ def package_version(name: str) -> str | None:
 
 
 def cpu_model() -> str:
-    """The CPU model as the OS names it: the gate compares speed only between runs whose
-    manifests name the same one (results/gate_speed.py)."""
+    """The CPU model as the OS names it. A generic name ("AMD EPYC") can cover several
+    generations, so the gate compares the recorded identity (results/cpu_identity.py)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -145,6 +146,8 @@ def environment() -> dict[str, Any]:
         "platform": platform.platform(),
         "host": platform.node(),
         "cpu": cpu_model(),
+        # family, model, stepping, microcode, caches, flags: the gate times only on one CPU
+        "cpu_identity": read_cpu_identity(),
         "cpu_count": os.cpu_count(),
         "gpu": _gpu(),
         "mujoco_gl": os.environ.get("MUJOCO_GL"),
