@@ -49,6 +49,7 @@ BUILTIN = (
     "policies.experts.libero_scripted:LIBERO_SCRIPTED",
     "policies.experts.maniskill_scripted:MANISKILL_SCRIPTED",
     "policies.remote:REMOTE",
+    "policies.lerobot:LEROBOT",
     "policies.dvla.policy:SPECS",
 )
 

@@ -198,6 +198,28 @@ def test_a_conv_counts_its_output_times_its_kernel():
     counter.close()
 
 
+@pytest.mark.parametrize("batch_first", [False, True])
+def test_multihead_attention_counts_what_torchs_flop_counter_counts(batch_first):
+    """LeRobot's ACT attends through nn.MultiheadAttention, cross-attention included (keys
+    of another length and width): its projections and attention, as torch.utils.flop_counter
+    counts the same products (in training mode with the weights returned, where torch
+    multiplies through bmm, which it counts, rather than a fused CPU kernel, which it does not)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    torch.manual_seed(0)
+    mha = torch.nn.MultiheadAttention(16, 4, kdim=12, vdim=10, batch_first=batch_first)
+    sizes = [(2, 5, 16), (2, 7, 12), (2, 7, 10)] if batch_first else [(5, 2, 16), (7, 2, 12), (7, 2, 10)]
+    q, k, v = (torch.randn(*s) for s in sizes)
+    with FlopCounterMode(display=False) as reference:
+        mha.train()(q, k, v, need_weights=True)  # the explicit bmm path, which it counts
+    counter = NFECounter()
+    with torch.inference_mode(), counter.counting():
+        mha.eval()(q, k, value=v)  # ACT passes the value by keyword
+    assert counter.take() == 1
+    assert counter.take_work().flops == reference.get_total_flops() > 0
+    counter.close()
+
+
 # ---- remote ------------------------------------------------------------------------
 
 

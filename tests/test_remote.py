@@ -103,7 +103,7 @@ def serve_process():
     for proc in procs:
         if proc.poll() is None:
             proc.terminate()
-        proc.wait(timeout=30)
+        proc.wait(timeout=120)  # a server holding LeRobot takes ~30 s to exit at load 17
 
 
 def test_remote_equals_local_through_dvla_harness_serve(cli, tmp_path, serve_process, monkeypatch):

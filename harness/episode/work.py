@@ -14,7 +14,10 @@ convention of `torch.utils.flop_counter` (which counts the same products the sam
   around `F.scaled_dot_product_attention` that exists so these hooks see its shapes):
   2 * batch * heads * L * S * (E + Ev) for queries (B, heads, L, E) against keys (.., S, E)
   and values (.., S, Ev): the scores and the weighted sum, over every key position,
-  masked or not (a masked kernel computes them too).
+  masked or not (a masked kernel computes them too);
+- nn.MultiheadAttention (LeRobot's ACT, among others): its four projections (2 * rows *
+  in_features * embed_dim each for queries, keys and values, 2 * query rows * embed_dim^2
+  for the output) and its attention as above, with E + Ev = 2 * embed_dim over all heads.
 Norms, embeddings (a lookup), activations, softmax and elementwise ops are not counted:
 they are a small share of a pass and change with it. A module of another kind that
 holds parameters of its own (a custom layer calling F.linear, nn.MultiheadAttention)
@@ -147,6 +150,23 @@ def _attention(module: Any, args: tuple) -> int | None:
     return None if work is None else work[0]
 
 
+def _multihead_attention(module: Any, args: tuple) -> int | None:
+    """nn.MultiheadAttention called with query and key positionally (the value has the
+    key's length and `vdim` features, so it need not be in reach)."""
+    if len(args) < 2:
+        return None
+    query, key = args[0].shape, args[1].shape
+    if len(query) == 2:  # unbatched (L, E)
+        batch, length, keys = 1, query[0], key[0]
+    elif module.batch_first:
+        batch, length, keys = query[0], query[1], key[1]
+    else:
+        batch, length, keys = query[1], query[0], key[0]
+    embed = module.embed_dim
+    projections = batch * (length * embed * embed * 2 + keys * (module.kdim + module.vdim) * embed)
+    return 2 * projections + 2 * batch * length * keys * 2 * embed
+
+
 def attention_work(args: tuple) -> tuple[int, int, int, int] | None:
     """FLOPs, and query, KV and cached KV positions (summed over the batch rows) of one
     attention call; None when its tensors are not in reach (keyword arguments)."""
@@ -168,6 +188,7 @@ COUNTED: dict[tuple[str, str], Callable[[Any, tuple], int | None]] = {
     ("torch.nn.modules.conv", "Conv2d"): _conv,
     ("torch.nn.modules.conv", "Conv3d"): _conv,
     ("policies.dvla.model", "Attention"): _attention,
+    ("torch.nn.modules.activation", "MultiheadAttention"): _multihead_attention,
 }
 ATTENTION, LINEAR = _attention, _linear
 # Kinds that hold parameters but compute no matrix product: they do not make a pass's
@@ -181,6 +202,9 @@ NO_PRODUCTS = frozenset(
         ("torch.nn.modules.batchnorm", "BatchNorm2d"),
         ("torch.nn.modules.batchnorm", "BatchNorm3d"),
         ("torch.nn.modules.sparse", "Embedding"),
+        # nn.MultiheadAttention's out_proj: the attention module multiplies by its weight
+        # itself (F.multi_head_attention_forward) and counts that product above
+        ("torch.nn.modules.linear", "NonDynamicallyQuantizableLinear"),
     }
 )
 _costs: dict[type, Callable[[Any, tuple], int | None] | None] = {}
