@@ -247,7 +247,12 @@ def split_chain_options(opts: str) -> tuple[str, bool]:
 
 
 def load_suite(name: str, split: str = "eval") -> Suite:
-    from adapters.libero_options import SuiteOptionError, parse_options, resolve_initial_states
+    from adapters.libero_options import (
+        DEFAULT_INSTRUCTION,
+        SuiteOptionError,
+        parse_options,
+        resolve_initial_states,
+    )
 
     names, key, opts = _split_name(name)
     opts, with_goal = split_chain_options(opts)
@@ -255,6 +260,11 @@ def load_suite(name: str, split: str = "eval") -> Suite:
         options = resolve_initial_states(parse_options(opts), split)
     except SuiteOptionError as exc:
         raise SuiteOptionError(f"{exc}; chain suites also take {GOAL_POSITIONS}=on|off") from None
+    if options.instruction != DEFAULT_INSTRUCTION:
+        raise SuiteOptionError(
+            "chain suites take no instruction=: a chain's instructions are its subtasks' "
+            "(adapters/chain_data/<scene>.toml)"
+        )
     scenes = [cs.load_scene(n) for n in names]
     if with_goal:  # refused before any episode, not at the first reset
         for scene in scenes:
