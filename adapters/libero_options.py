@@ -61,11 +61,14 @@ class Options:
         """The canonical option string: the options not at their defaults, and always the
         seeding (it moves scores, and the default changed: earlier runs seeded per episode).
         Every regime but state is named (`obs=images`, `obs=upstream`), so a row says what
-        its policy saw; a perturbed suite always names its instruction source, which
-        decides what `perturb=lan` and `perturb=task` tell the policy."""
+        its policy saw. The instruction source is named when it is `bddl`, and under `lan`
+        and `task` always: there the two sources give other words (the paraphrase, the new
+        goal's), and such a name without it is read as `bddl` (results/generalization.py).
+        Elsewhere `filename` stays unnamed, so a scene perturbation's name and rows are
+        those of the standard words."""
         default_size = UPSTREAM_IMAGE_SIZE if self.obs == "upstream" else DEFAULT_IMAGE_SIZE
         parts = [f"perturb={'+'.join(self.perturb)}"] if self.perturb else []
-        if self.perturb or self.instruction != DEFAULT_INSTRUCTION:  # a perturbed name always says
+        if self.instruction != DEFAULT_INSTRUCTION or {"lan", "task"} & set(self.perturb):
             parts.append(f"instruction={self.instruction}")
         for key, value, default in (
             ("obs", self.obs, "state"),

@@ -104,6 +104,14 @@ def test_the_instruction_source_decides_what_the_policy_hears():
     assert lan_bddl.name == "libero/spatial:perturb=lan,instruction=bddl,seeding=openvla"
     assert standard.name == "libero/spatial:seeding=openvla"  # the default stays unnamed on a standard suite
     assert standard_bddl.name == "libero/spatial:instruction=bddl,seeding=openvla"
+    # a scene perturbation hears the standard words under the default, so its name (and every
+    # row) is the one without the option; under lan and task the source is always named
+    swap = lb.load_suite("libero/spatial:perturb=swap")
+    assert swap.name == "libero/spatial:perturb=swap,seeding=openvla"
+    assert swap_bddl.name == "libero/spatial:perturb=swap,instruction=bddl,seeding=openvla"
+    assert lb.load_suite("libero/spatial:perturb=swap,instruction=filename").name == swap.name
+    assert task.name == "libero/spatial:perturb=task,instruction=filename,seeding=openvla"
+    assert [t.instruction for t in swap.tasks] == [t.instruction for t in standard.tasks]
     bench = lb.benchmark("spatial")
     for i, t in enumerate(lan_bddl.tasks):
         name = bench.get_task(i).bddl_file
