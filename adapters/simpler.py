@@ -390,15 +390,15 @@ def _episodes(split: str, task: str, variants: tuple[sv.Variant, ...]) -> tuple[
 
 @dataclass(frozen=True)
 class Options:
-    variants: tuple[sv.Variant, ...] = (sv.CANONICAL_VARIANT,)
+    variants: sv.Selection = sv.CANONICAL_SELECTION
     obs: str = "state"  # state | images (state + the base camera's RGB)
     image_size: int = DEFAULT_IMAGE_SIZE
 
     def suffix(self) -> str:
         """The options not at their defaults, in one order: what the suite name records."""
         parts = []
-        if sv.name(self.variants) != sv.CANONICAL:
-            parts.append(f"variants={sv.name(self.variants)}")
+        if self.variants.name != sv.CANONICAL:
+            parts.append(f"variants={self.variants.name}")
         if self.obs != "state":
             parts.append(f"obs={self.obs}")
         if self.image_size != DEFAULT_IMAGE_SIZE:
@@ -407,7 +407,7 @@ class Options:
 
 
 _OPTIONS_HELP = (
-    "valid options: variants=canonical|all|<axis>[+<axis>.<level>...], obs=state|images, image_size=N "
+    "valid options: variants=canonical|all|simplerenv|<axis>[+<axis>.<level>...], obs=state|images, image_size=N "
     "(16-1024)"
 )
 
@@ -418,7 +418,7 @@ def parse_options(text: str) -> Options:
     for item in filter(None, (t.strip() for t in text.split(","))):
         key, _, value = item.partition("=")
         if key == "variants" and value:
-            values["variants"] = sv.parse(value)
+            values["variants"] = sv.parse_selection(value)
         elif key == "obs" and value in ("state", "images"):
             values["obs"] = value
         elif key == "image_size" and value.isdigit() and 16 <= int(value) <= 1024:
@@ -435,14 +435,14 @@ def build_suite(
     name: str, task_names: tuple[str, ...], split: str = "eval", options: Options | None = None
 ) -> Suite:
     options = options or Options()
-    variants = options.variants
+    settings = {t: options.variants.for_task(t) for t in task_names}
     tasks = tuple(
         TaskSpec(
             name=t,
             instruction=TASKS[t].instruction,
             max_steps=TASKS[t].max_steps,
             index=i,
-            episodes=_episodes(split, t, variants),
+            episodes=_episodes(split, t, settings[t]),
         )
         for i, t in enumerate(task_names)
     )
@@ -453,7 +453,10 @@ def build_suite(
 
     from adapters import vulkan
 
-    setting = "canonical scene" if len(variants) == 1 else f"canonical + {len(variants) - 1} variants"
+    counts = "-".join(str(n) for n in sorted({len(v) - 1 for v in settings.values()}))
+    setting = "canonical scene" if counts == "0" else f"canonical + {counts} variants"
+    if options.variants.per_task_sets:
+        setting += " (each task's SimplerEnv set)"
     return Suite(
         name=name + options.suffix(),
         version=SUITE_VERSION,

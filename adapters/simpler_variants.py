@@ -5,10 +5,10 @@ No simulator import: a suite's variants are parsed, checked and listed without
 ManiSkill. Applying a level to a live scene is adapters/simpler.py's job.
 
 `variants=` (a suite option, or `run --variants`) takes `canonical` (ManiSkill3's
-canonical scene only), `all` (every level of every axis), or
-tokens joined by `+`: an axis (`lighting`: all its levels) or one level
-(`lighting.dim`). The canonical scene is always run too: every variant is judged
-against it.
+canonical scene only), `all` (every level of every axis), `simplerenv` (each task's own
+SimplerEnv set, simpler_data/simplerenv_sets.toml), or tokens joined by `+`: an axis
+(`lighting`: all its levels) or one level (`lighting.dim`). The canonical scene is always
+run too: every variant is judged against it.
 """
 
 from __future__ import annotations
@@ -22,7 +22,14 @@ from typing import Any
 from adapters.base import SuiteDataError, UnknownSuiteError
 
 VARIANTS_FILE = Path(__file__).parent / "simpler_data" / "variants.toml"
+SETS_FILE = Path(__file__).parent / "simpler_data" / "simplerenv_sets.toml"
 CANONICAL = "canonical"
+SIMPLERENV = "simplerenv"  # the `variants=` token for each task's own SimplerEnv set
+# SimplerEnv's variant aggregation (tools/calc_metrics_evaluation_videos.py): base scene,
+# backgrounds, lighting, distractors, table textures; camera is left out ("only when
+# investigating the effect of different robustness factors"), and it has no physical axes.
+SIMPLERENV_AXES = ("background", "lighting", "distractors", "table")
+HARNESS_AXES = ("camera", "friction", "mass")  # the harness's own robustness axes
 KINDS = ("visual", "physical")
 # What each axis's levels must give, and how many numbers each holds.
 PARAMS: dict[str, dict[str, int | None]] = {
@@ -117,31 +124,73 @@ def all_variants() -> list[Variant]:
 
 def parse(text: str) -> tuple[Variant, ...]:
     """`canonical`, `all`, or `+`-joined axes / `axis.level`s -> the variants to run, the
-    canonical first, then in the file's order; each once."""
+    canonical first, then in the file's order; each once. `simplerenv` is per task:
+    parse_selection."""
+    return parse_selection(text).variants
+
+
+def _level(token: str, text: str) -> list[Variant]:
+    """The variants one `axis` or `axis.level` token names; refused when unknown."""
+    axis, _, level = token.partition(".")
+    if axis not in axes():
+        raise VariantError(
+            f"unknown variant axis {axis!r} in variants={text}; axes: {', '.join(axes())} "
+            f"(or canonical, all, {SIMPLERENV}; a level as axis.level)"
+        )
+    levels = axes()[axis].levels
+    if level and level not in levels:
+        raise VariantError(
+            f"unknown level {level!r} of axis {axis!r} in variants={text}; its levels: "
+            + ", ".join(f"{axis}.{name}" for name in levels)
+        )
+    return [Variant(axis, name) for name in levels if not level or name == level]
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What `variants=` selects: the variants named for every task and, with `simplerenv`,
+    each task's own SimplerEnv set besides."""
+
+    variants: tuple[Variant, ...]  # the canonical first, then the file's order
+    per_task_sets: bool = False
+
+    def for_task(self, task: str) -> tuple[Variant, ...]:
+        """The settings one task runs, the canonical first, then in the file's order."""
+        if not self.per_task_sets:
+            return self.variants
+        wanted = set(self.variants) | set(simplerenv_set(task))
+        return (CANONICAL_VARIANT, *(v for v in all_variants() if v in wanted))
+
+    @property
+    def name(self) -> str:
+        """The canonical option text (what the suite name records): `simplerenv`, then
+        what it adds that some task's set lacks."""
+        if not self.per_task_sets:
+            return name(self.variants)
+        if set(self.variants) >= set(all_variants()):
+            return "all"
+        in_every_set = set.intersection(*(set(simplerenv_set(t)) for t in simplerenv_sets()[1]))
+        extra = tuple(v for v in self.variants if v not in in_every_set)
+        return "+".join([SIMPLERENV, *([name(extra)] if extra else [])])
+
+
+CANONICAL_SELECTION = Selection((CANONICAL_VARIANT,))
+
+
+def parse_selection(text: str) -> Selection:
     every = all_variants()
     wanted: set[Variant] = set()
+    per_task = False
     for token in filter(None, (t.strip() for t in text.split("+"))):
-        if token == CANONICAL:
-            continue
-        if token == "all":
+        if token == SIMPLERENV:
+            per_task = True
+        elif token == "all":
             wanted.update(every)
-            continue
-        axis, _, level = token.partition(".")
-        if axis not in axes():
-            raise VariantError(
-                f"unknown variant axis {axis!r} in variants={text}; axes: {', '.join(axes())} "
-                "(or canonical, all; a level as axis.level)"
-            )
-        levels = axes()[axis].levels
-        if level and level not in levels:
-            raise VariantError(
-                f"unknown level {level!r} of axis {axis!r} in variants={text}; its levels: "
-                + ", ".join(f"{axis}.{name}" for name in levels)
-            )
-        wanted.update(Variant(axis, name) for name in levels if not level or name == level)
+        elif token != CANONICAL:
+            wanted.update(_level(token, text))
     if not text.strip():
-        raise VariantError("variants= is empty; give canonical, all, an axis or axis.level")
-    return (CANONICAL_VARIANT, *(v for v in every if v in wanted))
+        raise VariantError(f"variants= is empty; give canonical, all, {SIMPLERENV}, an axis or axis.level")
+    return Selection((CANONICAL_VARIANT, *(v for v in every if v in wanted)), per_task)
 
 
 def name(variants: tuple[Variant, ...]) -> str:
@@ -172,3 +221,54 @@ def label(variant: dict[str, Any] | Any) -> str | None:
     """The `variant` column for an EpisodeSpec.variant: None for suites without variants."""
     v = of_spec(variant)
     return None if v is None else v.label
+
+
+# --- SimplerEnv's own set per task (simpler_data/simplerenv_sets.toml) -------------------
+
+
+@dataclass(frozen=True)
+class SimplerEnvSet:
+    name: str
+    simplerenv_task: str  # the SimplerEnv task whose settings it follows
+    what: str
+    variants: tuple[Variant, ...]  # besides the canonical scene, in the set's order
+
+
+@cache
+def simplerenv_sets(path: Path = SETS_FILE) -> tuple[dict[str, SimplerEnvSet], dict[str, str]]:
+    """(set name -> set, ManiSkill3 task -> the set it follows), checked: every level is
+    one of the variants file's on SimplerEnv's axes, named once."""
+    data = tomllib.loads(path.read_text())
+    sets = {}
+    for set_name, body in (data.get("sets") or {}).items():
+        where = f"{path.name}: [sets.{set_name}]"
+        if not isinstance(body, dict) or set(body) != {"simplerenv_task", "what", "variants"}:
+            raise SuiteDataError(f"{where}: needs exactly simplerenv_task, what, variants")
+        variants = []
+        for token in body["variants"]:
+            axis, _, level = str(token).partition(".")
+            if axis not in SIMPLERENV_AXES or level not in axes().get(axis, Axis("", "", "", {})).levels:
+                raise SuiteDataError(
+                    f"{where}: {token!r} is not a level of SimplerEnv's axes ({', '.join(SIMPLERENV_AXES)}) "
+                    f"in {VARIANTS_FILE.name}"
+                )
+            variants.append(Variant(axis, level))
+        if len(set(variants)) != len(variants):
+            raise SuiteDataError(f"{where}: a level is named twice")
+        sets[set_name] = SimplerEnvSet(set_name, body["simplerenv_task"], body["what"], tuple(variants))
+    tasks = {str(t): str(s) for t, s in (data.get("tasks") or {}).items()}
+    unknown = sorted(s for s in tasks.values() if s not in sets)
+    if unknown:
+        raise SuiteDataError(f"{path.name}: [tasks] names unknown sets {unknown}; sets: {', '.join(sets)}")
+    return sets, tasks
+
+
+def simplerenv_set(task: str) -> tuple[Variant, ...]:
+    """The canonical scene and the task's SimplerEnv set, in the set's order."""
+    sets, tasks = simplerenv_sets()
+    if task not in tasks:
+        raise VariantError(
+            f"task {task!r} follows no SimplerEnv task in {SETS_FILE.name}, so variants={SIMPLERENV} "
+            f"cannot choose its settings; tasks with a set: {', '.join(tasks)}"
+        )
+    return (CANONICAL_VARIANT, *sets[tasks[task]].variants)

@@ -41,16 +41,28 @@ STANDARD = "standard"
 COLUMNS = {"object": "Obj.", "swap": "Pos.", "lan": "Sem.", "task": "Task", "env": "Env."}
 
 
+# The instruction source LIBERO-PRO's published table was made with (docs/libero-pro.md):
+# a perturbed column under it carries the bare perturbation's name, under another it says so.
+PUBLISHED_INSTRUCTION = "filename"
+
+
 def split_perturbation(suite: str) -> tuple[str, str]:
-    """(standard suite name, perturbation) of a suite name; perturbation 'standard' when none."""
+    """(standard suite name, perturbation) of a suite name; perturbation 'standard' when
+    none. A perturbed run's instruction source is part of its perturbation (`lan` under
+    the published `filename` source, `lan (instruction=bddl)` under the other), so both
+    pair with the same standard run. A perturbed name without one heard the BDDL's words
+    under lan and task and the standard instruction under the scene perturbations."""
     base, sep, options = suite.partition(":")
-    kept, perturb = [], STANDARD
-    for item in options.split(",") if sep else []:
-        key, _, value = item.partition("=")
-        if key.strip() == "perturb":
-            perturb = value.strip()
-        else:
-            kept.append(item)
+    items = [i.partition("=") for i in options.split(",")] if sep else []
+    values = {key.strip(): value.strip() for key, _, value in items}
+    perturb = values.get("perturb", STANDARD)
+    dropped = ("perturb", "instruction") if "perturb" in values else ()
+    kept = [f"{key}{eq}{value}" for key, eq, value in items if key.strip() not in dropped]
+    if perturb != STANDARD:
+        legacy = "bddl" if {"lan", "task"} & set(perturb.split("+")) else PUBLISHED_INSTRUCTION
+        instruction = values.get("instruction", legacy)
+        if instruction != PUBLISHED_INSTRUCTION:
+            perturb = f"{perturb} (instruction={instruction})"
     return (f"{base}:{','.join(kept)}" if kept else base), perturb
 
 
@@ -264,8 +276,10 @@ NOTE = (
     "task and episode index, on the episodes both ran when one run has more; Newcombe's paired "
     "score interval; n/m = pairs only the standard / only the perturbed run solved) or unpaired "
     "(Newcombe's score interval). LIBERO-PRO perturbations "
-    "(Zhou et al., 2025): Obj. appearance, Pos. object positions, Sem. paraphrased "
-    "instruction, Task new goals, Env. another table."
+    "(Zhou et al., 2025): Obj. appearance, Pos. object positions, Sem. the paraphrase folder, "
+    "Task new goals, Env. another table; the policy hears the standard instruction (task.language, "
+    "as in LIBERO-PRO's published table) unless a column says instruction=bddl (each BDDL's own "
+    "words: the paraphrase, the new goal's)."
 )
 
 

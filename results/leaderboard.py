@@ -154,7 +154,11 @@ class Leaderboard:
             groups = [f"{g} avg len" for g in self.groups] if len(self.groups) > 1 else []
             headers += [*groups, *(f"{k}/{k_max}" for k in range(1, k_max + 1)), "avg len (95%)"]
         elif self.axes:
-            headers += ["canonical scene (Wilson 95%)", "variant-aggregated, SimplerEnv's axes (95%)"]
+            headers += [
+                "canonical scene (Wilson 95%)",
+                "variant-aggregated, SimplerEnv's set per task (95%)",
+                "extended aggregate, every level of its axes (95%)",
+            ]
             headers += [
                 f"{a} (vs canonical)" if a in SIMPLERENV_AXES else f"{a} (harness axis, vs canonical)"
                 for a in self.axes

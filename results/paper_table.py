@@ -271,7 +271,7 @@ def simpler_block(board: Leaderboard, baseline: str) -> Block:
     headers = [
         "method",
         "canonical scene (Wilson 95%)",
-        "variant aggregation, SimplerEnv's axes (bootstrap 95%)",
+        "variant aggregation, SimplerEnv's set per task (bootstrap 95%)",
         "published Avg",
         "tokens/s",
         f"speedup vs {baseline}",

@@ -56,3 +56,21 @@ def expert_plays_a_pair(
         return at_start, seen, first, second
     finally:
         env.close()
+
+
+def put_in_tray(env: Any, groceries: tuple[str, ...]) -> None:
+    """Move living_room_scene3's groceries into its tray by hand (MuJoCo's joint state), side
+    by side, as a placement that knocks the next one in would; the next step settles them."""
+    import numpy as np
+
+    sim = env.inner.libero.env.sim
+    tray = sim.data.body_xpos[sim.model.body_name2id("wooden_tray_1_main")].copy()
+    offsets = np.linspace(-0.05, 0.05, len(groceries)) if len(groceries) > 1 else [0.0]
+    for offset, grocery in zip(offsets, groceries, strict=True):
+        joint = f"{grocery}_1_joint0"
+        qpos = sim.data.get_joint_qpos(joint).copy()
+        qpos[:2] = tray[:2] + np.array([offset, 0.0])  # over the tray
+        qpos[2] += 0.02  # its height above the table, plus the tray's floor
+        sim.data.set_joint_qpos(joint, qpos)
+        sim.data.set_joint_qvel(joint, np.zeros(6))
+    sim.forward()

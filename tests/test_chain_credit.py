@@ -116,6 +116,7 @@ def test_on_liberos_live_state_a_later_subtask_already_in_place_fails_the_chain(
 
     from adapters import chains
     from adapters.base import EpisodeSpec
+    from tests.chain_live import put_in_tray
 
     suite = chains.load_suite(f"chains/{SCENE}")
     assert suite.version == chains.SUITE_VERSION == "2"
@@ -123,16 +124,7 @@ def test_on_liberos_live_state_a_later_subtask_already_in_place_fails_the_chain(
     chain = tuple(f"{g}_in_tray" for g in GROCERIES)
     try:
         env.reset(options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=0, chain=chain)})
-        sim = env.inner.libero.env.sim
-        tray = sim.data.body_xpos[sim.model.body_name2id("wooden_tray_1_main")].copy()
-        for offset, grocery in ((-0.05, "butter"), (0.05, "ketchup")):
-            joint = f"{grocery}_1_joint0"
-            qpos = sim.data.get_joint_qpos(joint).copy()
-            qpos[:2] = tray[:2] + np.array([offset, 0.0])  # over the tray, side by side
-            qpos[2] += 0.02  # its height above the table, plus the tray's floor
-            sim.data.set_joint_qpos(joint, qpos)
-            sim.data.set_joint_qvel(joint, np.zeros(6))
-        sim.forward()
+        put_in_tray(env, ("butter", "ketchup"))
         _, _, terminated, _, info = env.step(np.zeros(7))  # they settle into the tray
         assert env.holds(in_tray("butter")) and env.holds(in_tray("ketchup"))
         assert terminated and not info["success"] and info["subtasks_completed"] == 1

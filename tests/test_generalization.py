@@ -35,9 +35,37 @@ def _rows(suite: str, outcomes: list[bool], cid: str = "c1", tasks: int = 2) -> 
 
 
 def test_suite_names_split_into_standard_and_perturbation():
-    assert split_perturbation("libero/spatial:perturb=swap+lan,seeding=openvla") == (BASE, "swap+lan")
+    name = "libero/spatial:perturb=swap+lan,instruction={},seeding=openvla"
+    assert split_perturbation(name.format("filename")) == (BASE, "swap+lan")
+    assert split_perturbation(name.format("bddl")) == (BASE, "swap+lan (instruction=bddl)")
     assert split_perturbation(BASE) == (BASE, "standard")
+    assert split_perturbation("libero/goal:perturb=env,instruction=filename") == ("libero/goal", "env")
+    # the standard suite under the BDDL's words is another standard suite
+    bddl = "libero/spatial:instruction=bddl,seeding=openvla"
+    assert split_perturbation(bddl) == (bddl, "standard")
+    # a name without the source: the BDDL's words under lan and task, the standard ones otherwise
+    assert split_perturbation("libero/spatial:perturb=lan,seeding=openvla") == (
+        BASE,
+        "lan (instruction=bddl)",
+    )
     assert split_perturbation("libero/goal:perturb=env") == ("libero/goal", "env")
+
+
+def test_both_instruction_sources_pair_with_one_standard_run_and_only_filename_is_published():
+    rows = _rows(BASE, [True] * 4)
+    rows += _rows(
+        "libero/spatial:perturb=lan,instruction=filename,seeding=openvla", [True, True, True, False]
+    )
+    rows += _rows("libero/spatial:perturb=lan,instruction=bddl,seeding=openvla", [True, False, False, False])
+    (table,) = gap_tables(pd.DataFrame(rows))
+    assert table.perturbations == ("lan", "lan (instruction=bddl)")
+    (row,) = table.rows
+    assert row.perturbed["lan"][1].drop == pytest.approx(0.25)
+    assert row.perturbed["lan (instruction=bddl)"][1].drop == pytest.approx(0.75)
+    headers, cells = table.cells()
+    assert headers[2:4] == ["lan (Sem.)", "lan: drop (95%)"]
+    published = [r for r in cells if "published" in r[0].text]
+    assert published and all(r[4].text == "-" for r in published)  # no published bddl column
 
 
 def test_matching_episodes_pair_and_count_discordant_pairs():

@@ -86,22 +86,58 @@ def test_language_is_read_from_and_written_into_the_bddl():
 
 
 @needs_libero
-def test_the_policy_receives_the_perturbed_instruction_and_the_suite_is_versioned():
+def test_the_instruction_source_decides_what_the_policy_hears():
+    """`filename` (the default, LIBERO-PRO's published path: OpenVLA's get_libero_env gives
+    task.language): the standard words under every perturbation, lan and task included.
+    `bddl` (LIBERO-PRO's evaluation runner: env.language_instruction): each BDDL's own
+    (:language), the paraphrase under lan, LIBERO's raw text where the words are unchanged."""
     standard = lb.load_suite("libero/spatial")
     lan = lb.load_suite("libero/spatial:perturb=lan")
-    swap_lan = lb.load_suite("libero/spatial:perturb=swap+lan")
-    swap = lb.load_suite("libero/spatial:perturb=swap")
+    lan_bddl = lb.load_suite("libero/spatial:perturb=lan,instruction=bddl")
+    swap_lan = lb.load_suite("libero/spatial:perturb=swap+lan,instruction=bddl")
+    swap_bddl = lb.load_suite("libero/spatial:perturb=swap,instruction=bddl")
+    standard_bddl = lb.load_suite("libero/spatial:instruction=bddl")
     task = lb.load_suite("libero/spatial:perturb=task")
-    assert lan.version != standard.version and lan.version == swap.version
-    assert lan.name == "libero/spatial:perturb=lan,seeding=openvla"
+    task_bddl = lb.load_suite("libero/spatial:perturb=task,instruction=bddl")
+    assert lan.version != standard.version and lan.version == lan_bddl.version
+    assert lan.name == "libero/spatial:perturb=lan,instruction=filename,seeding=openvla"
+    assert lan_bddl.name == "libero/spatial:perturb=lan,instruction=bddl,seeding=openvla"
+    assert standard.name == "libero/spatial:seeding=openvla"  # the default stays unnamed on a standard suite
+    assert standard_bddl.name == "libero/spatial:instruction=bddl,seeding=openvla"
+    # a scene perturbation hears the standard words under the default, so its name (and every
+    # row) is the one without the option; under lan and task the source is always named
+    swap = lb.load_suite("libero/spatial:perturb=swap")
+    assert swap.name == "libero/spatial:perturb=swap,seeding=openvla"
+    assert swap_bddl.name == "libero/spatial:perturb=swap,instruction=bddl,seeding=openvla"
+    assert lb.load_suite("libero/spatial:perturb=swap,instruction=filename").name == swap.name
+    assert task.name == "libero/spatial:perturb=task,instruction=filename,seeding=openvla"
+    assert [t.instruction for t in swap.tasks] == [t.instruction for t in standard.tasks]
     bench = lb.benchmark("spatial")
-    for i, t in enumerate(lan.tasks):
-        bddl = lp._root() / "bddl_files" / "libero_spatial_lan" / bench.get_task(i).bddl_file
-        assert t.instruction == lp.bddl_language(bddl.read_text())
-        assert t.instruction != standard.tasks[i].instruction  # the benchmark reports the original
+    for i, t in enumerate(lan_bddl.tasks):
+        name = bench.get_task(i).bddl_file
+        assert t.instruction == lp.bddl_language(
+            (lp._root() / "bddl_files" / "libero_spatial_lan" / name).read_text()
+        )
+        assert t.instruction != standard.tasks[i].instruction
+        assert lan.tasks[i].instruction == task.tasks[i].instruction == standard.tasks[i].instruction
         assert swap_lan.tasks[i].instruction == t.instruction
-        assert swap.tasks[i].instruction == standard.tasks[i].instruction  # the scene moves, not the words
-    assert any(a.instruction != b.instruction for a, b in zip(task.tasks, standard.tasks, strict=True))
+        assert (
+            swap_bddl.tasks[i].instruction == standard_bddl.tasks[i].instruction
+        )  # the scene moves, not the words
+        assert standard_bddl.tasks[i].instruction == lp.bddl_language(
+            Path(bench.get_task_bddl_file_path(i)).read_text()
+        )
+        assert task_bddl.tasks[i].instruction != standard_bddl.tasks[i].instruction  # the new goal's words
+    assert (
+        sum(a.instruction != b.instruction for a, b in zip(standard.tasks, standard_bddl.tasks, strict=True))
+        > 0
+    )
+    with pytest.raises(SuiteOptionError, match="instruction='words': choose filename or bddl"):
+        parse_options("instruction=words")
+    from adapters import chains
+
+    with pytest.raises(SuiteOptionError, match="chain suites take no instruction="):
+        chains.load_suite("chains/libero_goal:instruction=bddl")
 
 
 @needs_libero
@@ -353,9 +389,10 @@ def test_a_perturbed_run_records_the_paraphrase_and_its_version(cli, tmp_path, m
     seen: list[EpisodeContext] = []
     problem = libero_select._problem
     monkeypatch.setattr(libero_select, "_problem", lambda context: seen.append(context) or problem(context))
-    out = _expert_run(cli, tmp_path, "libero/spatial:perturb=lan")
+    out = _expert_run(cli, tmp_path, "libero/spatial:perturb=lan,instruction=bddl")
     row = pq.read_table(out / "episodes.parquet").to_pylist()[0]
-    paraphrase = lb.load_suite("libero/spatial:perturb=lan").tasks[0].instruction
+    paraphrase = lb.load_suite("libero/spatial:perturb=lan,instruction=bddl").tasks[0].instruction
     assert seen and seen[0].instruction == paraphrase == row["instruction"]  # what the policy was given
-    assert row["suite"] == "libero/spatial:perturb=lan,seeding=openvla" and row["suite_version"] == "1+pro1"
+    assert row["suite"] == "libero/spatial:perturb=lan,instruction=bddl,seeding=openvla"
+    assert row["suite_version"] == "1+pro1"
     assert row["success"]  # the expert reads poses, not words: the paraphrase cannot stop it

@@ -253,6 +253,51 @@ def test_the_variants_flag_is_the_suite_option(cli, tmp_path):
     assert code == 2 and "--variants applies to the simpler/ suites" in err
 
 
+def test_simplerenv_selects_each_tasks_own_set():
+    """`variants=simplerenv`: pick_cube runs coke can's 9 settings, push_cube move near's 8;
+    the name records the selection, and a level every set holds adds nothing to it."""
+    from adapters import simpler_variants as sv
+
+    suite = load_suite("simpler/all:variants=simplerenv")
+    assert suite.name == "simpler/all:variants=simplerenv"
+    labels = {
+        t.name: [sv.label(s.variant) for s in t.episodes[:: simpler.EPISODES_PER_TASK]] for t in suite.tasks
+    }
+    assert labels["pick_cube"] == [v.label for v in sv.parse("canonical+lighting.dim+lighting.bright")] + [
+        "table=dark", "table=white", "distractors=one", "distractors=three", "background=dark", "background=sand",
+    ]  # fmt: skip
+    assert len(labels["push_cube"]) == 8 and "distractors=three" not in labels["push_cube"]
+    # the same settings keep their episode indices in every selection
+    alone = load_suite("simpler/push_cube:variants=distractors.one").tasks[0].episodes
+    push = next(t for t in suite.tasks if t.name == "push_cube").episodes
+    one = [(s.index, s.seed) for s in push if sv.label(s.variant) == "distractors=one"]
+    assert one == [(s.index, s.seed) for s in alone if sv.label(s.variant) == "distractors=one"]
+    assert (
+        load_suite("simpler/all:variants=lighting.dim+simplerenv").name == "simpler/all:variants=simplerenv"
+    )
+    extra = load_suite("simpler/push_cube:variants=simplerenv+lighting+camera.left")
+    assert extra.name == "simpler/push_cube:variants=simplerenv+lighting.warm+camera.left"
+    assert len(extra.tasks[0].episodes) == 10 * simpler.EPISODES_PER_TASK
+    assert sv.simplerenv_sets()[1].keys() == simpler.TASKS.keys()  # every task follows a set
+
+
+def test_a_sets_file_naming_a_level_outside_simplerenvs_axes_is_refused(tmp_path):
+    from adapters import simpler_variants as sv
+    from adapters.registry import SuiteDataError
+
+    bad = tmp_path / "s.toml"
+    body = '[sets.x]\nsimplerenv_task = "t"\nwhat = "w"\nvariants = ["{}"]\n[tasks]\npick_cube = "x"\n'
+    bad.write_text(body.format("camera.left"))
+    with pytest.raises(SuiteDataError, match=r"'camera\.left' is not a level of SimplerEnv's axes"):
+        sv.simplerenv_sets(bad)
+    bad.write_text(body.format("lighting.neon"))
+    with pytest.raises(SuiteDataError, match=r"'lighting\.neon' is not a level"):
+        sv.simplerenv_sets(bad)
+    bad.write_text(body.format("lighting.dim").replace('pick_cube = "x"', 'pick_cube = "y"'))
+    with pytest.raises(SuiteDataError, match="unknown sets \\['y'\\]"):
+        sv.simplerenv_sets(bad)
+
+
 def test_a_variants_data_file_with_a_bad_level_is_refused(tmp_path):
     from adapters import simpler_variants as sv
     from adapters.registry import SuiteDataError

@@ -76,8 +76,9 @@ def _what_arguments(p: Any) -> None:
         "--variants",
         metavar="SPEC",
         help="simpler/ suites: canonical (ManiSkill3's canonical scene alone, the default), all "
-        "(every level of every axis), or axes/levels joined by + (lighting+camera.left); the same "
-        "as the suite option :variants=SPEC (docs/simpler.md)",
+        "(every level of every axis), simplerenv (each task's own SimplerEnv set), or axes/levels "
+        "joined by + (simplerenv+camera.left); the same as the suite option :variants=SPEC "
+        "(docs/simpler.md)",
     )
     p.add_argument(
         "--tasks",
