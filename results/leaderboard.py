@@ -26,9 +26,10 @@ from results.board_warnings import episode_warnings, provenance_warnings
 from results.chain_table import ChainStats, chain_cells, chain_columns, chain_stats, is_chain_run
 from results.labels import config_labels
 from results.published import observation_regime, privileged_label
-from results.render import Cell, finite_or_none, number_cell
+from results.render import Cell, finite_or_none, number_cell, task_keys
 from results.runs import Run, combined_episodes, dedupe_episodes
 from results.summary import Success
+from results.table_fit import ALWAYS, Fit
 from results.variant_table import (
     SIMPLERENV_AXES,
     RankingStability,
@@ -84,6 +85,8 @@ class Leaderboard:
     warnings: tuple[str, ...]
     # Variant runs with two or more configurations: do the variants keep their order?
     ranking: RankingStability | None = None
+    # task -> "#index" (results.render.task_keys): a narrow terminal's stand-in for a task column
+    short_tasks: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def machines(self) -> tuple[str, ...]:
@@ -320,7 +323,7 @@ def leaderboard(
     ranking = None
     if variants:
         ranking = ranking_stability({f"{e.label}@{e.machine}": e.variants for e in entries if e.variants})
-    return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings), ranking)
+    return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings), ranking, task_keys(df))
 
 
 def _flops_per_chunk(rows: pd.DataFrame) -> float | None:
@@ -378,6 +381,35 @@ def rich_table(board: Leaderboard) -> Table:
     for row in rows:
         table.add_row(*(c.text for c in row))
     return table
+
+
+# What a narrow terminal keeps first (results/table_fit.py): the row's name and its overall
+# result (success, CALVIN's average length, SimplerEnv's canonical and aggregate), then speed,
+# then the per-task and per-axis breakdown; headers not listed go last, in table order.
+BOARD_RANKS = {
+    "policy": ALWAYS,
+    "success (Wilson 95%)": ALWAYS,
+    "avg len (95%)": ALWAYS,
+    "canonical scene (Wilson 95%)": ALWAYS,
+    "variant-aggregated, SimplerEnv's axes (95%)": ALWAYS,
+    "machine": 1,
+    "tokens/s": 3,
+    "NFE/chunk": 4,
+    "errors": 5,
+    "wall s/episode": 7,
+    "control Hz": 8,
+    "GFLOP/chunk": 9,
+}
+
+
+def board_fit(board: Leaderboard) -> Fit:
+    """How a leaderboard gives way to a narrow terminal: its speedup column beside the
+    overall result, task columns (keyed by index where names do not fit) after speed."""
+    ranks = dict(BOARD_RANKS) | {f"speedup vs {board.baseline}": 2}
+    if any(e.errors for e in board.entries):
+        ranks["errors"] = 1
+    ranks |= {group: 6 for group in board.groups}
+    return Fit(ranks, board.short_tasks)
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import pandas as pd
 from rich.table import Table
 
+from results.table_fit import ALWAYS, Fit
+
 
 @dataclass(frozen=True)
 class Cell:
@@ -41,12 +43,50 @@ def success_cell(row: pd.Series) -> str:
 # episode moves it by tens of percent); the ALL row always has one.
 MIN_EPISODES_FOR_TASK_SPEEDUP = 10
 NO_BASELINE = "n/a: no bidirectional row"  # as results.leaderboard.speedups says it
-CAPTION = (
-    "control Hz: env steps per second of policy time (the policy alone); loop Hz: env steps per "
-    "second of wall-clock (policy + simulator + harness); GFLOP/chunk: counted work of the passes "
-    "behind one chunk (harness/episode/work.py; - not measured); speedup: tokens/s over bidirectional's "
-    f"in this run (per task only with >= {MIN_EPISODES_FOR_TASK_SPEEDUP} episodes each)"
-)
+# What each speed column means, printed beneath the columns a table shows.
+NOTES = {
+    "control Hz": "control Hz: env steps per second of policy time (the policy alone)",
+    "loop Hz": "loop Hz: env steps per second of wall-clock (policy + simulator + harness)",
+    "GFLOP/chunk": "GFLOP/chunk: counted work of the passes behind one chunk (harness/episode/work.py; - not measured)",
+    "speedup vs bidirectional": "speedup: tokens/s over bidirectional's in this run "
+    f"(per task only with >= {MIN_EPISODES_FOR_TASK_SPEEDUP} episodes each)",
+}
+CAPTION = "; ".join(NOTES.values())
+
+
+# What a narrow terminal keeps first (results/table_fit.py): who, where and how often it
+# succeeded, then the speed that the harness exists to measure, then the rest.
+SUMMARY_RANKS = {
+    "policy": ALWAYS,
+    "task": ALWAYS,
+    "success (Wilson 95%)": ALWAYS,
+    "speedup vs bidirectional": 1,
+    "tokens/s": 2,
+    "NFE/chunk": 3,
+    "errors": 4,
+    "wall s/episode": 5,
+    "control Hz": 6,
+    "loop Hz": 7,
+    "GFLOP/chunk": 8,
+}
+
+
+def task_keys(episodes: pd.DataFrame) -> dict[str, str]:
+    """Task name -> "#index", the index `--tasks` and `list tasks` use: what a narrow
+    terminal shows in place of a LIBERO task name (83 characters at most)."""
+    if "task_index" not in episodes or "task" not in episodes:
+        return {}
+    pairs = episodes[["task", "task_index"]].drop_duplicates("task").sort_values("task_index")
+    return {str(t): f"#{int(i)}" for t, i in pairs.itertuples(index=False)}
+
+
+def summary_fit(summary: pd.DataFrame, episodes: pd.DataFrame) -> Fit:
+    """How summary_table gives way to a narrow terminal; errors rank beside success when
+    any episode raised (a column of zeros is the first to go)."""
+    ranks = dict(SUMMARY_RANKS)
+    if summary["failures"].sum() > 0:
+        ranks["errors"] = 1
+    return Fit(ranks, task_keys(episodes), notes=NOTES)
 
 
 def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str] | None = None) -> Table:
