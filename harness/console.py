@@ -84,11 +84,17 @@ def add_wide_argument(p: Any) -> None:
     )
 
 
+# Off a terminal (a CI log, nohup), a plain progress line every this many episodes at
+# most (every 5% when that is fewer): a 2,000-episode run is not silent for minutes.
+PLAIN_LINE_EVERY = 10
+
+
 def episode_progress(
-    quiet: bool,
+    quiet: bool, folder: Any = None
 ) -> tuple[AbstractContextManager[None], Callable[[int, int], Callable[[bool], None]]]:
-    """A display to wrap the work in, and `start(total, skipped)`, which shows the bar and
-    returns the per-episode tick.
+    """A display to wrap the work in, and `start(total, skipped)`, which names the run
+    folder (once it is open: a refused folder's error stays the first line), shows the
+    bar and returns the per-episode tick.
 
     The bar appears only once `start` is called: a live display stopped before it showed
     anything still ends with an empty line, which would put a blank line before an error
@@ -118,6 +124,8 @@ def episode_progress(
                 progress.stop()
 
     def start(total: int, skipped: int) -> Callable[[bool], None]:
+        if folder is not None and not quiet:
+            err_console.print(f"run folder: {folder}", highlight=False, soft_wrap=True)
         if skipped:
             err_console.print(f"resuming: {skipped} episode(s) already recorded, {total} to run")
         progress.start()
@@ -125,7 +133,7 @@ def episode_progress(
         task_id = progress.add_task("episodes", total=total, success="success -")
 
         started = time.monotonic()
-        step = max(1, math.ceil(total / 20))  # a plain line every 5% when not on a terminal
+        step = max(1, min(PLAIN_LINE_EVERY, math.ceil(total / 20)))  # plain lines off a terminal
 
         def tick(success: bool) -> None:
             state["done"] += 1

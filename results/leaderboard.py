@@ -26,7 +26,7 @@ from results.board_warnings import episode_warnings, provenance_warnings
 from results.chain_table import ChainStats, chain_cells, chain_columns, chain_stats, is_chain_run
 from results.labels import config_labels
 from results.published import observation_regime, privileged_label
-from results.render import Cell, finite_or_none, number_cell, task_keys
+from results.render import BASELINE_NO_TOKENS, NO_TOKENS, Cell, finite_or_none, number_cell, task_keys
 from results.runs import Run, combined_episodes, dedupe_episodes
 from results.summary import Success
 from results.table_fit import ALWAYS, Fit
@@ -235,9 +235,9 @@ def speedups(items: Sequence[Timed], baseline: str) -> tuple[list[tuple[float | 
             if msg not in warnings:
                 warnings.append(msg)
         if math.isnan(item.tokens_per_s):
-            out.append((None, "n/a: no tokens"))
+            out.append((None, NO_TOKENS))
         elif math.isnan(base.tokens_per_s) or base.tokens_per_s <= 0:
-            out.append((None, "n/a: baseline decodes no tokens"))
+            out.append((None, BASELINE_NO_TOKENS))
         else:
             out.append((item.tokens_per_s / base.tokens_per_s, ""))
     return out, warnings

@@ -31,8 +31,7 @@ from matplotlib import rc_context
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator, PercentFormatter
 
-from results.labels import config_labels as shared_config_labels
-from results.labels import not_using, param_users
+from results.labels import not_using, param_users, row_labels
 from results.schema import COLUMNS
 from results.summary import wilson_interval
 
@@ -100,13 +99,10 @@ def plot_frame(
 
 
 def config_labels(df: pd.DataFrame) -> dict[str, str]:
-    """The configurations' labels (results.labels, the names every table prints), with
-    each parameter as the configuration used it: a block size of 0 is the checkpoint's."""
-    used: dict[str, dict[str, Any]] = {}
-    for row in df.drop_duplicates("policy_config_id").to_dict("records"):
-        params = json.loads(row["policy_params"]) if row["policy_params"] else {}
-        used[row["policy_config_id"]] = {k: row[PARAM + k] for k in params if row.get(PARAM + k) is not None}
-    return shared_config_labels(df, used)
+    """The configurations' labels as the rows hold them (results.labels): a legend names a
+    configuration as every table does. A default block size (0, the checkpoint's) plots at
+    the checkpoint's block size on an axis, but keeps its table name (`fast_dvla`)."""
+    return row_labels(df)
 
 
 def natural_key(text: str) -> list[Any]:

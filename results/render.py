@@ -43,6 +43,8 @@ def success_cell(row: pd.Series) -> str:
 # episode moves it by tens of percent); the ALL row always has one.
 MIN_EPISODES_FOR_TASK_SPEEDUP = 10
 NO_BASELINE = "n/a: no bidirectional row"  # as results.leaderboard.speedups says it
+NO_TOKENS = "n/a: no tokens"  # a policy that decodes no tokens (a scripted expert)
+BASELINE_NO_TOKENS = "n/a: baseline decodes no tokens"
 # What each speed column means, printed beneath the columns a table shows.
 NOTES = {
     "control Hz": "control Hz: env steps per second of policy time (the policy alone)",
@@ -89,6 +91,16 @@ def summary_fit(summary: pd.DataFrame, episodes: pd.DataFrame) -> Fit:
     return Fit(ranks, task_keys(episodes), notes=NOTES)
 
 
+def _speedup(tokens_per_s: float, base: float, is_all: bool) -> str:
+    """A ratio, or the leaderboard's reason for none (on the ALL row; '-' on a task's)."""
+    mine, theirs = finite_or_none(tokens_per_s), finite_or_none(base)
+    if mine is None:
+        return NO_TOKENS if is_all else "-"
+    if theirs is None or theirs <= 0:
+        return BASELINE_NO_TOKENS if is_all else "-"
+    return f"{mine / theirs:.2f}x"
+
+
 def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str] | None = None) -> Table:
     """`labels` (policy_config_id -> label, results.leaderboard.config_labels) tell apart
     several configurations of one policy ("fast_dvla (tau_conf=0.3)"); else the name."""
@@ -120,7 +132,7 @@ def summary_table(summary: pd.DataFrame, title: str = "", labels: dict[str, str]
         elif row["task"] in base.index:
             enough = min(row["episodes"], base.loc[row["task"], "episodes"]) >= MIN_EPISODES_FOR_TASK_SPEEDUP
             if is_all or enough:
-                speedup = _num(row["tokens_per_s"] / base.loc[row["task"], "tokens_per_s"], ".2f") + "x"
+                speedup = _speedup(row["tokens_per_s"], base.loc[row["task"], "tokens_per_s"], is_all)
         cells = [
             policy,
             "[b]ALL[/b]" if is_all else row["task"],

@@ -77,6 +77,24 @@ def test_labels_show_a_lone_configurations_non_default_parameters():
     assert plots.config_labels(default) == {"a": "fast_dvla"}  # the default says nothing
 
 
+def test_a_legend_names_a_default_configuration_as_the_tables_do():
+    """fast_dvla at its default block size (0: the checkpoint's 4) plots at 4 but is `fast_dvla`."""
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["a", "b"],
+            "policy": ["fast_dvla", "bidirectional"],
+            "policy_params": [json.dumps({"block_size": 0, "tau_conf": 0.5}), json.dumps({"steps": 12})],
+            "checkpoint": ["", ""],
+        }
+    )
+    expanded = plots.plot_frame(frame, {"a": {"block_size": 4}, "b": {}})
+    assert expanded["block_size"].iloc[0] == 4
+    assert dict(zip(expanded["policy_config_id"], expanded["config_label"], strict=True)) == {
+        "a": "fast_dvla",
+        "b": "bidirectional",
+    }
+
+
 def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
     frame = plots.plot_frame(RunDir(sweep.path).read_episodes())
     assert set(frame["block_size"]) == {4, 8} and set(frame["param.tau_conf"]) == {0.5}

@@ -298,7 +298,7 @@ def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
     mode = OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)
     out = Path(args.out) if args.out else default_out()
-    progress, start = episode_progress(args.quiet)
+    progress, start = episode_progress(args.quiet, out)
     # CI cancels with SIGTERM: stop like Ctrl-C, keeping every finished episode.
     signal.signal(signal.SIGTERM, raise_interrupt)
     with progress:
@@ -312,8 +312,19 @@ def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
             f"[red]{report.failed} episode(s) raised an exception[/red]; see failure_reason in the rows "
             f"and tracebacks in {report.run_dir.path / 'events.jsonl'}"
         )
+        print_vanished(report.run_dir, again.format(out=out) + " --retry-failed")
         return 1
     return 0
+
+
+def print_vanished(run_dir: Any, again: str) -> None:
+    """One line when episodes failed because a module of the harness vanished mid-run."""
+    from harness.errors import vanished_in
+
+    found = vanished_in(run_dir.read_episodes()["failure_reason"].dropna())
+    if found:
+        cause, count = found
+        err_console.print(f"{count} of them: {cause}; then: {again}", highlight=False, soft_wrap=True)
 
 
 def default_out() -> Path:
