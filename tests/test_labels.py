@@ -95,3 +95,34 @@ def test_inconsistent_stored_labels_are_redone_for_the_whole_frame(tmp_path):
     for r in df.to_dict("records"):
         run_dir.append_episode(r)
     assert run_dir.read_episodes()["config_label"].nunique() == 1
+
+
+def test_a_shipped_checkpoint_is_named_as_the_user_typed_it():
+    """`--policy bidirectional:checkpoint=libero-object` reads `checkpoint=libero-object`, on any
+    machine; a checkpoint of one's own keeps its file name."""
+    from policies.dvla.policy import shipped
+
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["here", "there", "own"],
+            "policy": ["bidirectional"] * 3,
+            "policy_params": [
+                json.dumps({"checkpoint": shipped("bidirectional", "libero-object")}),
+                json.dumps(
+                    {
+                        "checkpoint": "/home/x/clone/policies/checkpoints/libero-spatial-bidirectional.safetensors"
+                    }
+                ),
+                json.dumps({"checkpoint": "ckpt/my-bidirectional.safetensors"}),
+            ],
+        }
+    )
+    assert config_labels(frame) == {
+        "here": "bidirectional (checkpoint=libero-object)",
+        "there": "bidirectional (checkpoint=libero-spatial)",
+        "own": "bidirectional (checkpoint=my-bidirectional.safetensors)",
+    }
+    default = frame.iloc[:1].assign(
+        policy_params=json.dumps({"checkpoint": "/y/metaworld-mt10-bidirectional.safetensors"})
+    )
+    assert config_labels(default) == {"here": "bidirectional"}  # the default set, from another machine
