@@ -150,7 +150,9 @@ def test_decoding_order_from_recorded_traces(sweep, cli, tmp_path):
     assert code == 0, err
     assert out.read_bytes()[:8] == PNG
     traces = RunDir(sweep.path).read_traces()
-    fig = plots.decoding_order_plot(traces)
+    from results.order_plot import decoding_order_plot
+
+    fig = decoding_order_plot(traces)
     image = fig.axes[0].images[0].get_array()
     assert image.shape[1] == 32 and np.allclose(image.sum(), image.shape[1])  # each position once a chunk
 
