@@ -43,7 +43,7 @@ def test_two_settings_of_one_policy_are_two_labels_in_the_written_rows(tmp_path)
     assert (per_label == 1).all()
     # Grouping by (label, task) keeps the settings apart where (policy, task) merges them.
     assert len(df.groupby(["config_label", "task"])) == 2 and len(df.groupby(["policy", "task"])) == 1
-    assert pq.read_schema(out / "episodes.parquet").metadata[schema.SCHEMA_VERSION_KEY] == b"4"
+    assert pq.read_schema(out / "episodes.parquet").metadata[schema.SCHEMA_VERSION_KEY] == b"5"
 
 
 def test_the_tables_print_the_label_the_rows_hold(tmp_path):

@@ -151,6 +151,13 @@ def _folder_arguments(p: Any) -> None:
         help="also write which action positions each forward pass committed to OUT/traces.jsonl "
         "(for `dvla-harness plot decoding-order`)",
     )
+    p.add_argument(
+        "--video",
+        metavar="N|failures",
+        help="record rollout videos as MP4 in OUT/videos/, named in the rows' `video` column: the first "
+        "N episodes of every task (per configuration), or every episode that fails; from the suite's "
+        "camera (Meta-World, LIBERO, chains, ManiSkill3); needs the `video` extra. Changes no other column",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_wide_argument(p)
 
@@ -297,12 +304,15 @@ def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
     mode = OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)
+    video = video_plan(getattr(args, "video", None))
     out = Path(args.out) if args.out else default_out()
     progress, start = episode_progress(args.quiet, out)
     # CI cancels with SIGTERM: stop like Ctrl-C, keeping every finished episode.
     signal.signal(signal.SIGTERM, raise_interrupt)
     with progress:
-        report = run(resolved, out, mode, execution=execution, traces=args.traces, progress=start)
+        report = run(
+            resolved, out, mode, execution=execution, traces=args.traces, progress=start, video=video
+        )
     print_run(resolved, report, getattr(args, "wide", False))
     if report.interrupted:
         err_console.print(f"interrupted; continue with: {again.format(out=out)}")
@@ -325,6 +335,25 @@ def print_vanished(run_dir: Any, again: str) -> None:
     if found:
         cause, count = found
         err_console.print(f"{count} of them: {cause}; then: {again}", highlight=False, soft_wrap=True)
+
+
+def video_plan(text: str | None) -> Any:
+    """--video's plan, with its encoder and an offscreen OpenGL backend for MuJoCo's
+    renderers chosen before any simulator is imported; refused (exit 2) when either is
+    missing."""
+    if text is None:
+        return None
+    from adapters.base import MissingExtraError
+    from adapters.libero_sim import choose_render_backend
+    from harness.episode.video import VideoUnavailable, parse_video, require_encoder
+
+    try:
+        plan = parse_video(text)
+        require_encoder()
+        choose_render_backend()
+    except (ValueError, VideoUnavailable, MissingExtraError) as exc:
+        raise UsageError(str(exc)) from None
+    return plan
 
 
 def default_out() -> Path:

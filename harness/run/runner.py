@@ -27,6 +27,7 @@ from harness.config import ResolvedRun
 from harness.episode.outcome import EpisodeOutcome
 from harness.episode.plan import ExecutionPlan
 from harness.episode.timed import CallTimedOut, check_spaces, close_policy
+from harness.episode.video import VideoPlan, VideoUnavailable, check_frames
 from harness.errors import HarnessError, UsageError
 from harness.run.folder import OpenMode, RunFolder
 from harness.run.rows import make_row, run_config_labels, trace_lines
@@ -94,26 +95,47 @@ def run(
     execution: Execution | None = None,
     traces: bool = False,
     progress: Callable[[int, int], Any] | None = None,
+    video: VideoPlan | None = None,
 ) -> RunReport:
     """Evaluate `resolved` into `out`. `progress(total, skipped)` returns a per-episode callback.
 
     traces: also write each chunk's decode trace to traces.jsonl. Not part of the config
     (recording changes no decoded token), so it is kept in the manifest and a resumed
     run goes on recording if the run it resumes did.
+    video: record rollout videos of these episodes (harness/episode/video.py), this session
+    only; like traces, not part of the config.
     """
     execution = execution or Execution()
     jobs = plan_jobs(resolved)
     envs = preflight(resolved, jobs, execution.episode_timeout)
+    if video is not None:
+        check_video(resolved, jobs, envs)
     try:
         folder = RunFolder.open(out, mode, resolved, traces)
         try:
-            return _execute(folder, resolved, jobs, mode, execution, progress, envs)
+            return _execute(folder, resolved, jobs, mode, execution, progress, envs, video)
         finally:
             folder.close()
     finally:
         while envs:  # the run stopped before its episodes took them over
             envs.popitem()[1].close()
         close_policies(resolved, execution.episode_timeout)
+
+
+def check_video(resolved: ResolvedRun, jobs: list[EpisodeJob], envs: dict[str, gym.Env]) -> None:
+    """Refuse --video (exit 2, nothing written) on a suite whose env renders no frames,
+    seen on the first task's env (the preflight's, else one built here for the episodes)."""
+    if not envs and jobs:
+        try:
+            envs[jobs[0].task.name] = resolved.suite.make_env(jobs[0].task)
+        except Exception:
+            return  # an env that does not build: the episodes record why
+    try:
+        check_frames(envs.values())
+    except VideoUnavailable as exc:
+        while envs:
+            envs.popitem()[1].close()
+        raise UsageError(f"--video: {resolved.suite.name}: {exc}") from None
 
 
 def _execute(
@@ -124,6 +146,7 @@ def _execute(
     execution: Execution,
     progress: Callable[[int, int], Any] | None,
     envs: dict[str, gym.Env],
+    video: VideoPlan | None = None,
 ) -> RunReport:
     recorded = folder.recorded_keys(mode is OpenMode.RETRY_FAILED)
     done = (
@@ -147,11 +170,11 @@ def _execute(
                 "traceback": outcome.traceback,
             }
         row = make_row(folder.run_id, resolved, job, outcome, labels)
-        folder.append(row, trace_lines(folder.run_id, resolved, job, outcome), failure)
+        folder.append(row, trace_lines(folder.run_id, resolved, job, outcome), failure, outcome.video_mp4)
         if tick:
             tick(outcome.success)
 
-    plan = ExecutionPlan.for_run(resolved, execution.batch_envs, folder.traces)
+    plan = ExecutionPlan.for_run(resolved, execution.batch_envs, folder.traces, video)
     sink = Sink(episode=on_episode, worker=folder.record_worker, warm_up=folder.record_warm_up)
     try:
         folder.record_execution(execution.record())  # backend and workers, per session
