@@ -40,9 +40,9 @@ body{font:14px/1.45 system-ui,sans-serif;margin:2em auto;max-width:1400px;paddin
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:2em;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums;font-size:13px}
 .scroll{overflow-x:auto;max-width:100%}
-th,td{border:1px solid #ccc;padding:2px 5px;text-align:right;white-space:nowrap}
-th{white-space:normal;min-width:3.5em;vertical-align:bottom}
-th:first-child,td:first-child{text-align:left;white-space:normal;min-width:10em}
+th,td{border:1px solid #ccc;padding:2px 4px;text-align:right;white-space:nowrap}
+th{white-space:normal;min-width:3.5em;vertical-align:bottom;font-size:12px}
+th:first-child,td:first-child{text-align:left;white-space:normal;min-width:8em}
 td .ci{display:block;color:#666;font-size:.85em}
 table.failures td{text-align:left;white-space:normal}
 thead th{background:#f3f3f3;cursor:pointer;user-select:none}
@@ -95,6 +95,13 @@ def _td(cell: Cell) -> str:
     return f"<td{value}>{text}</td>"
 
 
+def _header(text: str) -> str:
+    """A header that may break after its slashes and underscores as well as at spaces
+    and hyphens ("NFE/" "chunk", "tau_" "conf"): a column is as wide as its widest cell,
+    not its header, so an MT10 leaderboard fits a 1,280-px laptop window."""
+    return re.sub(r"([/_])", r"\1<wbr>", _e(text))
+
+
 def empty_columns(headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -> list[int]:
     """Columns (never the first) with no value in any row: tokens/s and speedup on a suite
     whose policies decode no tokens, NFE for policies without a model."""
@@ -118,7 +125,7 @@ def table_html(
     headers = [h for i, h in enumerate(headers) if i not in drop]
     rows = [[c for i, c in enumerate(r) if i not in drop] for r in rows]
     split = len(rows) if published_from is None else published_from
-    head = "".join(f'<th scope="col">{_e(h)}</th>' for h in headers)
+    head = "".join(f'<th scope="col">{_header(h)}</th>' for h in headers)
     bodies = []
     for cls, part in (("measured", rows[:split]), ("published", rows[split:])):
         if part:

@@ -148,10 +148,18 @@ def test_report_html_links_each_video(twin_runs, tmp_path, cli):
 
 
 @pytest.mark.metaworld
-def test_a_suite_without_frames_and_a_bad_flag_are_refused(cli, tmp_path):
+def test_a_bad_video_flag_is_refused_before_anything_is_written(cli, tmp_path):
     out = tmp_path / "r"
     code, _, err = cli(*RUN[:-1], "--video", "sometimes", "--out", str(out))
     assert code == 2 and "--video 'sometimes'" in err and not out.exists()
+
+
+def test_an_env_without_a_camera_is_named():
+    from harness.episode.video import VideoUnavailable, check_frames
+
+    check_frames([FilmedEnv(None)])
+    with pytest.raises(VideoUnavailable, match="renders no video frames"):
+        check_frames([FilmedEnv(None), CountdownEnv(None)])
 
 
 def test_a_version_4_table_reads_with_no_video(tmp_path):
