@@ -392,23 +392,24 @@ BOARD_RANKS = {
     "avg len (95%)": ALWAYS,
     "canonical scene (Wilson 95%)": ALWAYS,
     "variant-aggregated, SimplerEnv's axes (95%)": ALWAYS,
-    "machine": 1,
-    "tokens/s": 3,
-    "NFE/chunk": 4,
-    "errors": 5,
-    "wall s/episode": 7,
-    "control Hz": 8,
-    "GFLOP/chunk": 9,
+    "machine": 10,
+    "tokens/s": 30,
+    "NFE/chunk": 40,
+    "errors": 50,
+    "wall s/episode": 70,
+    "control Hz": 80,
+    "GFLOP/chunk": 90,
 }
+TASK_COLUMNS_RANK = 60  # shared: a leaderboard's task columns are shown all or none
 
 
 def board_fit(board: Leaderboard) -> Fit:
     """How a leaderboard gives way to a narrow terminal: its speedup column beside the
     overall result, task columns (keyed by index where names do not fit) after speed."""
-    ranks = dict(BOARD_RANKS) | {f"speedup vs {board.baseline}": 2}
+    ranks = dict(BOARD_RANKS) | {f"speedup vs {board.baseline}": 20}
     if any(e.errors for e in board.entries):
-        ranks["errors"] = 1
-    ranks |= {group: 6 for group in board.groups}
+        ranks["errors"] = 15  # its own rank (a rank is shown whole or not at all)
+    ranks |= {group: TASK_COLUMNS_RANK for group in board.groups}
     return Fit(ranks, board.short_tasks)
 
 

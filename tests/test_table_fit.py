@@ -181,3 +181,12 @@ def test_show_and_list_suites_in_a_real_terminal(width, tmp_path):
             assert all(task in text for task in MT10) and "not shown at this width" in text
         else:  # the names a user types are whole
             assert "libero/spatial:perturb=object" in text and "metaworld/mt1/<task>" in text
+
+
+def test_errors_move_up_on_their_own_when_an_episode_raised():
+    episodes = _mt10()
+    episodes.loc[episodes.index[:3], "failure_reason"] = "ValueError: boom"
+    raised, clean = _print_summary(episodes, 90), _print_summary(_mt10(), 90)  # room for one more
+    raised_header, clean_header = ("\n".join(t.splitlines()[:4]) for t in (raised, clean))
+    assert "errors" in raised_header and "speedup" not in raised_header  # errors first when any
+    assert "speedup" in clean_header and "errors" not in clean_header  # else the speedup

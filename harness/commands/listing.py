@@ -46,7 +46,7 @@ def cmd_list(args: argparse.Namespace) -> int:
                 info.name, str(info.num_tasks), str(info.episodes_per_task), info.description, extra
             )
         # the names a user types stay whole: the suite and the install command first
-        ranks = {"needs extra": ALWAYS, "description": 1, "tasks": 2, "episodes/task": 3}
+        ranks = {"needs extra": ALWAYS, "description": 10, "tasks": 20, "episodes/task": 30}
         print_table(table, fit=Fit(ranks, prose=frozenset({"description"})), wide=args.wide)
     elif args.what == "latency-profiles":
         from harness.episode.latency import profile_rows
