@@ -174,3 +174,16 @@ def test_a_version_4_table_reads_with_no_video(tmp_path):
     pq.write_table(old, tmp_path / "e.parquet")
     read = read_table(tmp_path / "e.parquet")
     assert read.column("video").null_count == 1 and "video" in read.column_names
+
+
+def test_a_run_folders_videos_are_the_harness_own_for_overwrite(tmp_path):
+    from results.store import RunDir
+
+    run_dir = RunDir(tmp_path)
+    run_dir.write_video("videos/cfg/task/episode-000.mp4", b"mp4")
+    assert (tmp_path / "videos/cfg/task/episode-000.mp4").read_bytes() == b"mp4"
+    assert run_dir.foreign_files() == []  # --overwrite may replace the folder
+    (tmp_path / "notes").mkdir()
+    assert run_dir.foreign_files() == ["notes/"]
+    run_dir.remove_recorded()
+    assert not (tmp_path / "videos").exists() and (tmp_path / "notes").exists()
