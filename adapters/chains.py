@@ -137,6 +137,10 @@ class ChainEpisodeEnv(gym.Env):
         self._chain: tuple[cs.Subtask, ...] = ()
         self._credit = ChainCredit(())
 
+    def video_frame(self) -> Any:
+        """The scene's frame for rollout videos: the LIBERO env's (adapters/libero.py)."""
+        return self.inner.video_frame()
+
     def _observe(self, obs: Any) -> Any:
         """The inner env's observation, with the goal positions of the subtask in force
         appended to its state when asked (the next subtask's once a goal holds)."""

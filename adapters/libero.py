@@ -56,6 +56,7 @@ from adapters.libero_sim import (
     benchmark,
     choose_render_backend,
     installed,
+    offscreen_renderer,
     task_problem,
 )
 from adapters.libero_states import (
@@ -91,6 +92,7 @@ HORIZON = 1000
 BENCHMARKS = {key: f"libero_{key}" for key in MAX_STEPS}
 # Image sizes and the observation regimes: adapters/libero_options.py.
 CAMERAS = {"agentview": "agentview", "wrist": "robot0_eye_in_hand"}
+VIDEO_SIZE = 256  # rollout videos (LiberoEpisodeEnv.video_frame), as upstream renders its cameras
 
 
 def suite_task_problem(suite: str, task_index: int) -> dict[str, Any]:
@@ -290,7 +292,28 @@ class LiberoEpisodeEnv(gym.Env):
         success = bool(done)  # LIBERO's done is its goal check (_check_success)
         return self._observe(raw), float(reward), success, False, {"success": success}
 
+    def video_frame(self) -> np.ndarray:
+        """The `agentview` camera as upstream's rollout videos show it (rotated 180
+        degrees), VIDEO_SIZE px square, for harness/episode/video.py: a renderer of its own
+        (the env's offscreen one exists only for camera observations) reads the
+        simulator's state and steps nothing."""
+        sim = self.libero.env.sim
+        if getattr(self, "_video", None) is None or self._video_model is not sim.model._model:
+            self._close_video()
+            self._video = offscreen_renderer(sim.model._model, VIDEO_SIZE)
+            self._video_model = sim.model._model  # a rebuilt simulator gets a new renderer
+        self._video.update_scene(sim.data._data, camera=CAMERAS["agentview"])
+        # mujoco.Renderer's image is upright where robosuite's is upside down; upstream turns
+        # robosuite's by 180 degrees ([::-1, ::-1]), which leaves this one mirrored: [:, ::-1]
+        return np.ascontiguousarray(self._video.render()[:, ::-1])
+
+    def _close_video(self) -> None:
+        if getattr(self, "_video", None) is not None:
+            self._video.close()
+        self._video = self._video_model = None
+
     def close(self) -> None:
+        self._close_video()
         if getattr(self, "libero", None) is not None:
             self.libero.close()
             self.libero = None

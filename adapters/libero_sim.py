@@ -109,6 +109,28 @@ def choose_render_backend() -> str:
     )
 
 
+def offscreen_renderer(model: Any, size: int) -> Any:
+    """A `mujoco.Renderer` (size x size) on the offscreen backend choose_render_backend
+    picks, whatever MUJOCO_GL said when mujoco was first imported: a process that imported
+    it before (a test session, a notebook) would otherwise get GLFW, which needs a display.
+    Rollout videos (harness/episode/video.py) render Meta-World and LIBERO scenes with it."""
+    import mujoco
+    from mujoco import gl_context
+
+    backend = choose_render_backend()
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    elif backend == "osmesa":
+        from mujoco.osmesa import GLContext
+    else:
+        GLContext = gl_context.GLContext
+    saved, gl_context.GLContext = gl_context.GLContext, GLContext
+    try:
+        return mujoco.Renderer(model, size, size)
+    finally:
+        gl_context.GLContext = saved
+
+
 @cache
 def benchmark(key: str) -> Any:
     """LIBERO's benchmark object for a suite key ("spatial"...); quiet, it prints at build."""

@@ -60,6 +60,7 @@ TRAIN_LAYOUT_SETS = 20  # train split only: up to 1,000 distinct layouts per tas
 DEFAULT_UPSTREAM_SEED = 1
 UPSTREAM_EPISODES = 50  # metaworld.evaluation.evaluation(num_episodes=50), per task
 MAX_SEED = 2**32 - 1  # np.random.seed's bound (metaworld._make_tasks seeds the global RNG)
+VIDEO_CAMERA, VIDEO_SIZE = "corner", 256  # rollout videos (MetaWorldEpisodeEnv.video_frame)
 
 # Every v3 task with an English instruction (Meta-World ships names only).
 INSTRUCTIONS: dict[str, str] = {
@@ -272,6 +273,29 @@ class MetaWorldEpisodeEnv(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)
         info["success"] = bool(info.get("success", 0.0))
         return obs, reward, terminated, truncated, info
+
+    def video_frame(self) -> Any:
+        """The scene from Meta-World's `corner` camera, VIDEO_SIZE px square, for rollout
+        videos (harness/episode/video.py). A renderer of its own (offscreen: EGL or OSMesa)
+        reads the simulator's state and steps nothing; shadows and reflections are off (on
+        a CPU they cost 5x the frame time and show nothing about the task)."""
+        if getattr(self, "_video", None) is None:
+            import mujoco
+
+            from adapters.libero_sim import offscreen_renderer
+
+            renderer = offscreen_renderer(self.env.unwrapped.model, VIDEO_SIZE)
+            for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
+                renderer.scene.flags[flag] = False
+            self._video = renderer
+        self._video.update_scene(self.env.unwrapped.data, camera=VIDEO_CAMERA)
+        return self._video.render()[::-1]  # the corner camera is mounted upside down
+
+    def close(self) -> None:
+        if getattr(self, "_video", None) is not None:
+            self._video.close()
+            self._video = None
+        super().close()
 
 
 def _layout_seed(split: str, task: str, layout_set: int) -> int:

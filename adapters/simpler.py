@@ -194,6 +194,14 @@ class ManiSkillEpisodeEnv(gym.Env):
         )
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
 
+    def video_frame(self) -> np.ndarray:
+        """ManiSkill3's human render camera (its task's `render_camera`), for rollout videos
+        (harness/episode/video.py): a capture of the scene as it is, which steps nothing."""
+        frame = self.env.unwrapped.render_rgb_array()
+        if hasattr(frame, "detach"):
+            frame = frame.detach().cpu().numpy()
+        return np.asarray(frame, dtype=np.uint8).reshape(frame.shape[-3:])
+
     def _observation(self, obs: dict[str, Any]) -> Any:
         state = self._state(obs)
         if not self.images:

@@ -151,8 +151,18 @@ def activate() -> str:
 
 
 def _fetch(url: str) -> bytes:
-    with urllib.request.urlopen(url, timeout=120) as response:
-        return response.read()
+    try:
+        with urllib.request.urlopen(url, timeout=120) as response:
+            return response.read()
+    except urllib.error.HTTPError:
+        raise  # the archive answered: _download handles a file that has moved
+    except (urllib.error.URLError, TimeoutError, OSError) as exc:
+        reason = getattr(exc, "reason", exc)
+        raise VulkanSetupError(
+            f"cannot download the private Vulkan driver for ManiSkill3: {url} is unreachable ({reason}; "
+            "is this machine offline?); nothing installed: run `python -m adapters.vulkan install` "
+            "when online, or use the system's driver with DVLA_VULKAN=system"
+        ) from None
 
 
 def _current(deb: Deb) -> Deb:

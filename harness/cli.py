@@ -26,20 +26,21 @@ from harness.errors import (
     EXIT_INTERRUPTED,
     EXIT_STATUS_HELP,
     EXIT_USAGE,
+    OWN_PACKAGES,
     HarnessError,
     InterruptedWhileSaving,
     UsageError,
+    vanished_module,
 )
 
 __all__ = ["build_parser", "console", "entry", "err_console", "main"]
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("adapters", "harness", "policies", "results")  # dvla-harness's own, beside each other
 
 
 def _ours(filename: str) -> bool:
     path = Path(filename).resolve()
-    return path.is_relative_to(PACKAGE_ROOT) and path.relative_to(PACKAGE_ROOT).parts[0] in PACKAGES
+    return path.is_relative_to(PACKAGE_ROOT) and path.relative_to(PACKAGE_ROOT).parts[0] in OWN_PACKAGES
 
 
 EXAMPLES = """\
@@ -135,6 +136,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InterruptedWhileSaving as exc:
         print(f"dvla-harness {args.command}: {exc}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except ModuleNotFoundError as exc:
+        cause = vanished_module(exc.name)
+        if cause is None:
+            raise  # another package's: a traceback, as any unforeseen error
+        print(f"dvla-harness {args.command}: error: {cause}; then run the command again", file=sys.stderr)
+        return EXIT_HARNESS
     finally:
         warnings.showwarning = default_show
 

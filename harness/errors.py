@@ -1,5 +1,8 @@
 """Errors the CLI turns into one clear line, and the exit statuses every command uses."""
 
+import re
+from collections.abc import Iterable
+
 # Exit statuses, defined once (README "Exit status", `dvla-harness run --help`).
 EXIT_OK = 0  # every episode ran cleanly (failing to succeed is a result, not an error)
 EXIT_EPISODE_FAILED = 1  # some episode raised (a row with failure_reason); gate: a regression
@@ -15,6 +18,32 @@ exit status:
   3    harness or I/O error (e.g. the disk is full); rows already recorded are kept
   130  interrupted (Ctrl-C or SIGTERM); what finished is kept, continue with --resume
 """
+
+
+# The harness's own top-level packages, side by side in a clone or site-packages.
+OWN_PACKAGES = ("adapters", "harness", "policies", "results")
+_NO_MODULE = re.compile(r"^ModuleNotFoundError: No module named '([^']+)'")
+
+
+def vanished_module(name: str | None) -> str | None:
+    """The cause, in one line, when a module of the harness itself cannot be imported
+    while it runs: nothing of an install is missing at start, so the package changed
+    under the running process, as a non-editable `pip install ".[extra]"` does when it
+    reinstalls the harness during a run. None for any other module."""
+    if not name or name.split(".")[0] not in OWN_PACKAGES:
+        return None
+    return (
+        f"module {name!r} of dvla-harness vanished while it ran: the installed package was "
+        "replaced under it (a `pip install` of an extra during a run does that); install every "
+        "extra before starting runs"
+    )
+
+
+def vanished_in(failure_reasons: Iterable[str]) -> tuple[str, int] | None:
+    """(cause, episodes) for episodes that failed on a vanished module of the harness."""
+    names = [m.group(1) for r in failure_reasons if (m := _NO_MODULE.match(str(r)))]
+    causes = [c for c in map(vanished_module, names) if c]
+    return (causes[0], len(causes)) if causes else None
 
 
 class UsageError(ValueError):

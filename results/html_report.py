@@ -40,9 +40,9 @@ body{font:14px/1.45 system-ui,sans-serif;margin:2em auto;max-width:1400px;paddin
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:2em;border-bottom:1px solid #ddd}
 table{border-collapse:collapse;margin:.6em 0;font-variant-numeric:tabular-nums;font-size:13px}
 .scroll{overflow-x:auto;max-width:100%}
-th,td{border:1px solid #ccc;padding:2px 5px;text-align:right;white-space:nowrap}
-th{white-space:normal;min-width:3.5em;vertical-align:bottom}
-th:first-child,td:first-child{text-align:left;white-space:normal;min-width:10em}
+th,td{border:1px solid #ccc;padding:2px 4px;text-align:right;white-space:nowrap}
+th{white-space:normal;min-width:3.5em;vertical-align:bottom;font-size:12px}
+th:first-child,td:first-child{text-align:left;white-space:normal;min-width:8em}
 td .ci{display:block;color:#666;font-size:.85em}
 table.failures td{text-align:left;white-space:normal}
 thead th{background:#f3f3f3;cursor:pointer;user-select:none}
@@ -95,6 +95,13 @@ def _td(cell: Cell) -> str:
     return f"<td{value}>{text}</td>"
 
 
+def _header(text: str) -> str:
+    """A header that may break after its slashes and underscores as well as at spaces
+    and hyphens ("NFE/" "chunk", "tau_" "conf"): a column is as wide as its widest cell,
+    not its header, so an MT10 leaderboard fits a 1,280-px laptop window."""
+    return re.sub(r"([/_])", r"\1<wbr>", _e(text))
+
+
 def empty_columns(headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -> list[int]:
     """Columns (never the first) with no value in any row: tokens/s and speedup on a suite
     whose policies decode no tokens, NFE for policies without a model."""
@@ -118,7 +125,7 @@ def table_html(
     headers = [h for i, h in enumerate(headers) if i not in drop]
     rows = [[c for i, c in enumerate(r) if i not in drop] for r in rows]
     split = len(rows) if published_from is None else published_from
-    head = "".join(f'<th scope="col">{_e(h)}</th>' for h in headers)
+    head = "".join(f'<th scope="col">{_header(h)}</th>' for h in headers)
     bodies = []
     for cls, part in (("measured", rows[:split]), ("published", rows[split:])):
         if part:
@@ -279,8 +286,10 @@ def render_page(
     figures: bool = True,
     paper: Sequence[Block] = (),
     extra: Sequence[Block] = (),
+    links_from: Path | None = None,
 ) -> str:
-    """`extra`: further titled tables after the leaderboards (generalization gaps)."""
+    """`extra`: further titled tables after the leaderboards (generalization gaps);
+    `links_from`: the page's folder, from which the runs' rollout videos are linked."""
     # The same de-duplicated rows as the tables: an episode given twice counts once here too.
     episodes = combined_episodes(runs)
     duplicates = episodes.attrs.get("duplicates", 0)
@@ -296,6 +305,8 @@ def render_page(
         sections.append("<h2>Beside the published results</h2>")
         sections += [_block_html(b) for b in paper]
     sections.append("<h2>Failures</h2>" + _failures_html(episodes))
+    if links_from is not None and "video" in episodes and episodes["video"].notna().any():
+        sections.append("<h2>Rollout videos</h2>" + _videos_html(runs, episodes, links_from))
     if figures:
         sections.append("<h2>Figures</h2>" + _figures_html(episodes))
     sections.append("<h2>Provenance</h2>" + "".join(_provenance_html(r) for r in runs))
@@ -305,6 +316,32 @@ def render_page(
         "<meta name='viewport' content='width=device-width, initial-scale=1'>"
         f"<style>{_CSS}</style></head><body>{''.join(sections)}<script>{_JS}</script></body></html>\n"
     )
+
+
+def _videos_html(runs: Sequence[Run], episodes: pd.DataFrame, page: Path) -> str:
+    """A table of the recorded episodes (`run --video`), each linked to its MP4 beside its
+    run, by a path relative to the page (a report kept beside its runs keeps its links)."""
+    folders = {r.label: Path(r.path).resolve() for r in runs}
+    recorded = episodes[episodes["video"].notna()].sort_values(
+        ["config_label", "task_index", "episode_index"]
+    )
+    rows = []
+    for r in recorded.itertuples():
+        target = folders[r.run] / str(r.video) if r.run in folders else Path(str(r.video))
+        href = os.path.relpath(target, page.resolve())
+        outcome = (
+            "success" if r.success else (f"failed: {r.failure_reason}" if r.failure_reason else "failure")
+        )
+        rows.append(
+            f"<tr><td>{_e(r.config_label)}</td><td>{_e(r.task)}</td><td>{r.episode_index}</td>"
+            f"<td>{_e(outcome)}</td><td><a href='{_e(href)}'>{_e(Path(str(r.video)).name)}</a></td></tr>"
+        )
+    head = "".join(f"<th>{h}</th>" for h in ("configuration", "task", "episode", "outcome", "video"))
+    note = (
+        '<p class="note">MP4 files in each run folder\'s videos/ (recorded with <code>--video</code>); '
+        "a red border marks a step the robot held still under an inference latency.</p>"
+    )
+    return f"<div class='scroll'><table class='videos'><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table></div>{note}"
 
 
 def _gap_blocks(runs: Sequence[Run]) -> list[Block]:
@@ -349,7 +386,7 @@ def write_report(
     boards = leaderboards(runs, baseline)
     blocks = paper_blocks(paper_table(runs, baseline), allow_privileged)
     files = {
-        INDEX: render_page(runs, boards, paper=blocks, extra=_gap_blocks(runs)),
+        INDEX: render_page(runs, boards, paper=blocks, extra=_gap_blocks(runs), links_from=out),
         "leaderboard.md": to_markdown(boards),
         "leaderboard.csv": to_csv(boards),
         "paper-table.md": blocks_markdown(blocks),

@@ -12,9 +12,10 @@ table is the name a user groups the Parquet rows by.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 from collections.abc import Mapping
-from pathlib import PurePath
+from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
@@ -91,16 +92,41 @@ def param_users(key: str) -> list[str]:
 
 
 def show_value(key: str, value: Any) -> str:
-    """A parameter value as a label prints it: a checkpoint by its file name (paths differ
-    between machines; the name does not), floats to 4 significant digits, numpy scalars
-    as the Python values they are (a row's 2 equals the default 2)."""
+    """A parameter value as a label prints it: a checkpoint as checkpoint_name names it,
+    floats to 4 significant digits, numpy scalars as the Python values they are (a row's
+    2 equals the default 2)."""
     if isinstance(value, np.generic):
         value = value.item()
     if key == "checkpoint" and isinstance(value, str):
-        return PurePath(value).name
+        return checkpoint_name(value)
     if isinstance(value, float):
         return format(value, ".4g")
     return str(value)
+
+
+# A shipped checkpoint is policies/checkpoints/<set>-<recipe>.safetensors, named on the
+# command line by its set (`checkpoint=libero-object`, policies/dvla/policy.py).
+SHIPPED_RECIPES = ("bidirectional", "block_diffusion", "fast_dvla", "autoregressive")
+
+
+@functools.cache
+def shipped_sets() -> frozenset[str]:
+    """The shipped checkpoint sets' names, from the files (no torch, no policy import)."""
+    import policies
+
+    folder = Path(policies.__file__).resolve().parent / "checkpoints"
+    return frozenset(f.stem.rpartition("-")[0] for f in folder.glob("*-*.safetensors"))
+
+
+def checkpoint_name(path: str) -> str:
+    """How a label names a checkpoint: a shipped one by the set name a user types
+    (`libero-object`, not `libero-object-bidirectional.safetensors`), any other by its
+    file name; by the name alone either way, since paths differ between machines."""
+    p = PurePath(path)
+    set_name, _, recipe = p.stem.rpartition("-")
+    if p.suffix == ".safetensors" and recipe in SHIPPED_RECIPES and set_name in shipped_sets():
+        return set_name
+    return p.name
 
 
 def _parse(params: Any) -> dict[str, Any]:

@@ -26,9 +26,10 @@ from results.board_warnings import episode_warnings, provenance_warnings
 from results.chain_table import ChainStats, chain_cells, chain_columns, chain_stats, is_chain_run
 from results.labels import config_labels
 from results.published import observation_regime, privileged_label
-from results.render import Cell, finite_or_none, number_cell
+from results.render import BASELINE_NO_TOKENS, NO_TOKENS, Cell, finite_or_none, number_cell, task_keys
 from results.runs import Run, combined_episodes, dedupe_episodes
 from results.summary import Success
+from results.table_fit import ALWAYS, Fit
 from results.variant_table import (
     SIMPLERENV_AXES,
     RankingStability,
@@ -84,6 +85,8 @@ class Leaderboard:
     warnings: tuple[str, ...]
     # Variant runs with two or more configurations: do the variants keep their order?
     ranking: RankingStability | None = None
+    # task -> "#index" (results.render.task_keys): a narrow terminal's stand-in for a task column
+    short_tasks: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def machines(self) -> tuple[str, ...]:
@@ -236,9 +239,9 @@ def speedups(items: Sequence[Timed], baseline: str) -> tuple[list[tuple[float | 
             if msg not in warnings:
                 warnings.append(msg)
         if math.isnan(item.tokens_per_s):
-            out.append((None, "n/a: no tokens"))
+            out.append((None, NO_TOKENS))
         elif math.isnan(base.tokens_per_s) or base.tokens_per_s <= 0:
-            out.append((None, "n/a: baseline decodes no tokens"))
+            out.append((None, BASELINE_NO_TOKENS))
         else:
             out.append((item.tokens_per_s / base.tokens_per_s, ""))
     return out, warnings
@@ -324,7 +327,7 @@ def leaderboard(
     ranking = None
     if variants:
         ranking = ranking_stability({f"{e.label}@{e.machine}": e.variants for e in entries if e.variants})
-    return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings), ranking)
+    return Leaderboard(str(suites[0]), groups, entries, baseline, tuple(warnings), ranking, task_keys(df))
 
 
 def _flops_per_chunk(rows: pd.DataFrame) -> float | None:
@@ -382,6 +385,36 @@ def rich_table(board: Leaderboard) -> Table:
     for row in rows:
         table.add_row(*(c.text for c in row))
     return table
+
+
+# What a narrow terminal keeps first (results/table_fit.py): the row's name and its overall
+# result (success, CALVIN's average length, SimplerEnv's canonical and aggregate), then speed,
+# then the per-task and per-axis breakdown; headers not listed go last, in table order.
+BOARD_RANKS = {
+    "policy": ALWAYS,
+    "success (Wilson 95%)": ALWAYS,
+    "avg len (95%)": ALWAYS,
+    "canonical scene (Wilson 95%)": ALWAYS,
+    "variant-aggregated, SimplerEnv's axes (95%)": ALWAYS,
+    "machine": 10,
+    "tokens/s": 30,
+    "NFE/chunk": 40,
+    "errors": 50,
+    "wall s/episode": 70,
+    "control Hz": 80,
+    "GFLOP/chunk": 90,
+}
+TASK_COLUMNS_RANK = 60  # shared: a leaderboard's task columns are shown all or none
+
+
+def board_fit(board: Leaderboard) -> Fit:
+    """How a leaderboard gives way to a narrow terminal: its speedup column beside the
+    overall result, task columns (keyed by index where names do not fit) after speed."""
+    ranks = dict(BOARD_RANKS) | {f"speedup vs {board.baseline}": 20}
+    if any(e.errors for e in board.entries):
+        ranks["errors"] = 15  # its own rank (a rank is shown whole or not at all)
+    ranks |= {group: TASK_COLUMNS_RANK for group in board.groups}
+    return Fit(ranks, board.short_tasks)
 
 
 @dataclass(frozen=True)

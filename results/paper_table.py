@@ -28,7 +28,9 @@ from results.published import (
     CALVIN,
     LIBERO,
     PRIVILEGED,
+    PUBLISHED,
     SIMPLERENV,
+    PublishedTable,
     check_comparable,
     is_libero,
     libero_column,
@@ -126,10 +128,41 @@ def _suite_mean_speedup(entries: dict[str, Entry]) -> tuple[float | None, str]:
     return sum(have.values()) / len(have), ""
 
 
+def measured_speed_headers(baseline: str) -> list[str]:
+    """A measured table's speed columns, named apart from a published table's: this
+    machine's tokens/s and a speedup over this run's own baseline."""
+    return ["tokens/s (measured)", f"speedup vs {baseline} (measured)"]
+
+
+def published_block(table: PublishedTable, title: str, tag: str, notes: Sequence[str]) -> Block:
+    """A published table in a section of its own beneath the measured one: its tokens/s
+    were timed on the paper's hardware and its speedups are over the paper's own baseline
+    (`table.baseline`), so they never share a column with figures measured here."""
+    speed = [f"tokens/s ({PUBLISHED})"]
+    if table.baseline:
+        speed.append(f"speedup vs {table.baseline} ({PUBLISHED})")
+    headers = ["method", *table.columns, *speed, "source"]
+    rows = []
+    for p in table.rows:
+        cells = [Cell(table.text("tokens/s", p.tokens_per_s), p.tokens_per_s)]
+        if table.baseline:
+            cells.append(Cell("-" if p.speedup is None else f"{p.speedup:.1f}x", p.speedup))
+        rows.append(
+            [
+                Cell(f"{p.method} ({tag})", p.method),
+                *(Cell(table.text(c, p.values.get(c)), p.values.get(c)) for c in table.columns),
+                *cells,
+                Cell(f"{PUBLISHED}: {p.source}", p.source),
+            ]
+        )
+    return Block(title, headers, rows, tuple(notes), 0)
+
+
 def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
-    """The measured rows in the paper's layout, then the published rows beneath them:
-    in the same table when every measured suite is a LIBERO suite (same columns), else
-    in tables of their own. Published rows are always labelled with their source.
+    """The measured rows in the paper's layout, then each published table in a section of
+    its own, labelled with its source: success columns carry the paper's names in both,
+    while tokens/s and speedups (the paper's hardware and baseline, or this machine's and
+    this run's) stay in their own sections.
 
     The published LIBERO rows read camera images; a LIBERO suite measured on privileged
     state (obs=state or obs=images) raises PrivilegedRowsError unless `allow_privileged`,
@@ -141,7 +174,7 @@ def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
     if aligned:
         suites.sort(key=lambda s: LIBERO.columns.index(columns[s]))  # type: ignore[arg-type]
     names = [f"{columns[s]} ({s})" if aligned else s for s in suites]
-    headers = ["method", *names, "Avg", "tokens/s", f"speedup vs {pt.baseline}", "source"]
+    headers = ["method", *names, "Avg", *measured_speed_headers(pt.baseline), "source"]
     rows = []
     for r in pt.rows:
         rows.append(
@@ -175,35 +208,12 @@ def paper_blocks(pt: PaperTable, allow_privileged: bool = False) -> list[Block]:
         )
     blocks = [Block("measured", headers, rows, notes)] if pt.suites else []
     for table in tables_for(list(pt.suites)) if pt.suites else ():
-        label = f"published: {table.source}"
-        pub_rows = []
-        for p in table.rows:
-            if aligned and table is LIBERO:
-                cols = [columns[s] or "" for s in suites] + ["Avg"]
-            else:
-                cols = list(table.columns)
-            pub_rows.append(
-                [
-                    Cell(f"{p.method} (published)", p.method),
-                    *(Cell(table.text(c, p.values.get(c)), p.values.get(c)) for c in cols),
-                    Cell(table.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
-                    Cell("-" if p.speedup is None else f"{p.speedup:.1f}x (paper)", p.speedup),
-                    Cell(f"published: {p.source}", p.source),
-                ]
-            )
-        note = f"{table.name}, {label}; {table.note}; not measured here"
-        if aligned and table is LIBERO:
-            first = blocks[0]
-            blocks[0] = Block(
-                "measured, then published", headers, [*rows, *pub_rows], (*first.notes, note), len(rows)
-            )
-        else:
-            pub_headers = ["method", *table.columns, "tokens/s", "speedup", "source"]
-            blocks.append(Block(f"published: {table.name}", pub_headers, pub_rows, (note,), 0))
+        note = f"{table.name}, {PUBLISHED}: {table.source}; {table.note}; not measured here"
+        blocks.append(published_block(table, f"{PUBLISHED}: {table.name}", PUBLISHED, (note,)))
     return (
         blocks
-        + [calvin_block(board, pt.baseline) for board in pt.chain_boards]
-        + [simpler_block(board, pt.baseline) for board in pt.variant_boards]
+        + [b for board in pt.chain_boards for b in calvin_blocks(board, pt.baseline)]
+        + [b for board in pt.variant_boards for b in simpler_blocks(board, pt.baseline)]
     )
 
 
@@ -222,12 +232,12 @@ def _entry_row(e: Entry, machines: bool, cells: Sequence[Cell]) -> list[Cell]:
     ]
 
 
-def calvin_block(board: Leaderboard, baseline: str) -> Block:
+def calvin_blocks(board: Leaderboard, baseline: str) -> list[Block]:
     """One chain suite in Fast-dVLA's CALVIN layout (reaching 1/5 ... 5/5, avg len,
-    tokens/s), the published CALVIN rows beneath, labelled as a different benchmark:
-    the same protocol and metrics, but CALVIN's own scene, tasks and training data,
-    so no number of ours can be read against theirs."""
-    headers = ["method", *CALVIN.columns, "tokens/s", f"speedup vs {baseline}", "source"]
+    tokens/s), then the published CALVIN rows in a section of their own, labelled as a
+    different benchmark: the same protocol and metrics, but CALVIN's own scene, tasks and
+    training data, so no number of ours can be read against theirs."""
+    headers = ["method", *CALVIN.columns, *measured_speed_headers(baseline), "source"]
     rows = []
     machines = len(board.machines) > 1
     for e in board.entries:
@@ -236,24 +246,16 @@ def calvin_block(board: Leaderboard, baseline: str) -> Block:
         rows.append(
             _entry_row(e, machines, [*reach, Cell(e.chain.length_text(), finite_or_none(e.chain.avg_len))])
         )
-    label = f"published: {CALVIN.source}"
-    published = [
-        [
-            Cell(f"{p.method} (published, CALVIN: not comparable)", p.method),
-            *(Cell(CALVIN.text(c, p.values.get(c)), p.values.get(c)) for c in CALVIN.columns),
-            Cell(CALVIN.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
-            Cell("-" if p.speedup is None else f"{p.speedup:.1f}x (paper)", p.speedup),
-            Cell(f"published: {p.source}", p.source),
-        ]
-        for p in CALVIN.rows
-    ]
     notes = (
         f"{board.suite}: {NOT_CALVIN}",
         "measured: % of chains reaching k of 5 subtasks (Wilson 95%); avg len: subtasks completed "
         "per chain (bootstrap 95%)",
-        f"{CALVIN.name}, {label}; {CALVIN.note}; not measured here, and not the same benchmark",
     )
-    return Block(f"{board.suite} (CALVIN layout)", headers, [*rows, *published], notes, len(rows))
+    note = f"{CALVIN.name}, {PUBLISHED}: {CALVIN.source}; {CALVIN.note}; not measured here, and not the same benchmark"
+    return [
+        Block(f"{board.suite} (CALVIN layout)", headers, rows, notes),
+        published_block(CALVIN, f"{PUBLISHED}: {CALVIN.name}", "published, CALVIN: not comparable", (note,)),
+    ]
 
 
 NOT_SIMPLERENV = (
@@ -263,18 +265,16 @@ NOT_SIMPLERENV = (
 )
 
 
-def simpler_block(board: Leaderboard, baseline: str) -> Block:
+def simpler_blocks(board: Leaderboard, baseline: str) -> list[Block]:
     """One SimplerEnv-like suite as SimplerEnv reports it: the canonical scene (in the
     place of SimplerEnv's visual matching, which it is not) and the variant aggregation
-    side by side, never pooled into one rate, with the published SimplerEnv rows beneath,
-    labelled as a different benchmark."""
+    side by side, never pooled into one rate; then the published SimplerEnv rows in a
+    section of their own, labelled as a different benchmark."""
     headers = [
         "method",
         "canonical scene (Wilson 95%)",
         "variant aggregation, SimplerEnv's set per task (bootstrap 95%)",
-        "published Avg",
-        "tokens/s",
-        f"speedup vs {baseline}",
+        *measured_speed_headers(baseline),
         "source",
     ]
     rows = []
@@ -287,43 +287,32 @@ def simpler_block(board: Leaderboard, baseline: str) -> Block:
             else Cell("-", None)
         )
         rows.append(
-            _entry_row(
-                e,
-                machines,
-                [Cell(canonical.text(), finite_or_none(canonical.rate)), aggregated, Cell("-", None)],
-            )
+            _entry_row(e, machines, [Cell(canonical.text(), finite_or_none(canonical.rate)), aggregated])
         )
-    label = f"published: {SIMPLERENV.source}"
-    published = [
-        [
-            Cell(f"{p.method} (published, SimplerEnv: not comparable)", p.method),
-            Cell("-", None),
-            Cell("-", None),
-            Cell(SIMPLERENV.text("Avg", p.values.get("Avg")), p.values.get("Avg")),
-            Cell(SIMPLERENV.text("tokens/s", p.tokens_per_s), p.tokens_per_s),
-            Cell("-" if p.speedup is None else f"{p.speedup:.1f}x (paper)", p.speedup),
-            Cell(f"published: {p.source}", p.source),
-        ]
-        for p in SIMPLERENV.rows
-    ]
     notes = [f"{board.suite}: {NOT_SIMPLERENV}"]
     if board.ranking is not None:
         notes.append(board.ranking.text())
-    notes.append(
-        f"{SIMPLERENV.name}, {label}; {SIMPLERENV.note}; not measured here, and not the same benchmark"
+    note = (
+        f"{SIMPLERENV.name}, {PUBLISHED}: {SIMPLERENV.source}; {SIMPLERENV.note}; not measured here, "
+        "and not the same benchmark"
     )
-    return Block(f"{board.suite} (SimplerEnv layout)", headers, [*rows, *published], tuple(notes), len(rows))
+    return [
+        Block(f"{board.suite} (SimplerEnv layout)", headers, rows, tuple(notes)),
+        published_block(
+            SIMPLERENV, f"{PUBLISHED}: {SIMPLERENV.name}", "published, SimplerEnv: not comparable", (note,)
+        ),
+    ]
 
 
 NO_PUBLISHED_TABLE = (
-    "No LIBERO, CALVIN-like or SimplerEnv-like suite in these runs: no published table to lay "
-    "them out beside (`dvla-harness leaderboard` shows them)."
+    "no LIBERO, CALVIN-like or SimplerEnv-like suite in these runs: no published table to lay "
+    "them out beside (`dvla-harness leaderboard` shows them)"
 )
 
 
 def blocks_markdown(blocks: Sequence[Block]) -> str:
     if not blocks:
-        return NO_PUBLISHED_TABLE + "\n"
+        return NO_PUBLISHED_TABLE[0].upper() + NO_PUBLISHED_TABLE[1:] + ".\n"
     parts = []
     for b in blocks:
         parts.append(f"### {b.title}\n\n" + markdown_table(b.headers, [[c.text for c in r] for r in b.rows]))

@@ -29,12 +29,13 @@ import numpy as np
 import pandas as pd
 from matplotlib import rc_context
 from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator, PercentFormatter
+from matplotlib.ticker import PercentFormatter
 
-from results.labels import config_labels as shared_config_labels
-from results.labels import not_using, param_users
+from results.labels import not_using, param_users, row_labels
+from results.leaderboard import DEFAULT_BASELINE
+from results.plot_speedup import SPEEDUP, baseline_configs, speedup_interval, with_speedup
 from results.schema import COLUMNS
-from results.summary import wilson_interval
+from results.summary import t_quantile, wilson_interval
 
 SUFFIXES = (".png", ".svg")
 PARAM, CKPT = "param.", "checkpoint."
@@ -44,10 +45,6 @@ LOWER_IS_BETTER = frozenset(
 )
 _UNITS = {c.name: c.unit for c in COLUMNS}
 _MARKERS = "osD^vP*Xhp<>"
-# Two-sided 95% Student t quantiles; between rows the smaller df is used (conservative).
-_T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262,
-         10: 2.228, 12: 2.179, 15: 2.131, 20: 2.086, 25: 2.060, 30: 2.042, 40: 2.021, 60: 2.000,
-         120: 1.980}  # fmt: skip
 
 
 class PlotInputError(ValueError):
@@ -100,13 +97,10 @@ def plot_frame(
 
 
 def config_labels(df: pd.DataFrame) -> dict[str, str]:
-    """The configurations' labels (results.labels, the names every table prints), with
-    each parameter as the configuration used it: a block size of 0 is the checkpoint's."""
-    used: dict[str, dict[str, Any]] = {}
-    for row in df.drop_duplicates("policy_config_id").to_dict("records"):
-        params = json.loads(row["policy_params"]) if row["policy_params"] else {}
-        used[row["policy_config_id"]] = {k: row[PARAM + k] for k in params if row.get(PARAM + k) is not None}
-    return shared_config_labels(df, used)
+    """The configurations' labels as the rows hold them (results.labels): a legend names a
+    configuration as every table does. A default block size (0, the checkpoint's) plots at
+    the checkpoint's block size on an axis, but keeps its table name (`fast_dvla`)."""
+    return row_labels(df)
 
 
 def natural_key(text: str) -> list[Any]:
@@ -148,20 +142,16 @@ def _resolve(df: pd.DataFrame, name: str, role: str, numeric: bool = False) -> s
     raise PlotInputError(f"no {what}column {name!r} for {role}; valid choices are {listed}")
 
 
-def _axis_label(name: str) -> str:
+def _axis_label(name: str, baseline: str | None = None) -> str:
     unit = _UNITS.get(name, "")
     if name == "success":
         return "success rate"
+    if name == SPEEDUP:
+        return f"speedup over {baseline} (x)"
     return f"{name} ({unit})" if unit and unit not in ("JSON", "path", "UTC") else name
 
 
 # ---------------------------------------------------------------------------- statistics
-
-
-def t_quantile(df: int) -> float:
-    if df < 1:
-        return math.nan
-    return _T975[max(k for k in _T975 if k <= df)] if df <= 120 else 1.980  # t(120): conservative
 
 
 def interval(values: pd.Series, is_success: bool) -> tuple[float, float, float, int]:
@@ -180,6 +170,23 @@ def interval(values: pd.Series, is_success: bool) -> tuple[float, float, float, 
     half = t_quantile(n - 1) * float(values.std(ddof=1)) / math.sqrt(n)
     floor = 0.0 if values.min() >= 0 else -math.inf  # a rate's interval stays >= 0
     return (mean, max(mean - half, floor), mean + half, n)
+
+
+def measure(rows: pd.DataFrame, col: str) -> tuple[float, float, float, int]:
+    """A column's estimate and 95% interval over rows: speedup as results/plot_speedup.py
+    defines it (a ratio of means over paired episodes), success as Wilson, else a t mean."""
+    if col == SPEEDUP:
+        return speedup_interval(rows)
+    return interval(_numeric(rows[col]), col == "success")
+
+
+def _with_speedup(df: pd.DataFrame, columns: Sequence[str | None], baseline: str | None) -> pd.DataFrame:
+    if SPEEDUP not in columns:
+        return df
+    try:
+        return with_speedup(df, baseline or "")
+    except ValueError as exc:
+        raise PlotInputError(str(exc)) from None
 
 
 # ---------------------------------------------------------------------------- output
@@ -239,17 +246,23 @@ def ablation_plot(
     y: list[str],
     hue: str | None = None,
     out: str | os.PathLike[str] | None = None,
+    baseline: str | None = DEFAULT_BASELINE,
 ) -> Figure:
     """One panel per y column against x, a line per hue value, with 95% intervals
-    (Wilson for success, t for means of rates)."""
+    (Wilson for success, t for means of rates, the ratio estimator's for speedup). The
+    baseline's configuration, when it has no x (a sweep's `--reference bidirectional`
+    beside a block-size grid), is a horizontal line with its interval as a band."""
     check_out(out)
     if not y:
         raise PlotInputError("no y column given; e.g. success,tokens_per_s")
-    df = plot_frame(episodes)
+    df = _with_speedup(plot_frame(episodes), y, baseline)
     x = _resolve(df, x, "x")
     ys = [_resolve(df, c, "y", numeric=True) for c in y]
     hue = _resolve(df, hue, "hue") if hue else None
-    df = _configurations_using(df, x)
+    whole = df
+    df = _configurations_using(df, x, baseline_configs(df, baseline))
+    lines = whole[whole["policy_config_id"].isin(baseline_configs(whole, baseline))]
+    lines = lines[~lines["policy_config_id"].isin(df["policy_config_id"])]
     _check_not_pooled(df, hue)
     numeric_x = _numeric(df[x]) is not None
     xkey = _numeric(df[x]) if numeric_x else df[x].astype(str)
@@ -272,7 +285,7 @@ def ablation_plot(
                 cell = part[part["_x"] == value]
                 if cell.empty:
                     continue
-                e, lo, hi, n = interval(_numeric(cell[col]), is_success)
+                e, lo, hi, n = measure(cell, col)
                 if n == 0:
                     continue
                 counts.append(n)
@@ -295,12 +308,13 @@ def ablation_plot(
                 markersize=6,
                 label=str(name) if name is not None else None,
             )
+        _baseline_lines(ax, lines, col)
         if log:
             ax.set_xscale("log", base=2)
         ax.set_xticks([positions[v] for v in order], [_fmt(v) for v in order])
         ax.minorticks_off()
         ax.set_xlabel(_axis_label(x))
-        ax.set_ylabel(_axis_label(col))
+        ax.set_ylabel(_axis_label(col, baseline))
         ax.grid(alpha=0.3)
         if is_success:
             ax.yaxis.set_major_formatter(PercentFormatter(1.0))
@@ -310,13 +324,14 @@ def ablation_plot(
         if counts and min(counts) == max(counts)
         else f"{min(counts, default=0)}-{max(counts, default=0)}"
     )
+    speed = f"; speedup: tokens/s over {baseline}'s, paired episodes" if SPEEDUP in ys else ""
     fig.suptitle(
         f"{', '.join(ys)} vs {x}: mean and 95% interval (Wilson for success, t for means); "
-        f"{n_text} episodes per point",
+        f"{n_text} episodes per point{speed}",
         fontsize=9,
     )
-    if hue:
-        handles, labels = axes[0].get_legend_handles_labels()
+    handles, labels = axes[0].get_legend_handles_labels()
+    if labels:
         fig.legend(
             handles,
             labels,
@@ -330,16 +345,29 @@ def ablation_plot(
     return fig
 
 
-def _configurations_using(df: pd.DataFrame, x: str) -> pd.DataFrame:
+def _baseline_lines(ax: Any, rows: pd.DataFrame, col: str) -> None:
+    """The baseline configuration as a dashed line at its mean (a band: its interval)."""
+    for _, part in rows.groupby("policy_config_id", sort=False):
+        est, low, high, n = measure(part, col)
+        if n == 0:
+            continue
+        label = f"{part['config_label'].iloc[0]} (baseline, n={n})"
+        ax.axhline(est, color="0.25", linestyle="--", linewidth=1.2, label=label, zorder=1)
+        if np.isfinite(low) and np.isfinite(high) and high > low:
+            ax.axhspan(low, high, color="0.25", alpha=0.12, linewidth=0, zorder=0)
+
+
+def _configurations_using(df: pd.DataFrame, x: str, baselines: Sequence[str] = ()) -> pd.DataFrame:
     """The rows of configurations that use the x parameter (fast_dllm's block_size of 0 is
-    no block size: a point at x=0 no decoder ran); the others named in one warning."""
+    no block size: a point at x=0 no decoder ran); the others named in one warning, but
+    for the baseline's, which the figure draws as a line."""
     key = x if x.startswith(PARAM) else df.attrs.get("aliases", {}).get(x, "")
     dropped = not_using(df, key[len(PARAM) :]) if key.startswith(PARAM) else {}
-    names = ", ".join(dropped.values())
+    names = ", ".join(v for k, v in dropped.items() if k not in baselines)
     if dropped and len(dropped) == df["policy_config_id"].nunique():
         users = ", ".join(param_users(key[len(PARAM) :])) or "none registered"
         raise PlotInputError(f"no configuration in these rows uses {x} ({names}); valid users: {users}")
-    if dropped:
+    if names:
         warnings.warn(f"left out of the plot, as they do not use {x}: {names}", UserWarning, stacklevel=3)
     return df[~df["policy_config_id"].isin(list(dropped))]
 
@@ -387,11 +415,13 @@ def pareto_plot(
     x: str = "tokens_per_s",
     y: str = "success",
     out: str | os.PathLike[str] | None = None,
+    baseline: str | None = DEFAULT_BASELINE,
 ) -> Figure:
     """Speed against success, one marker per policy configuration with its 95% intervals,
-    and the frontier of configurations that no other beats on both."""
+    and the frontier of configurations that no other beats on both; `speedup` on an axis
+    is over the baseline run beside them (results/plot_speedup.py)."""
     check_out(out)
-    df = plot_frame(episodes)
+    df = _with_speedup(plot_frame(episodes), (x, y), baseline)
     x = _resolve(df, x, "x", numeric=True)
     y = _resolve(df, y, "y", numeric=True)
     # Configurations with no value on an axis (tokens/s of a policy that decodes no tokens:
@@ -405,8 +435,7 @@ def pareto_plot(
     df = df[df["policy_config_id"].isin(measured[measured].index)]
     points = []
     for _, part in df.groupby("policy_config_id", sort=False):
-        ex = interval(_numeric(part[x]), x == "success")
-        ey = interval(_numeric(part[y]), y == "success")
+        ex, ey = measure(part, x), measure(part, y)
         points.append((part["config_label"].iloc[0], ex, ey, len(part)))
     points.sort(key=lambda p: natural_key(p[0]))
     xs = np.array([p[1][0] for p in points], dtype=float)
@@ -439,7 +468,7 @@ def pareto_plot(
         )
     for axis, col in (("x", x), ("y", y)):
         direction = "lower is better" if col in LOWER_IS_BETTER else "higher is better"
-        getattr(ax, f"set_{axis}label")(f"{_axis_label(col)}, {direction}")
+        getattr(ax, f"set_{axis}label")(f"{_axis_label(col, baseline)}, {direction}")
         if col == "success":
             getattr(ax, f"{axis}axis").set_major_formatter(PercentFormatter(1.0))
             getattr(ax, f"set_{axis}lim")(-0.03, 1.03)
@@ -447,55 +476,5 @@ def pareto_plot(
     ax.set_title(f"{y} vs {x}, 95% intervals", fontsize=10)
     ncols = 1 if len(points) <= 4 else 2  # below the axes: long labels never squeeze the plot
     fig.legend(loc="outside lower center", ncols=ncols, fontsize=8)
-    _save(fig, out)
-    return fig
-
-
-def decoding_order_plot(traces: pd.DataFrame, out: str | os.PathLike[str] | None = None) -> Figure:
-    """Per configuration, how often each action position is committed at each forward
-    pass of a chunk; white dots mark each position's mean pass, thin lines the block
-    boundaries (left-to-right, block-wise decoding is a descending staircase)."""
-    check_out(out)
-    if traces is None or traces.empty or "committed" not in traces:
-        raise PlotInputError("no decode traces to plot (record them with `--traces` on run or sweep)")
-    if "config_label" not in traces:
-        traces = traces.assign(config_label=traces.get("policy_config_id", pd.Series("all", traces.index)))
-    panels = sorted(traces.groupby("config_label", sort=False), key=lambda p: natural_key(str(p[0])))
-    width = 1 + max(p for passes in traces["committed"] for step in passes for p in step)
-    cols = min(3, len(panels))
-    rows = math.ceil(len(panels) / cols)
-    fig = Figure(figsize=(4.2 * cols + 1.0, 3.3 * rows), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
-    image = None
-    for ax, (label, part) in zip(axes, panels, strict=False):
-        depth = max(len(passes) for passes in part["committed"])
-        counts = np.zeros((depth, width))
-        for passes in part["committed"]:
-            for step, positions in enumerate(passes):
-                counts[step, positions] += 1
-        freq = counts / len(part)
-        image = ax.imshow(
-            freq, aspect="auto", cmap="viridis", vmin=0, vmax=1, origin="upper", interpolation="nearest",
-            extent=(-0.5, width - 0.5, depth + 0.5, 0.5),
-        )  # fmt: skip
-        with np.errstate(invalid="ignore"):
-            mean_pass = (counts * np.arange(1, depth + 1)[:, None]).sum(0) / counts.sum(0)
-        ax.plot(np.arange(width), mean_pass, "o", color="white", markersize=2.5, markeredgecolor="black",
-                markeredgewidth=0.3)  # fmt: skip
-        block = part["block_size"].iloc[0] if "block_size" in part else None
-        if block and not pd.isna(block) and 0 < int(block) < width:
-            for edge in range(int(block), width, int(block)):
-                ax.axvline(edge - 0.5, color="white", linewidth=0.5, alpha=0.6)
-        nfe = np.mean([len(p) for p in part["committed"]])
-        ax.set_title(f"{label}\n{len(part)} chunks, {nfe:.1f} passes/chunk", fontsize=9)
-        ax.set_xlabel("action token position")
-        ax.set_ylabel("forward pass")
-        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-    for ax in axes[len(panels) :]:
-        ax.set_visible(False)
-    if image is not None:
-        fig.colorbar(
-            image, ax=list(axes[: len(panels)]), label="fraction of chunks committing it", shrink=0.9
-        )
     _save(fig, out)
     return fig

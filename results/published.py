@@ -37,6 +37,7 @@ class PublishedTable:
     source: str  # paper and table
     note: str = ""
     decimals: int = 1  # as printed in the paper (CALVIN's avg len has 2)
+    baseline: str = ""  # the row the paper's speedups are over; '' when it prints none
 
     def text(self, column: str, value: float | None) -> str:
         if value is None:
@@ -67,6 +68,7 @@ LIBERO = PublishedTable(
         "success in % (the paper prints fractions), columns in the paper's order; every "
         "speedup is relative to Dream-VLA's 98.8 tokens/s, even for the DD-VLA rows"
     ),
+    baseline="Dream-VLA",
     rows=_rows(
         _LIBERO_SOURCE,
         LIBERO_COLUMNS,
@@ -124,6 +126,7 @@ CALVIN = PublishedTable(
         "fractions); avg len = instructions completed (0-5); speedups relative to UD-VLA's "
         "67.3 tokens/s"
     ),
+    baseline="UD-VLA",
     rows=_rows(
         _CALVIN_SOURCE,
         CALVIN_COLUMNS,
@@ -254,8 +257,8 @@ def tables_for(suites: list[str]) -> list[PublishedTable]:
     """The published tables worth showing beside these measured suites: LIBERO's, when
     one of them is a LIBERO suite, and none beside a Meta-World or plugin suite.
     CALVIN's and SimplerEnv's rows go beneath each instruction-chain or SimplerEnv-like
-    suite in that benchmark's own layout instead (results.paper_table.calvin_block and
-    simpler_block)."""
+    suite in that benchmark's own layout instead (results.paper_table.calvin_blocks and
+    simpler_blocks)."""
     return [LIBERO] if any(is_libero(s) for s in suites) else []
 
 

@@ -19,15 +19,16 @@ from typing import Any
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "4"
+SCHEMA_VERSION = "5"
 # Versions this code reads: a version-1 table (before instruction chains) gets the chain
 # columns as nulls, a version-2 table (before variants) a null `variant`, which is what
 # they mean for its suites; a version-3 table (before the action-space check, counted
 # work, CPU time, configuration labels and inference latency) gets null out-of-space,
 # work, CPU-time and latency columns (its actions were not checked, its work and CPU
 # time not measured, it ran at `none`) and `config_label` filled in on read
-# (results.labels.with_config_labels).
-READABLE_VERSIONS = ("1", "2", "3", "4")
+# (results.labels.with_config_labels); a version-4 table (before rollout videos) a null
+# `video` (none was recorded).
+READABLE_VERSIONS = ("1", "2", "3", "4", "5")
 SCHEMA_VERSION_KEY = b"dvla_harness.schema_version"
 
 
@@ -321,6 +322,13 @@ class EpisodeRow:
             pa.bool_(),
             "",
             "False when the run's calibration moved beyond the tolerance between its start and end (the machine's load changed), or when any of the run's episodes was `starved`; the manifest's speed_warning says which and how much: this row's timings (policy_time_s, tokens_per_s, control_hz, ...) are not comparable. Set on every row when the run finishes; null while it runs, after an interrupt, for runs without torch policies (unless starved), and in rows written before it was recorded.",
+        )
+    )
+    video: str | None = field(
+        metadata=column(
+            pa.string(),
+            "path",
+            "The episode's rollout video, relative to the run folder (`videos/<policy_config_id>/<task>/episode-NNN.mp4`: by configuration, task and episode), recorded with `--video N` or `--video failures` from the suite's camera (docs/runs.md, 'Rollout videos'). Null when none was recorded or kept. Recording changes no other column but the timings.",
         )
     )
     variant: str | None = field(

@@ -32,6 +32,7 @@ import json
 import math
 import os
 import re
+import shutil
 import stat
 import sys
 import time
@@ -64,9 +65,11 @@ PENDING = "pending.jsonl"
 TRACES = "traces.jsonl"
 REPLAY = "replay.json"  # `dvla-harness bench`: the replay benchmark's figures (results/replay.py)
 REPLAY_OBSERVATIONS = "replay_observations.npz"  # ... and the recorded observations it decoded
+VIDEOS = "videos"  # rollout videos, one MP4 per recorded episode (harness/episode/video.py)
 # Everything the harness writes into a run folder; --overwrite deletes only these (and
 # their temporaries), and refuses a folder that holds anything else.
 HARNESS_FILES = (MANIFEST, EPISODES, EVENTS, PENDING, TRACES, REPLAY, REPLAY_OBSERVATIONS, LOCK)
+HARNESS_FOLDERS = (VIDEOS,)
 # atomic_write's and write_table_atomically's temporaries (results/file_writes.py) (".NAME.PID.tmp"), left behind by a kill
 _TEMPORARY = re.compile(r"^\.(" + "|".join(re.escape(n) for n in HARNESS_FILES) + r")\.\d+\.tmp$")
 # Fields of every trace line besides what the policy put in its trace ("committed": a
@@ -291,6 +294,7 @@ class RunDir:
             p.name + ("/" if p.is_dir() else "")
             for p in self.path.iterdir()
             if not ((p.name in HARNESS_FILES or _TEMPORARY.match(p.name)) and not p.is_dir())
+            and not (p.name in HARNESS_FOLDERS and p.is_dir() and not p.is_symlink())
         )
 
     def temporaries(self) -> list[Path]:
@@ -336,8 +340,18 @@ class RunDir:
         for name in HARNESS_FILES:
             if name != LOCK:
                 (self.path / name).unlink(missing_ok=True)
+        for name in HARNESS_FOLDERS:
+            folder = self.path / name
+            if folder.is_dir() and not folder.is_symlink():
+                shutil.rmtree(folder)
         self.remove_temporaries()
         fsync_dir(self.path)
+
+    def write_video(self, relative: str, data: bytes) -> None:
+        """An episode's MP4 at `relative` (under videos/), written atomically."""
+        path = self.path / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, data)
 
     def lock(self) -> RunLock:
         return RunLock(self.path)

@@ -12,6 +12,10 @@ from dataclasses import dataclass
 import pandas as pd
 
 Z95 = 1.959963984540054
+# Two-sided 95% Student t quantiles; between rows the smaller df is used (conservative).
+_T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262,
+         10: 2.228, 12: 2.179, 15: 2.131, 20: 2.086, 25: 2.060, 30: 2.042, 40: 2.021, 60: 2.000,
+         120: 1.980}  # fmt: skip
 
 SUMMARY_COLUMNS = (
     "policy_config_id",
@@ -30,6 +34,14 @@ SUMMARY_COLUMNS = (
     "loop_hz",
     "wall_clock_s",
 )
+
+
+def t_quantile(df: int) -> float:
+    """The two-sided 95% Student t quantile for `df` degrees of freedom (the table's next
+    smaller entry between rows: conservative); NaN below 1."""
+    if df < 1:
+        return math.nan
+    return _T975[max(k for k in _T975 if k <= df)] if df <= 120 else 1.980  # t(120): conservative
 
 
 def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:

@@ -92,12 +92,13 @@ def test_a_single_instruction_suite_keeps_its_success_columns(tmp_path):
 def test_paper_table_gives_chains_calvins_layout_with_published_rows_labelled(chain_run):
     table = paper_table([load_run(chain_run)])
     assert table.suites == () and len(table.chain_boards) == 1  # no LIBERO block to average into
-    (block,) = paper_blocks(table)
+    block, paper = paper_blocks(table)  # measured, then the published rows in their own section
     assert block.headers[:7] == ["method", "1/5", "2/5", "3/5", "4/5", "5/5", "avg len"]
-    measured = block.rows[: block.published_from]
-    assert [r[0].text for r in measured] == ["bidirectional", "fast_dvla"]
-    assert measured[1][7].text == "250" and measured[1][8].text == "2.50x"
-    published = block.rows[block.published_from :]
+    assert [r[0].text for r in block.rows] == ["bidirectional", "fast_dvla"]
+    assert block.rows[1][7].text == "250" and block.rows[1][8].text == "2.50x"
+    assert block.headers[7:9] == ["tokens/s (measured)", "speedup vs bidirectional (measured)"]
+    assert paper.headers[7:9] == ["tokens/s (published)", "speedup vs UD-VLA (published)"]
+    published = paper.rows
     assert published[0][0].text == "UD-VLA (published, CALVIN: not comparable)"
     assert [c.text for c in published[0][1:8]] == ["99.2", "96.8", "93.6", "90.4", "84.0", "4.64", "67.3"]
     assert any(NOT_CALVIN in n for n in block.notes)
@@ -111,7 +112,9 @@ def test_a_chain_suite_beside_libero_gets_its_own_table(chain_run, tmp_path):
     table = paper_table(runs)
     assert table.suites == ("libero/spatial:obs=upstream",)
     titles = [b.title for b in paper_blocks(table)]
-    assert titles == ["measured, then published", f"{SUITE} (CALVIN layout)"]
+    assert titles == [
+        "measured", "published: LIBERO", f"{SUITE} (CALVIN layout)", "published: CALVIN ABCD->D"
+    ]  # fmt: skip
     fast = next(r for r in table.rows if r.label == "fast_dvla")
     assert list(fast.success) == ["libero/spatial:obs=upstream"]  # the chain suite is not averaged in
 

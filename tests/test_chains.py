@@ -243,7 +243,7 @@ def test_chain_columns_round_trip_and_version_1_tables_still_read(tmp_path):
     pq.write_table(future, tmp_path / "v9.parquet")
     with pytest.raises(Exception, match="reads versions 1, 2"):
         read_table(tmp_path / "v9.parquet")
-    assert schema.SCHEMA_VERSION == "4" and isinstance(
+    assert schema.SCHEMA_VERSION == "5" and isinstance(
         schema.arrow_schema().field("subtasks").type, pa.ListType
     )
 

@@ -15,7 +15,7 @@ MT10 = (
     "reach-v3 push-v3 pick-place-v3 door-open-v3 drawer-open-v3 drawer-close-v3 "
     "button-press-topdown-v3 peg-insert-side-v3 window-open-v3 window-close-v3"
 ).split()
-LAPTOP = {"width": 1400, "height": 900}
+LAPTOP = {"width": 1280, "height": 800}
 
 
 def _mt10_rows() -> list[dict]:
@@ -104,15 +104,21 @@ def test_a_meta_world_report_has_no_libero_section(browser, reports):  # noqa: F
     page.close()
 
 
-def test_a_libero_report_keeps_its_published_rows_beneath_when_sorting(browser, reports):  # noqa: F811
+def test_a_libero_report_keeps_published_figures_in_their_own_table(browser, reports):  # noqa: F811
     page = _open(browser, reports["libero"])
     assert "published" in page.inner_text("body")
-    paper = page.locator("table.sortable").nth(1)  # the leaderboard, then the paper's layout
-    paper.locator("thead th").nth(_headers(page, 1).index("tokens/s")).click()
+    measured, published = _headers(page, 1), _headers(page, 2)  # after the leaderboard: the paper's layout
+    assert "tokens/s (measured)" in measured and "speedup vs bidirectional (measured)" in measured
+    assert "tokens/s (published)" in published and "speedup vs Dream-VLA (published)" in published
+    assert not any("published" in h for h in measured)
+    page.locator("table.sortable").nth(1).locator("thead th").nth(
+        measured.index("tokens/s (measured)")
+    ).click()
     bodies = page.evaluate(
-        "() => Array.from(document.querySelectorAll('tbody')).map(b => b.className + ':' + b.rows.length)"
+        """() => Array.from(document.querySelectorAll('table.sortable')).slice(1, 3).map(
+            t => Array.from(t.tBodies).filter(b => b.rows.length).map(b => b.className + ':' + b.rows.length))"""
     )
-    assert "published:8" in bodies and "measured:2" in bodies
+    assert bodies == [["measured:2"], ["published:8"]]
     page.close()
 
 
@@ -130,7 +136,7 @@ def test_a_state_only_plugin_suite_has_no_token_columns(browser, reports):  # no
     page.close()
 
 
-def test_the_mt10_table_fits_a_1400_px_window_without_scrolling(browser, reports):  # noqa: F811
+def test_the_mt10_table_fits_a_1280_px_laptop_window_without_scrolling(browser, reports):  # noqa: F811
     page = _open(browser, reports["mt10"])
     widths = page.evaluate(
         """() => ({page: document.documentElement.scrollWidth,
@@ -180,7 +186,10 @@ def test_a_suite_without_tokens_gets_a_success_plot_with_intervals(browser, repo
     page.close()
 
 
-def test_paper_table_of_a_meta_world_run_says_there_is_none(cli, reports):
+def test_paper_table_of_a_meta_world_run_has_nothing_to_show_and_exits_2(cli, reports):
     code, out, err = cli("report", "paper-table", str(reports["mt10"].parent / "mt10"))
-    assert code == 0, err
-    assert out.startswith("No LIBERO, CALVIN-like or SimplerEnv-like suite") and "|" not in out  # no table
+    assert code == 2 and out == ""
+    assert err.strip() == (
+        "dvla-harness report: error: metaworld/mt10: no LIBERO, CALVIN-like or SimplerEnv-like suite "
+        "in these runs: no published table to lay them out beside (`dvla-harness leaderboard` shows them)"
+    )

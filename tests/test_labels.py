@@ -43,7 +43,7 @@ def test_two_settings_of_one_policy_are_two_labels_in_the_written_rows(tmp_path)
     assert (per_label == 1).all()
     # Grouping by (label, task) keeps the settings apart where (policy, task) merges them.
     assert len(df.groupby(["config_label", "task"])) == 2 and len(df.groupby(["policy", "task"])) == 1
-    assert pq.read_schema(out / "episodes.parquet").metadata[schema.SCHEMA_VERSION_KEY] == b"4"
+    assert pq.read_schema(out / "episodes.parquet").metadata[schema.SCHEMA_VERSION_KEY] == b"5"
 
 
 def test_the_tables_print_the_label_the_rows_hold(tmp_path):
@@ -95,3 +95,34 @@ def test_inconsistent_stored_labels_are_redone_for_the_whole_frame(tmp_path):
     for r in df.to_dict("records"):
         run_dir.append_episode(r)
     assert run_dir.read_episodes()["config_label"].nunique() == 1
+
+
+def test_a_shipped_checkpoint_is_named_as_the_user_typed_it():
+    """`--policy bidirectional:checkpoint=libero-object` reads `checkpoint=libero-object`, on any
+    machine; a checkpoint of one's own keeps its file name."""
+    from policies.dvla.policy import shipped
+
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["here", "there", "own"],
+            "policy": ["bidirectional"] * 3,
+            "policy_params": [
+                json.dumps({"checkpoint": shipped("bidirectional", "libero-object")}),
+                json.dumps(
+                    {
+                        "checkpoint": "/home/x/clone/policies/checkpoints/libero-spatial-bidirectional.safetensors"
+                    }
+                ),
+                json.dumps({"checkpoint": "ckpt/my-bidirectional.safetensors"}),
+            ],
+        }
+    )
+    assert config_labels(frame) == {
+        "here": "bidirectional (checkpoint=libero-object)",
+        "there": "bidirectional (checkpoint=libero-spatial)",
+        "own": "bidirectional (checkpoint=my-bidirectional.safetensors)",
+    }
+    default = frame.iloc[:1].assign(
+        policy_params=json.dumps({"checkpoint": "/y/metaworld-mt10-bidirectional.safetensors"})
+    )
+    assert config_labels(default) == {"here": "bidirectional"}  # the default set, from another machine

@@ -243,15 +243,21 @@ def test_paper_table_lines_up_libero_suites_and_puts_published_rows_beneath(tmp_
     fast = next(r for r in table.rows if r.label == "fast_dvla")
     assert fast.success["libero/spatial"].successes == 3 and fast.average == pytest.approx(50.0)
     assert fast.speedup == pytest.approx(3.0)
-    (block,) = paper_blocks(table, allow_privileged=True)  # one table: LIBERO's columns
+    block, paper = paper_blocks(table, allow_privileged=True)  # measured, then published: two sections
     assert block.headers[1:3] == ["Spatial (libero/spatial)", "Goal (libero/goal)"]
-    measured = [r[0].text for r in block.rows[: block.published_from]]
+    assert block.headers[4:6] == ["tokens/s (measured)", "speedup vs bidirectional (measured)"]
+    measured = [r[0].text for r in block.rows]
     assert measured == ["bidirectional [privileged state]", "fast_dvla [privileged state]"]
-    published = block.rows[block.published_from :]
+    assert block.published_from is None and paper.published_from == 0
+    assert paper.headers == [
+        "method", "Spatial", "Goal", "Object", "Long", "Avg", "tokens/s (published)",
+        "speedup vs Dream-VLA (published)", "source",
+    ]  # fmt: skip
+    published = paper.rows
     assert len(published) == 8 and all(r[0].text.endswith("(published)") for r in published)
     assert all(r[-1].text.startswith("published: Fast-dVLA (arXiv 2603.25661)") for r in published)
     dream = published[0]
-    assert [c.text for c in dream[1:6]] == ["90.2", "92.0", "85.6", "98.8", "1.0x (paper)"]
+    assert [c.text for c in dream[1:8]] == ["90.2", "92.0", "88.0", "72.0", "85.6", "98.8", "1.0x"]
 
 
 @pytest.mark.parametrize(

@@ -101,6 +101,39 @@ def test_a_tasks_envs_stay_open_together_and_another_tasks_closes_them():
 
 
 @needs_libero
+def test_a_video_frame_is_the_agentview_image_upstream_models_see():
+    """--video's frame (its own renderer, stepping nothing) shows the scene as obs=upstream's
+    agentview image does: same camera, same orientation, and it follows the simulator."""
+    suite = lb.load_suite("libero/spatial:obs=upstream,image_size=256,shadows=off,reflections=off")
+    task = suite.tasks[0]
+    env = suite.make_env(task)
+    try:
+        obs, _ = env.reset(options={"episode": task.episodes[0]})
+        frame = env.video_frame()
+        assert frame.shape == (lb.VIDEO_SIZE, lb.VIDEO_SIZE, 3) and frame.dtype == np.uint8
+        np.testing.assert_array_equal(frame, env.video_frame())  # rendering steps nothing
+        image = obs["agentview"].astype(float)
+        gaps = {
+            name: np.abs(view.astype(float) - image).mean()
+            for name, view in {
+                "as upstream": frame,
+                "upside down": frame[::-1],
+                "mirrored": frame[:, ::-1],
+                "rotated": frame[::-1, ::-1],
+            }.items()
+        }
+        # renderers differ in lighting and anti-aliasing (a mean gap of ~10 levels); a wrong
+        # orientation puts the scene elsewhere (40-70)
+        assert gaps.pop("as upstream") < 0.5 * min(gaps.values()), gaps
+        for _ in range(10):
+            env.step(np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0], dtype=np.float32))
+        assert np.abs(env.video_frame().astype(float) - frame).mean() > 0.5  # the arm moved
+    finally:
+        env.close()
+    assert env._video is None  # closing the env frees its renderer
+
+
+@needs_libero
 def test_state_positions_include_goal_regions():
     """An object task's goal region (the basket's) is a position too, after the entities."""
     layout = lb.state_layout(lb.task_problem("object", 0))

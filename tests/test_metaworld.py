@@ -232,7 +232,7 @@ def test_scripted_expert_succeeds_and_rows_match_the_schema(cli, tmp_path):
     expected = arrow_schema()
     for field in expected:
         assert table.schema.field(field.name).type == field.type, field.name
-    assert table.schema.metadata[b"dvla_harness.schema_version"] == b"4"  # + the out-of-space columns
+    assert table.schema.metadata[b"dvla_harness.schema_version"] == b"5"  # + the out-of-space columns
     df = RunDir(out).read_episodes()
     assert len(df) == 6
     assert set(df["task"]) == {"reach-v3", "drawer-open-v3"}

@@ -47,3 +47,26 @@ def test_run_and_leaderboard_say_the_same_when_there_is_no_bidirectional_row(tmp
     assert entry.speedup_note == "n/a: no bidirectional row"
     all_row = next(line for line in text.splitlines() if "ALL" in line)
     assert all_row.rstrip(" │").endswith(entry.speedup_note)
+
+
+def test_run_and_leaderboard_say_the_same_for_a_policy_without_tokens(tmp_path):
+    """A scripted expert beside bidirectional: no `-x` in the run summary, the leaderboard's reason."""
+    from rich.console import Console
+
+    from results.leaderboard import leaderboards
+    from results.render import summary_table
+    from results.runs import load_run
+    from results.summary import summarize
+    from tests.test_leaderboard import BIDI, episodes
+
+    rows = episodes("bidirectional", BIDI, "bidi000001", [1, 0, 1])
+    rows += episodes("scripted", "{}", "scri000001", [1, 1, 1], tokens_per_s=None)
+    run = load_run(write_run(tmp_path / "r", rows))
+    (board,) = leaderboards([run])
+    note = next(e.speedup_note for e in board.entries if e.policy == "scripted")
+    console = Console(width=300, record=True, file=io.StringIO())
+    console.print(summary_table(summarize(run.episodes)))
+    text = console.export_text()
+    assert note == "n/a: no tokens" and "-x" not in text
+    scripted_all = [line for line in text.splitlines() if "ALL" in line][1]
+    assert scripted_all.rstrip(" │").endswith(note)

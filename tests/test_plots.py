@@ -77,6 +77,24 @@ def test_labels_show_a_lone_configurations_non_default_parameters():
     assert plots.config_labels(default) == {"a": "fast_dvla"}  # the default says nothing
 
 
+def test_a_legend_names_a_default_configuration_as_the_tables_do():
+    """fast_dvla at its default block size (0: the checkpoint's 4) plots at 4 but is `fast_dvla`."""
+    frame = pd.DataFrame(
+        {
+            "policy_config_id": ["a", "b"],
+            "policy": ["fast_dvla", "bidirectional"],
+            "policy_params": [json.dumps({"block_size": 0, "tau_conf": 0.5}), json.dumps({"steps": 12})],
+            "checkpoint": ["", ""],
+        }
+    )
+    expanded = plots.plot_frame(frame, {"a": {"block_size": 4}, "b": {}})
+    assert expanded["block_size"].iloc[0] == 4
+    assert dict(zip(expanded["policy_config_id"], expanded["config_label"], strict=True)) == {
+        "a": "fast_dvla",
+        "b": "bidirectional",
+    }
+
+
 def test_columns_come_from_rows_parameters_and_checkpoint_headers(sweep):
     frame = plots.plot_frame(RunDir(sweep.path).read_episodes())
     assert set(frame["block_size"]) == {4, 8} and set(frame["param.tau_conf"]) == {0.5}
@@ -132,7 +150,9 @@ def test_decoding_order_from_recorded_traces(sweep, cli, tmp_path):
     assert code == 0, err
     assert out.read_bytes()[:8] == PNG
     traces = RunDir(sweep.path).read_traces()
-    fig = plots.decoding_order_plot(traces)
+    from results.order_plot import decoding_order_plot
+
+    fig = decoding_order_plot(traces)
     image = fig.axes[0].images[0].get_array()
     assert image.shape[1] == 32 and np.allclose(image.sum(), image.shape[1])  # each position once a chunk
 

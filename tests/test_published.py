@@ -42,10 +42,9 @@ def test_paper_table_prints_each_published_rows_own_source(tmp_path):
         r | {"suite": "libero/spatial:obs=upstream"} for r in episodes("bidirectional", BIDI, "b1", [1, 0])
     ]
     rows += [r | {"suite": "libero/spatial:obs=upstream"} for r in episodes("fast_dvla", FAST, "f1", [1, 1])]
-    (block,) = paper_blocks(paper_table([load_run(write_run(tmp_path / "r", rows))]))
-    published = block.rows[block.published_from :]
-    assert [r[-1].text for r in published] == [f"published: {p.source}" for p in LIBERO.rows]
-    assert not any("swap" in n for n in block.notes)
+    block, paper = paper_blocks(paper_table([load_run(write_run(tmp_path / "r", rows))]))
+    assert [r[-1].text for r in paper.rows] == [f"published: {p.source}" for p in LIBERO.rows]
+    assert not any("swap" in n for n in block.notes + paper.notes)
 
 
 def test_every_libero_pro_row_names_its_source_table_and_row():

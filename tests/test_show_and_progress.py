@@ -30,6 +30,17 @@ def test_progress_prints_a_line_every_five_percent_without_a_terminal(capsys):
     assert lines[-1].startswith("episodes 40/40 (100%), success 50% (20/40)")
 
 
+def test_a_long_run_off_a_terminal_names_its_folder_first_and_reports_every_ten_episodes(capsys):
+    progress, start = episode_progress(quiet=False, folder=Path("runs/long"))
+    with progress:
+        tick = start(400, 0)
+        for _ in range(25):
+            tick(True)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "run folder: runs/long"
+    assert [line.split(" (")[0] for line in lines[1:]] == ["episodes 10/400", "episodes 20/400"]
+
+
 def test_progress_written_to_a_file_ends_with_one_last_frame(capsys):
     """Off a terminal the plain lines are the display: no rich frame repeats the last one."""
     progress, start = episode_progress(quiet=False)

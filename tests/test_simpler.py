@@ -162,6 +162,26 @@ def test_maniskill_builds_steps_and_a_spec_always_starts_the_same():
 
 
 @needs_maniskill
+def test_a_video_frame_is_the_tasks_render_camera_and_steps_nothing():
+    suite = load_suite("simpler/all")
+    task = suite.tasks[0]
+    env = suite.make_env(task)
+    try:
+        env.reset(options={"episode": task.episodes[0]})
+        frame = env.video_frame()
+        assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
+        assert frame.std() > 10  # a rendered scene, not a blank frame
+        state = env.env.unwrapped.get_state_dict()
+        np.testing.assert_array_equal(frame, env.video_frame())
+        after = env.env.unwrapped.get_state_dict()
+        for key in ("actors", "articulations"):  # a capture moves nothing in the scene
+            for name, value in state[key].items():
+                np.testing.assert_array_equal(np.asarray(value), np.asarray(after[key][name]))
+    finally:
+        env.close()
+
+
+@needs_maniskill
 def test_the_expert_solves_its_tasks_and_the_manifest_names_the_vulkan_driver(cli, tmp_path):
     import pandas as pd
 

@@ -201,7 +201,7 @@ def test_an_older_manifest_with_starved_episodes_but_no_verdict_is_judged_from_t
 def test_a_version_3_table_reads_without_cpu_time_as_nulls(tmp_path):
     run(fake_resolved(ChunkPolicy(), episodes=1), tmp_path / "r")
     full = pq.read_table(tmp_path / "r" / "episodes.parquet")
-    assert full.schema.metadata[schema.SCHEMA_VERSION_KEY] == b"4"
+    assert full.schema.metadata[schema.SCHEMA_VERSION_KEY] == b"5"
     old = full.drop_columns(["policy_cpu_time_s", "starved"]).replace_schema_metadata(
         {schema.SCHEMA_VERSION_KEY: b"3"}
     )

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from harness.config import ResolvedRun
     from harness.episode.outcome import EpisodeOutcome
     from harness.episode.plan import ExecutionPlan
+    from harness.episode.video import VideoPlan
 
 BACKENDS = ("local", "ray")
 DEFAULT_MAX_RETRIES = 2
@@ -122,7 +123,7 @@ def execute(
         return
     from harness.backends.scheduler import schedule
 
-    spec = worker_spec(resolved, execution, plan.traces)
+    spec = worker_spec(resolved, execution, plan.traces, plan.video)
     if execution.backend == "ray":
         from harness.backends.ray import RayWorkers
 
@@ -137,7 +138,9 @@ def execute(
         workers.shutdown()
 
 
-def worker_spec(resolved: ResolvedRun, execution: Execution, traces: bool) -> WorkerSpec:
+def worker_spec(
+    resolved: ResolvedRun, execution: Execution, traces: bool, video: VideoPlan | None = None
+) -> WorkerSpec:
     """What each worker of this run starts with: the run rebuilt from its config (with
     what --resume adopted), threads, batching, device and the checkpoint hashes."""
     from functools import partial
@@ -158,4 +161,5 @@ def worker_spec(resolved: ResolvedRun, execution: Execution, traces: bool) -> Wo
         heartbeat,
         execution.device,
         checkpoint_pins(resolved),
+        video,
     )

@@ -28,6 +28,7 @@ from harness.episode.timed import TimedPolicy
 if TYPE_CHECKING:
     from harness.backends import Sink
     from harness.config import CheckpointPin, ResolvedRun
+    from harness.episode.video import VideoPlan
 
 HOST = socket.gethostname()  # the `host` column: where an episode ran
 IN_PROCESS = "main"  # the `worker_id` of episodes run by the process that writes the run
@@ -114,6 +115,7 @@ class WorkerSpec:
     heartbeat_s: float | None = None  # a batched worker says its batch still moves this often
     device: str | None = None
     pins: tuple[CheckpointPin, ...] = ()  # the checkpoint content the run hashed
+    video: VideoPlan | None = None  # --video: which episodes each worker records
 
 
 class Worker:
@@ -136,9 +138,10 @@ class Worker:
         batch_envs: int = 1,
         traces: bool = False,
         heartbeat_s: float | None = None,
+        video: VideoPlan | None = None,
     ):
         self.worker_id, self.heartbeat_s = worker_id, heartbeat_s
-        plan = ExecutionPlan.for_run(resolved, batch_envs, traces)
+        plan = ExecutionPlan.for_run(resolved, batch_envs, traces, video)
         self.runner = EpisodeRunner(resolved, plan, worker_id)
         self.jobs = index_jobs(resolved)
         self.warm_up: dict[str, Any] | None = None
@@ -202,7 +205,7 @@ def start_worker(
     if spec.device is not None:  # before the warm-up (a GPU's one-off costs are paid there)
         used = worker_device(spec.device, gpu_ids) if gpu_ids is not None else None
         apply_device(resolved.policies, spec.device, used=used)
-    worker = Worker(resolved, worker_id, spec.batch_envs, spec.traces, spec.heartbeat_s)
+    worker = Worker(resolved, worker_id, spec.batch_envs, spec.traces, spec.heartbeat_s, spec.video)
     record = {"worker_id": worker_id, "host": HOST, "pid": os.getpid()} | threads_record()
     record["device"] = worker_device_record(gpu_ids)
     return worker, record

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 from rich.table import Table
 
 from harness.errors import UsageError
+from results.table_fit import ALWAYS, Fit
 
 if TYPE_CHECKING:  # pandas and the gate load only when the command runs, not for every CLI call
     from results.gate import GateResult, TaskDiff
@@ -140,7 +141,28 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="report counted work (GFLOP/chunk) increases but do not fail",
     )
+    from harness.console import add_wide_argument
+
+    add_wide_argument(p)
     p.set_defaults(func=cmd_gate)
+
+
+# What a narrow terminal keeps first (results/table_fit.py): which row, its verdict and
+# the evidence behind a success verdict, then speed and work.
+GATE_RANKS = {
+    "configuration": ALWAYS,
+    "task": ALWAYS,
+    "verdict": ALWAYS,
+    "successes": 10,
+    "p (drop)": 20,
+    "subtasks/chain (shorter/longer, p)": 30,
+    "tokens/s vs ref.": 40,
+    "replay vs ref. [95%]": 50,
+    "NFE/chunk": 60,
+    "GFLOP/chunk": 70,
+    "drops/gains": 80,
+    "episodes": 90,
+}
 
 
 def _fmt(value: float | None, digits: int = 2) -> str:
@@ -248,9 +270,10 @@ def _replay_cell(r: ReplaySpeed | None, is_reference: bool) -> str:
 
 
 def cmd_gate(args: argparse.Namespace) -> int:
-    from harness.console import console, err_console
+    from harness.console import console, err_console, print_note, print_table
     from results.gate import GateInputError, gate_runs
     from results.gate_inputs import check_gate_inputs
+    from results.render import task_keys
     from results.replay import ReplayFileError
     from results.runs import load_run
     from results.store import ResultsFileError
@@ -283,14 +306,15 @@ def cmd_gate(args: argparse.Namespace) -> int:
     except ReplayFileError as exc:
         raise UsageError(str(exc)) from None
     title = f"gate: {args.candidate} vs baseline {args.baseline}"
-    console.print(render(result, title))
+    fit = Fit(GATE_RANKS, task_keys(runs["candidate"].episodes))
+    print_table(render(result, title), fit=fit, wide=args.wide)
     for pair in result.pairs:
         if pair.rule != "same policy and params":
-            console.print(f"paired {pair.label}: {pair.rule}")
+            print_note("paired", f"{pair.label}: {pair.rule}", console)
     for note in result.notes:
-        console.print(f"note: {note}")
+        print_note("note:", note, console)
     for warning in result.warnings:
-        console.print(f"[yellow]warning[/yellow]: {warning}")
+        print_note("[yellow]warning:[/yellow]", warning, console)
     for r in result.replay:  # the figure that decided speed, and how far it can be trusted
         console.print(f"verdict: {r.trust()}")
     if result.passed:

@@ -46,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--format", choices=FORMATS, help="md, csv or html (default: a terminal table)")
     p.add_argument("--out", metavar="FILE", help="write here (atomically) instead of stdout")
+    from harness.console import add_wide_argument
+
+    add_wide_argument(p)
     p.set_defaults(func=cmd_leaderboard)
 
 
@@ -97,10 +100,10 @@ def check_out_file(out: str) -> Path:
 
 
 def print_warnings(warnings: Sequence[str]) -> None:
-    from harness.console import err_console
+    from harness.console import print_note
 
     for w in warnings:
-        err_console.print(f"[yellow]warning:[/yellow] {w}", markup=True, highlight=False, soft_wrap=True)
+        print_note("[yellow]warning:[/yellow]", w)
 
 
 def generalization_gaps(runs: Sequence) -> list:
@@ -115,7 +118,7 @@ def generalization_gaps(runs: Sequence) -> list:
 
 def cmd_leaderboard(args: argparse.Namespace) -> int:
     from harness.console import console, print_table
-    from results.leaderboard import leaderboards, rich_table, to_csv, to_markdown
+    from results.leaderboard import board_fit, leaderboards, rich_table, to_csv, to_markdown
 
     fmt = output_format(args.format, args.out)
     out = check_out_file(args.out) if args.out else None
@@ -128,9 +131,9 @@ def cmd_leaderboard(args: argparse.Namespace) -> int:
         from results.generalization import gap_rich
 
         for board in boards:
-            print_table(rich_table(board))
+            print_table(rich_table(board), fit=board_fit(board), wide=args.wide)
         for table in gaps:
-            print_table(gap_rich(table))
+            print_table(gap_rich(table), wide=args.wide)
         print_warnings(warnings)
         return 0
     if fmt == "md":

@@ -7,9 +7,10 @@ import argparse
 from rich.markup import escape
 from rich.table import Table
 
-from harness.console import console, print_table
+from harness.console import add_wide_argument, console, print_table
 from harness.errors import UsageError
 from harness.plugins import install_hint
+from results.table_fit import ALWAYS, Fit
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("what", choices=("suites", "policies", "tasks", "latency-profiles"))
     p.add_argument("suite", nargs="?", help="with `tasks`: the suite whose tasks to list")
+    add_wide_argument(p)
     p.set_defaults(func=cmd_list)
 
 
@@ -43,7 +45,9 @@ def cmd_list(args: argparse.Namespace) -> int:
             table.add_row(
                 info.name, str(info.num_tasks), str(info.episodes_per_task), info.description, extra
             )
-        print_table(table)
+        # the names a user types stay whole: the suite and the install command first
+        ranks = {"needs extra": ALWAYS, "description": 10, "tasks": 20, "episodes/task": 30}
+        print_table(table, fit=Fit(ranks, prose=frozenset({"description"})), wide=args.wide)
     elif args.what == "latency-profiles":
         from harness.episode.latency import profile_rows
 
@@ -52,7 +56,7 @@ def cmd_list(args: argparse.Namespace) -> int:
         )
         for name, chunks, source in profile_rows():
             table.add_row(name, chunks, source)
-        print_table(table)
+        print_table(table, wide=args.wide)
     elif args.what == "policies":
         import dataclasses
 
@@ -77,5 +81,5 @@ def cmd_list(args: argparse.Namespace) -> int:
             table.add_row(
                 str(task.index), task.name, task.instruction, str(task.max_steps), str(len(task.episodes))
             )
-        console.print(table)
+        print_table(table, fit=Fit({"task": ALWAYS}, prose=frozenset({"instruction"})), wide=args.wide)
     return 0

@@ -12,13 +12,16 @@ examples:
   dvla-harness plot ablation runs/sweep --x block_size --y success,tokens_per_s --hue tau_conf --out fig.png
   dvla-harness plot ablation runs/noise --x block_size --y success --hue noise_schedule --out noise.svg
   dvla-harness plot pareto runs/sweep runs/main --x tokens_per_s --y success --out pareto.svg
+  dvla-harness plot ablation runs/blocks --x block_size --y success,speedup --out blocks.png  # a sweep with --reference
+  dvla-harness plot pareto runs/blocks --x speedup --out blocks.svg
   dvla-harness plot decoding-order runs/sweep --out order.png     # needs a run made with --traces
   dvla-harness plot latency runs/none runs/p2-sync runs/p2-async runs/p4-sync --out latency.png
 
 Columns: episode-table columns (docs/results-schema.md), policy parameters (block_size,
 tau_conf, steps_per_block, ...; `param.NAME` when an episode column has the same name,
 e.g. param.steps) and checkpoint-header fields (recipe, noise_schedule, pattern,
-train_steps; `checkpoint.NAME`). Output: .png or .svg, written atomically.
+train_steps; `checkpoint.NAME`), and `speedup`: tokens/s over --baseline's on the same
+episodes of the same run. Output: .png or .svg, written atomically.
 """
 
 
@@ -73,6 +76,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     lat.add_argument(
         "--y", default="success", metavar="COL,...", help="default success; e.g. success,hold_steps"
     )
+    for kind in (a, q):
+        kind.add_argument(
+            "--baseline",
+            default="bidirectional",
+            metavar="POLICY",
+            help="policy or config id that `speedup` is over, paired episode by episode with rows of "
+            "the same run (a sweep's --reference; default bidirectional); ablation draws it as a line",
+        )
     for kind in (a, q, d, lat):
         kind.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run folder(s) or episodes .parquet")
         kind.add_argument("--out", required=True, metavar="FILE.png|FILE.svg", help="figure to write")
@@ -101,13 +112,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
         episodes = plots.plot_frame(combined_episodes(runs), _checkpoint_fields(runs))
         if args.kind == "ablation":
             ys = [c.strip() for c in args.y.split(",") if c.strip()]
-            plots.ablation_plot(episodes, args.x, ys, args.hue, out=args.out)
+            plots.ablation_plot(episodes, args.x, ys, args.hue, out=args.out, baseline=args.baseline)
         elif args.kind == "latency":
             from results.latency_plot import latency_plot
 
             latency_plot(episodes, [c.strip() for c in args.y.split(",") if c.strip()], out=args.out)
         elif args.kind == "pareto":
-            plots.pareto_plot(episodes, args.x, args.y, out=args.out)
+            plots.pareto_plot(episodes, args.x, args.y, out=args.out, baseline=args.baseline)
         else:
             untraced = [r for r in runs if not RunDir(r.path).has_traces()]
             silent = [r for r in untraced if (r.manifest or {}).get("traces")]  # asked, got none
@@ -127,7 +138,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
                     "`dvla-harness run ... --traces` (or `sweep ... --traces`)"
                 )
             traces = _traces(runs, episodes)
-            plots.decoding_order_plot(traces, out=args.out)
+            from results.order_plot import decoding_order_plot
+
+            decoding_order_plot(traces, out=args.out)
     except (plots.PlotInputError, ResultsFileError) as exc:
         raise UsageError(str(exc)) from None
     console.print(f"wrote {args.out}")

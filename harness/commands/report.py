@@ -16,19 +16,22 @@ examples:
   dvla-harness report paper-table runs/state-based --allow-privileged   # labelled [privileged state]
 
 paper-table prints Markdown: rows = policy configurations, columns = success per suite
-(Wilson 95%), average, tokens/s and speedup, with the published Fast-dVLA rows beneath,
-labelled with their source. html writes OUT/index.html (one self-contained page:
+(Wilson 95%), average, tokens/s and speedup measured here; then the published Fast-dVLA
+rows in a section of their own (their tokens/s and speedups are the paper's), labelled
+with their source. Runs with no LIBERO, chain or SimplerEnv-like suite exit 2. html writes OUT/index.html (one self-contained page:
 sortable leaderboards, the paper table, a Pareto plot, provenance of every run) plus
 leaderboard.md, leaderboard.csv and paper-table.md. See docs/reports.md.
 
 An instruction-chain suite (chains/...) gets its own table in the layout of Fast-dVLA's
 CALVIN table (reaching 1/5 ... 5/5, avg len, tokens/s, speedup), the published CALVIN
-rows beneath, labelled "CALVIN: not comparable" (CALVIN-like suites on LIBERO scenes).
+rows in a section beneath, labelled "CALVIN: not comparable" (CALVIN-like suites on LIBERO scenes).
 
 The published LIBERO rows come from models that read camera images. LIBERO rows
 measured on privileged state (obs=state, the default, or obs=images: object and fixture
 poses) are refused beside them (exit 2) unless --allow-privileged is given; they are
-then printed labelled [privileged state]. Rows measured with obs=upstream need no flag.
+then printed labelled [privileged state]. Rows measured with obs=upstream need no flag:
+a policy that reads what the published models read (two cameras and proprioception),
+served (--policy remote:url=...) or plugged in.
 """
 
 
@@ -74,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_paper_table(args: argparse.Namespace) -> int:
     from harness.console import console
-    from results.paper_table import blocks_markdown, paper_blocks, paper_table
+    from results.paper_table import NO_PUBLISHED_TABLE, blocks_markdown, paper_blocks, paper_table
     from results.published import PrivilegedRowsError
 
     runs = load(args.runs)
@@ -84,6 +87,9 @@ def cmd_paper_table(args: argparse.Namespace) -> int:
         blocks = paper_blocks(table, args.allow_privileged)
     except PrivilegedRowsError as exc:
         raise UsageError(str(exc)) from None
+    if not blocks:  # a report with nothing to show is an error a script must see
+        suites = sorted({s for r in runs for s in r.episodes["suite"].unique()})
+        raise UsageError(f"{', '.join(suites) or 'no rows'}: {NO_PUBLISHED_TABLE}")
     from harness.commands.leaderboard import generalization_gaps
     from results.generalization import gap_markdown
 

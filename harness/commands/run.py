@@ -11,7 +11,15 @@ import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from harness.console import console, episode_progress, err_console, print_table, raise_interrupt
+from harness.console import (
+    add_wide_argument,
+    console,
+    episode_progress,
+    err_console,
+    print_note,
+    print_table,
+    raise_interrupt,
+)
 from harness.errors import EXIT_STATUS_HELP, UsageError
 
 if TYPE_CHECKING:
@@ -144,7 +152,15 @@ def _folder_arguments(p: Any) -> None:
         help="also write which action positions each forward pass committed to OUT/traces.jsonl "
         "(for `dvla-harness plot decoding-order`)",
     )
+    p.add_argument(
+        "--video",
+        metavar="N|failures",
+        help="record rollout videos as MP4 in OUT/videos/, named in the rows' `video` column: the first "
+        "N episodes of every task (per configuration), or every episode that fails; from the suite's "
+        "camera (Meta-World, LIBERO, chains, ManiSkill3); needs the `video` extra. Changes no other column",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_wide_argument(p)
 
 
 def _compute_arguments(p: Any) -> None:
@@ -238,25 +254,28 @@ def print_out_of_space(episodes: pd.DataFrame, labels: dict[str, str] | None = N
     from results.board_warnings import out_of_space_warnings
 
     for line in out_of_space_warnings(episodes, labels):
-        err_console.print(f"[yellow]warning:[/yellow] {line}", markup=True, highlight=False, soft_wrap=True)
+        print_note("[yellow]warning:[/yellow]", line)
 
 
-def print_latency_table(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
+def print_latency_table(
+    episodes: pd.DataFrame, labels: dict[str, str] | None = None, wide: bool = False
+) -> None:
     """Delays, late chunks and hold steps beside success, for runs at an inference latency."""
     from results.latency_table import has_latency, latency_summary, latency_table
 
     if has_latency(episodes):
-        console.print(latency_table(latency_summary(episodes), labels))
+        print_table(latency_table(latency_summary(episodes), labels), wide=wide)
 
 
-def print_chain_table(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
+def print_chain_table(
+    episodes: pd.DataFrame, labels: dict[str, str] | None = None, wide: bool = False
+) -> None:
     """CALVIN's table beneath the summary, for instruction-chain runs (docs/chains.md)."""
     from results.chain_table import chain_summary, chain_table, is_chain_run
 
     if is_chain_run(episodes):
-        print_table(
-            chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)", labels=labels)
-        )
+        table = chain_table(chain_summary(episodes), title="instruction chains (CALVIN-like)", labels=labels)
+        print_table(table, wide=wide)
 
 
 def print_speed_warning(run_dir: Any) -> None:
@@ -269,11 +288,7 @@ def print_speed_warning(run_dir: Any) -> None:
     except (OSError, ValueError):  # an unreadable manifest: the run's own error says so
         return
     if warning:
-        err_console.print(
-            f"[yellow]warning[/yellow]: speed figures of this run are unreliable: {warning}",
-            highlight=False,
-            soft_wrap=True,
-        )
+        print_note("[yellow]warning:[/yellow]", f"speed figures of this run are unreliable: {warning}")
 
 
 def execute_run(resolved: Any, args: argparse.Namespace, mode: Any, again: str) -> int:
@@ -292,13 +307,16 @@ def execute_run(resolved: Any, args: argparse.Namespace, mode: Any, again: str) 
     apply_device(resolved.policies, args.device, per_worker=getattr(args, "backend", "local") == "ray")
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
+    video = video_plan(getattr(args, "video", None))
     out = Path(args.out) if args.out else default_out()
-    progress, start = episode_progress(args.quiet)
+    progress, start = episode_progress(args.quiet, out)
     # CI cancels with SIGTERM: stop like Ctrl-C, keeping every finished episode.
     signal.signal(signal.SIGTERM, raise_interrupt)
     with progress:
-        report = run(resolved, out, mode, execution=execution, traces=args.traces, progress=start)
-    print_run(resolved, report)
+        report = run(
+            resolved, out, mode, execution=execution, traces=args.traces, progress=start, video=video
+        )
+    print_run(resolved, report, getattr(args, "wide", False))
     if report.interrupted:
         err_console.print(f"interrupted; continue with: {again.format(out=out)}")
         return 130
@@ -307,8 +325,38 @@ def execute_run(resolved: Any, args: argparse.Namespace, mode: Any, again: str) 
             f"[red]{report.failed} episode(s) raised an exception[/red]; see failure_reason in the rows "
             f"and tracebacks in {report.run_dir.path / 'events.jsonl'}"
         )
+        print_vanished(report.run_dir, again.format(out=out) + " --retry-failed")
         return 1
     return 0
+
+
+def print_vanished(run_dir: Any, again: str) -> None:
+    """One line when episodes failed because a module of the harness vanished mid-run."""
+    from harness.errors import vanished_in
+
+    found = vanished_in(run_dir.read_episodes()["failure_reason"].dropna())
+    if found:
+        cause, count = found
+        err_console.print(f"{count} of them: {cause}; then: {again}", highlight=False, soft_wrap=True)
+
+
+def video_plan(text: str | None) -> Any:
+    """--video's plan, with its encoder and an offscreen OpenGL backend for MuJoCo's
+    renderers chosen before any simulator is imported; refused (exit 2) when either is
+    missing."""
+    if text is None:
+        return None
+    from adapters.base import MissingExtraError
+    from adapters.libero_sim import choose_render_backend
+    from harness.episode.video import VideoUnavailable, parse_video, require_encoder
+
+    try:
+        plan = parse_video(text)
+        require_encoder()
+        choose_render_backend()
+    except (ValueError, VideoUnavailable, MissingExtraError) as exc:
+        raise UsageError(str(exc)) from None
+    return plan
 
 
 def default_out() -> Path:
@@ -318,25 +366,22 @@ def default_out() -> Path:
     return Path("runs") / datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
 
 
-def print_run(resolved: Any, report: Any) -> None:
+def print_run(resolved: Any, report: Any, wide: bool = False) -> None:
     """The run's summary tables (chains, latency, out-of-space warnings beneath), where
     its rows and manifest are, and its speed verdict."""
     from results.labels import row_labels
-    from results.render import summary_table
+    from results.render import summary_fit, summary_table
     from results.summary import summarize
 
     episodes = report.run_dir.read_episodes()
     if len(episodes):
         labels = row_labels(episodes)
-        print_table(
-            summary_table(
-                summarize(episodes),
-                title=f"{resolved.suite.name} - {report.run_dir.path}",  # the name the user typed or was shown
-                labels=labels,
-            )
-        )
-        print_chain_table(episodes, labels)
-        print_latency_table(episodes, labels)
+        summary = summarize(episodes)
+        # the title names the folder as the user typed it or was shown it
+        table = summary_table(summary, title=f"{resolved.suite.name} - {report.run_dir.path}", labels=labels)
+        print_table(table, fit=summary_fit(summary, episodes), wide=wide)
+        print_chain_table(episodes, labels, wide)
+        print_latency_table(episodes, labels, wide)
         print_out_of_space(episodes, labels)
     console.print(
         f"rows: {report.run_dir.path / 'episodes.parquet'}  manifest: {report.run_dir.manifest_path}"

@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from harness.console import console, print_table
+from harness.console import add_wide_argument, console, print_note, print_table
 from harness.errors import UsageError
 
 
@@ -19,12 +19,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("run_dir", metavar="RUN_DIR")
+    add_wide_argument(p)
     p.set_defaults(func=cmd_show)
 
 
 def cmd_show(args: argparse.Namespace) -> int:
     from results.labels import row_labels
-    from results.render import summary_table
+    from results.render import summary_fit, summary_table
     from results.runs import speed_warning
     from results.store import ResultsFileError, RunDir
     from results.summary import summarize
@@ -48,14 +49,17 @@ def cmd_show(args: argparse.Namespace) -> int:
         f"{env.get('cpu')}, GPU {env.get('gpu') or 'none'}; git {env.get('git_commit') or 'n/a'}"
     )
     if warning := speed_warning(manifest):
-        console.print(f"[yellow]warning[/yellow]: speed figures of this run are unreliable: {warning}")
+        print_note(
+            "[yellow]warning:[/yellow]", f"speed figures of this run are unreliable: {warning}", console
+        )
     if len(episodes):
         from harness.commands.run import print_chain_table, print_latency_table, print_out_of_space
 
         labels = row_labels(episodes)  # the names the rows hold, as `run` printed them
-        print_table(summary_table(summarize(episodes), labels=labels))
-        print_chain_table(episodes, labels)
-        print_latency_table(episodes, labels)
+        summary = summarize(episodes)
+        print_table(summary_table(summary, labels=labels), fit=summary_fit(summary, episodes), wide=args.wide)
+        print_chain_table(episodes, labels, args.wide)
+        print_latency_table(episodes, labels, args.wide)
         print_out_of_space(episodes, labels)
     return 0
 

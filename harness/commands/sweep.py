@@ -11,6 +11,10 @@ examples:
   # decode block size x Fast-dVLA thresholds, 5 episodes per task, one resumable run
   dvla-harness sweep --suite metaworld/mt10 --policy fast_dvla \\
       --grid block_size=4,8,16 --grid tau_conf=0.3,0.5,0.7 --episodes-per-task 5 --out runs/sweep
+  # a block-size ablation with its baseline: the teacher runs beside every grid point
+  dvla-harness sweep --suite metaworld/mt10 --policy fast_dvla --grid block_size=4,8,16 \\
+      --reference bidirectional --episodes-per-task 5 --out runs/blocks
+  dvla-harness plot ablation runs/blocks --x block_size --y success,speedup --out blocks.png
   # block diffusion's inference-time unmasking schedule, with decode traces
   dvla-harness sweep --suite metaworld/mt10 --policy block_diffusion \\
       --grid block_size=4,8 --grid schedule=linear,cosine --traces --out runs/bd-sweep
@@ -48,20 +52,32 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="KEY=V1,V2,...",
         help="a policy parameter and the values to sweep; repeat for more axes (the product is run)",
     )
+    p.add_argument(
+        "--reference",
+        action="append",
+        metavar="NAME[:k=v,...]",
+        help="a fixed configuration run beside the grid, interleaved episode by episode but not "
+        "crossed with it (it need not have the grid's parameters): the baseline that speedups in the "
+        "summary and in `plot ablation|pareto --y|--x speedup` are over; repeat for more",
+    )
     p.set_defaults(func=cmd_sweep)
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from harness.commands.run import config_from_args, execute_run, prepare_compute
-    from harness.config import load_config_file, resolve
+    from harness.config import load_config_file, parse_policy_arg, resolve
     from harness.run.folder import OpenMode
-    from harness.run.sweep import expand, parse_grid
+    from harness.run.sweep import add_references, expand, parse_grid
 
     mode = OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)
     if not args.policy and not (args.config and load_config_file(args.config).get("policy")):
         raise UsageError("sweep needs the policy to vary: --policy NAME (e.g. --policy fast_dvla)")
     grid = parse_grid(args.grid or [])
-    config = expand(config_from_args(args), grid)
+    try:
+        references = [parse_policy_arg(r) for r in args.reference or []]
+    except UsageError as exc:
+        raise UsageError(str(exc).replace("--policy", "--reference", 1)) from None
+    config = add_references(expand(config_from_args(args), grid), references)
     prepare_compute(args)  # threads and device, before the policies load torch
     resolved = resolve(config)
     return execute_run(resolved, args, mode, "the same `dvla-harness sweep` command with --resume")

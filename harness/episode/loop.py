@@ -58,6 +58,7 @@ from harness.episode.envs import TaskEnvs
 from harness.episode.outcome import EpisodeOutcome, chain_fields
 from harness.episode.plan import EpisodeTimeline, ExecutionPlan, no_passes
 from harness.episode.timed import Call, Charge, TimedPolicy
+from harness.episode.video import Recording, frame_of
 from harness.episode.work import NO_WORK
 from policies.base import EpisodeContext, Policy
 
@@ -101,6 +102,7 @@ class Slot:
     cpu_s: float = 0.0
     server_s: float = 0.0  # served policies: the server's own share of policy_time_s
     overhead_s: float = 0.0  # its share of the loop's own time (wall = policy + env + this)
+    recording: Recording | None = None  # --video: its frames so far (harness/episode/video.py)
 
     def fail(self, exc: BaseException, trace: str | None = None) -> None:
         self.out.fail(exc, trace)
@@ -207,6 +209,8 @@ class EpisodeLoop:
             for task, env in kept.values():
                 self.envs.give_back(task, env)
             for slot in running.values():  # stopped mid-episode (an interrupt): its state is suspect
+                if slot.recording is not None:
+                    slot.recording.abandon()
                 if slot.env is not None:
                     slot.env.close()
 
@@ -252,6 +256,7 @@ class EpisodeLoop:
             slot.fail(exc)
             return slot
         out.env_time_s += clock() - t0
+        filming = self._film(slot, env) if self.plan.video and self.plan.video.records(spec.index) else 0.0
         slot.context = context = in_force(context, slot.info)
         call = policy.reset([context])
         slot.charge(call.charge)
@@ -259,8 +264,25 @@ class EpisodeLoop:
             slot.fail(call.error, call.trace)
         else:
             self._begin(slot, env, context)
-        slot.overhead_s += clock() - t0 - out.env_time_s - out.policy_time_s
+        slot.overhead_s += clock() - t0 - out.env_time_s - out.policy_time_s - filming
         return slot
+
+    def _film(self, slot: Slot, env: ActionGuard, held: bool = False) -> float:
+        """Add the env's frame to the slot's video (its first frame starts one); returns the
+        time it took, which no episode is charged. A suite that cannot render leaves the
+        episode unrecorded, and its row as it would be."""
+        t = clock()
+        try:
+            frame = frame_of(env)
+            if slot.recording is None:
+                slot.recording = Recording(frame)
+            else:
+                slot.recording.add(frame, held)
+        except Exception:
+            if slot.recording is not None:
+                slot.recording.abandon()
+            slot.recording = None
+        return clock() - t
 
     def _begin(self, slot: Slot, env: ActionGuard, context: EpisodeContext) -> None:
         """The reset episode's timeline (its reset's passes and time delay its first chunk)."""
@@ -276,8 +298,13 @@ class EpisodeLoop:
         self, slot: Slot, kept: dict[int, tuple[str, ActionGuard]], i: int
     ) -> tuple[int, EpisodeOutcome]:
         """The ended episode's outcome (read before its env's next reset starts the env's
-        counts again); its env is kept for slot i's next episode, or closed if it failed."""
+        counts again); its env is kept for slot i's next episode, or closed if it failed.
+        A recorded episode's video is finished here, after its times were summed."""
         outcome = slot.outcome()
+        if slot.recording is not None and self.plan.video is not None:
+            keep = self.plan.video.keeps(slot.episode.spec.index, outcome.success)
+            outcome.video_mp4 = slot.recording.finish(keep)
+            slot.recording = None
         if slot.env is not None:
             task = slot.episode.task.name
             if outcome.failure_reason is not None:
@@ -364,6 +391,7 @@ class EpisodeLoop:
         """Execute the slot's action for this step; returns the time charged to it (the
         env's, and the policy's when a chain's instruction changed)."""
         out = slot.out
+        holds = slot.timeline.hold_steps  # type: ignore[union-attr]
         action = slot.timeline.action(out.steps)  # type: ignore[union-attr]
         t = clock()
         try:
@@ -379,6 +407,8 @@ class EpisodeLoop:
         out.env_time_s += elapsed
         out.steps += 1
         slot.info = info
+        if slot.recording is not None:  # its time is returned as spent, charged to no episode
+            elapsed += self._film(slot, slot.env, held=slot.timeline.hold_steps > holds)  # type: ignore[arg-type,union-attr]
         if info.get("success"):
             out.success = slot.done = True
         elif terminated or truncated or out.steps >= slot.context.max_steps:  # type: ignore[union-attr]

@@ -59,6 +59,9 @@ class EpisodeOutcome:
     # CPU time over the same policy calls (harness/episode/cpu_time.py); None: not measured
     # (served policies, GPU policies).
     policy_cpu_time_s: float | None = None
+    # With --video: the episode's rollout video, an MP4's bytes (harness/episode/video.py),
+    # which the run's writer puts in its folder and names in the row's `video` column.
+    video_mp4: bytes | None = None
 
     def progress(self) -> Progress:
         """How far it has got (a worker reports it while the episode runs)."""

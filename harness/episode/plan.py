@@ -45,6 +45,7 @@ import numpy as np
 
 from harness.episode.actions import DEFAULT_OUT_OF_SPACE
 from harness.episode.latency import LatencyPlan, latency_plan, parse_latency
+from harness.episode.video import VideoPlan
 
 
 @dataclass(frozen=True)
@@ -56,14 +57,17 @@ class ExecutionPlan:
     latency: LatencyPlan | None = None  # None: `none`, the world waits for every chunk
     batch_envs: int = 1  # environments stepped in lockstep, one policy call for their chunks
     traces: bool = False  # keep each chunk's decode trace (traces.jsonl)
+    video: VideoPlan | None = None  # record rollout videos (harness/episode/video.py)
 
     @classmethod
-    def for_run(cls, resolved: Any, batch_envs: int = 1, traces: bool = False) -> ExecutionPlan:
+    def for_run(
+        cls, resolved: Any, batch_envs: int = 1, traces: bool = False, video: VideoPlan | None = None
+    ) -> ExecutionPlan:
         """The plan of a resolved run (harness/config.py ResolvedRun, whose latency was
         checked when it was resolved), made once per process that runs its episodes."""
         config = resolved.config
         latency = latency_plan(parse_latency(config.inference_latency), config.execution, resolved.suite)
-        return cls(config.replan_every, config.out_of_space, latency, batch_envs, traces)
+        return cls(config.replan_every, config.out_of_space, latency, batch_envs, traces, video)
 
     def timeline(self, policy: str, action_dim: int, reset_s: float) -> EpisodeTimeline:
         """A new episode's timeline. Its passes are counted from 0, before the policy's

@@ -362,11 +362,18 @@ class RunFolder:
         self.log("worker_started", **record)
 
     def append(
-        self, row: dict[str, Any], traces: list[dict[str, Any]], failure: dict[str, Any] | None
+        self,
+        row: dict[str, Any],
+        traces: list[dict[str, Any]],
+        failure: dict[str, Any] | None,
+        video: bytes | None = None,
     ) -> None:
-        """One finished episode: its traces, then its row (each flushed before the next
-        episode starts), and a failure's traceback in the log."""
+        """One finished episode: its video and traces, then its row (each flushed before
+        the next episode starts, so a recorded row always has them), and a failure's
+        traceback in the log."""
         try:
+            if video is not None:
+                self.run_dir.write_video(row["video"], video)
             if traces:
                 self.run_dir.append_traces(traces)
             self.run_dir.append_episode(row)

@@ -17,6 +17,7 @@ import pandas as pd
 from adapters.simpler_variants import label as variant_label
 from harness.episode.cpu_time import is_starved
 from harness.episode.outcome import EpisodeOutcome
+from harness.episode.video import video_path
 from results.labels import config_labels
 from results.schema import COLUMN_NAMES, EpisodeRow, row_dict
 
@@ -110,9 +111,10 @@ def make_row(
     labels = run_config_labels(resolved) if labels is None else labels
     measured = {name: getattr(out, name) for name in OUTCOME_COLUMNS}
     chain = bool(job.spec.chain)
+    video = video_path(job.policy.config_id, job.task.name, job.spec.index) if out.video_mp4 else None
     row = EpisodeRow(
         **identity(run_id, resolved, job, labels[job.policy.config_id]),
-        **(measured | derived(out, job.task.instruction, chain)),
+        **(measured | derived(out, job.task.instruction, chain) | {"video": video}),
     )
     return row_dict(row)
 

@@ -28,6 +28,7 @@ from harness.config import ResolvedRun, policy_error
 from harness.episode.outcome import EpisodeOutcome
 from harness.episode.plan import ExecutionPlan
 from harness.episode.timed import BoundedCalls, CallTimedOut
+from harness.episode.video import VideoPlan, VideoUnavailable, check_frames
 from harness.errors import HarnessError, UsageError
 from harness.run.folder import OpenMode, RunFolder
 from harness.run.rows import make_row, run_config_labels, trace_lines
@@ -87,17 +88,22 @@ def run(
     execution: Execution | None = None,
     traces: bool = False,
     progress: Callable[[int, int], Any] | None = None,
+    video: VideoPlan | None = None,
 ) -> RunReport:
     """Evaluate `resolved` into `out`. `progress(total, skipped)` returns a per-episode callback.
 
     traces: also write each chunk's decode trace to traces.jsonl. Not part of the config
     (recording changes no decoded token), so it is kept in the manifest and a resumed
     run goes on recording if the run it resumes did.
+    video: record rollout videos of these episodes (harness/episode/video.py), this session
+    only; like traces, not part of the config.
     """
     execution = execution or Execution()
     jobs = plan_jobs(resolved)
     bounded = BoundedCalls(execution.episode_timeout)
     envs = preflight(resolved, jobs, bounded)
+    if video is not None:
+        check_video(resolved, jobs, envs)
     try:
         folder = RunFolder.open(out, mode, resolved, traces)
         try:
@@ -106,7 +112,7 @@ def run(
                 folder.run_dir, folder.run_id, executed=0, skipped=len(jobs) - len(todo), failed=0
             )
             sink = _sink(folder, resolved, progress(len(todo), report.skipped) if progress else None)
-            plan = ExecutionPlan.for_run(resolved, execution.batch_envs, folder.traces)
+            plan = ExecutionPlan.for_run(resolved, execution.batch_envs, folder.traces, video)
             try:
                 execute(resolved, todo, plan, execution, sink, envs)
             except KeyboardInterrupt:
@@ -131,6 +137,22 @@ def run(
             bounded.close(p.policy)
 
 
+def check_video(resolved: ResolvedRun, jobs: list[EpisodeJob], envs: dict[str, gym.Env]) -> None:
+    """Refuse --video (exit 2, nothing written) on a suite whose env renders no frames,
+    seen on the first task's env (the preflight's, else one built here for the episodes)."""
+    if not envs and jobs:
+        try:
+            envs[jobs[0].task.name] = resolved.suite.make_env(jobs[0].task)
+        except Exception:
+            return  # an env that does not build: the episodes record why
+    try:
+        check_frames(envs.values())
+    except VideoUnavailable as exc:
+        while envs:
+            envs.popitem()[1].close()
+        raise UsageError(f"--video: {resolved.suite.name}: {exc}") from None
+
+
 def _sink(folder: RunFolder, resolved: ResolvedRun, tick: Callable[[bool], Any] | None) -> Sink:
     """Where the backend's reports go: each outcome made into a row (and its traces, and a
     failure's traceback in the log) and appended to the folder as it ends."""
@@ -147,7 +169,7 @@ def _sink(folder: RunFolder, resolved: ResolvedRun, tick: Callable[[bool], Any] 
                 "traceback": outcome.traceback,
             }
         row = make_row(folder.run_id, resolved, job, outcome, labels)
-        folder.append(row, trace_lines(folder.run_id, resolved, job, outcome), failure)
+        folder.append(row, trace_lines(folder.run_id, resolved, job, outcome), failure, outcome.video_mp4)
         if tick:
             tick(outcome.success)
 

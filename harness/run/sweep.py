@@ -5,6 +5,11 @@ points, so resume, interleaving (every point sees the same machine load), manife
 rows are the run's, and each row's `policy_params` already records its point. All the
 checking happens here and in `resolve`, before anything is written.
 
+A sweep may carry fixed reference configurations (`--reference bidirectional`): run
+beside the grid's points, episode by episode, so that a speedup over them is measured
+under the same machine load, and never crossed with the grid (they need not have its
+parameters). Plots draw them as lines and compute `speedup` against them.
+
 Grid keys are policy parameters. The training-time noise schedule is not one: it is
 fixed when a checkpoint is trained and recorded in its header, so an ablation over it
 sweeps checkpoints (`--grid checkpoint=a.safetensors,b.safetensors`) and plots group
@@ -50,7 +55,8 @@ def parse_grid(items: Sequence[str]) -> Grid:
 def _unknown_key(policy: str, key: str, valid: Sequence[str]) -> str:
     message = (
         f"--grid {key}: policy {policy!r} has no parameter {key!r}; grid keys are its "
-        f"parameters: {', '.join(valid)}"
+        f"parameters: {', '.join(valid)} (to run {policy} unchanged beside the grid, as the "
+        f"baseline of its speedups, pass --reference {policy})"
     )
     if key == "noise_schedule":
         unmask = (
@@ -79,6 +85,19 @@ def _check_block_sizes(points: list[dict[str, str]]) -> None:
             error = block_size_error(int(point["block_size"]), fields["action_tokens"], fields["block_size"])
             if error:
                 raise UsageError(f"--grid block_size: {error} (checkpoint {point['checkpoint']})")
+
+
+def add_references(config: RunConfig, references: Sequence[PolicyChoice]) -> RunConfig:
+    """`config` with fixed reference configurations first in its policy list: not crossed
+    with the grid, interleaved with its points like any of the run's policies."""
+    for ref in references:
+        try:
+            parse_params(get_policy(ref.name), ref.params)
+        except (UnknownPolicyError, PolicyParamError) as exc:
+            raise UsageError(f"--reference {ref.name}: {exc}") from None
+        if ref in config.policies:
+            raise UsageError(f"--reference {ref.name}: already a point of the grid; give it once")
+    return dataclasses.replace(config, policies=(*references, *config.policies))
 
 
 def expand(config: RunConfig, grid: Grid) -> RunConfig:
