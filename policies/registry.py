@@ -48,6 +48,7 @@ BUILTIN = (
     "policies.experts.libero_scripted:LIBERO_SCRIPTED",
     "policies.experts.maniskill_scripted:MANISKILL_SCRIPTED",
     "policies.remote:REMOTE",
+    "policies.vlaeval:VLAEVAL",
     "policies.dvla.policy:SPECS",
 )
 
