@@ -49,6 +49,7 @@ BUILTIN = (
     "policies.experts.maniskill_scripted:MANISKILL_SCRIPTED",
     "policies.remote:REMOTE",
     "policies.vlaeval:VLAEVAL",
+    "policies.playback:PLAYBACK",
     "policies.dvla.policy:SPECS",
 )
 
