@@ -5,6 +5,7 @@ message, garbage, an error, an oversized frame, a server that dies mid-episode."
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import threading
 import time
@@ -140,6 +141,41 @@ def test_a_vla_eval_model_server_is_evaluated_one_action_per_observation(vla_eva
     np.testing.assert_allclose(executed[0][:6], first[:6], atol=1e-6)
     np.testing.assert_allclose(executed[3][:6], first[:6] + 0.01, atol=1e-6)
     assert [a[6] for a in executed] == [1.0, -1.0, 1.0, 1.0]  # binarised by sign, 0 -> +1
+
+
+def test_simpler_and_calvin_observations_carry_their_benchmarks_keys(vla_eval_server):
+    model, url = vla_eval_server(send_wrist_image=True)
+    simpler_space = gym.spaces.Dict({"state": gym.spaces.Box(-1, 1, (30,)), "base_camera": PIXELS})
+    simpler = VlaEvalPolicy(VlaEvalParams(url=url))  # auto: a base_camera makes it SimplerEnv's
+    simpler.check_spaces(simpler_space, ACTIONS)
+    context = EpisodeContext(
+        "simpler/push_cube:obs=images", "push_cube", "push the cube", ACTIONS, simpler_space, 50, 3, 11
+    )
+    simpler.reset([context])
+    camera = _observation(0)["agentview"]
+    simpler.act([{"state": np.zeros(30, np.float32), "base_camera": camera}])
+    simpler.close()
+    assert model.starts[-1] == {"task": {"name": "push_cube", "task_name": "push_cube", "episode_idx": 3}}
+    assert set(model.seen[-1]) == {"images", "task_description", "task_name"}
+    np.testing.assert_array_equal(model.seen[-1]["images"]["primary"], camera)
+
+    calvin = VlaEvalPolicy(VlaEvalParams(url=url, benchmark="calvin"))
+    calvin.check_spaces(UPSTREAM, ACTIONS)
+    chain = EpisodeContext(
+        "chains/kitchen:obs=upstream", "kitchen", "open the drawer", ACTIONS, UPSTREAM, 600, 2
+    )
+    calvin.reset([chain])
+    for step in range(4):  # the second subtask starts at step 3: the same episode, restarted there
+        if step == 3:
+            calvin.reset([dataclasses.replace(chain, instruction="close the drawer", subtask_index=1)])
+        calvin.act([_observation(step)])
+    calvin.close()
+    _eventually(lambda: len(model.ends) == 2)
+    assert model.starts[-1] == {"task": {"name": "kitchen", "seq_idx": 2, "episode_idx": 2}}
+    assert len(model.starts) == 2 and model.ends[-1] == {"steps": 4}  # one episode for the whole chain
+    first, restarted = model.seen[-2], model.seen[-1]  # a chunk of 3: predictions at steps 0 and 3
+    assert set(first["images"]) == {"rgb_static", "rgb_gripper"} and "episode_restart" not in first
+    assert restarted["episode_restart"] is True and restarted["task_description"] == "close the drawer"
 
 
 def test_what_the_server_asks_for_is_checked_before_anything_runs(vla_eval_server):

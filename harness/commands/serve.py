@@ -189,7 +189,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         + (" (token required)" if served.token else "")
         + (f" (batching up to {served.max_batch})" if served.max_batch > 1 else "")
         + (" (vla-eval's protocol)" if dialect is not None else "")
-        + "; Ctrl-C stops"
+        + "; Ctrl-C stops",
+        soft_wrap=True,  # one line, however long the task's name: scripts read the address from it
     )
     # Ctrl-C and SIGTERM (how services and CI stop a process) both stop it cleanly, also
     # where the shell that started it in the background left SIGINT ignored.
