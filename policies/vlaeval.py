@@ -173,10 +173,12 @@ class VlaEvalPolicy(RemotePolicy):
         if len(episodes) != 1:
             raise ValueError("the vlaeval policy starts one episode per reset call")
         context = episodes[0]
-        if self._mapping is None:
-            self._mapping = choose(self.params.benchmark, context.observation_space)
         if self._ws is None:
             self._reconnect()
+        # here too, not only in check_spaces: a worker process's policy is never checked,
+        # and a server restarted with other settings asks anew
+        self._mapping = self._mapping or choose(self.params.benchmark, context.observation_space)
+        self._send = sending(self._mapping, self.metadata.get("observation_params") or {})
         self._contexts = episodes
         if context.subtask_index > 0 and self._open is not None:
             self._restart = True  # CALVIN's way: the same episode, a new subtask

@@ -143,6 +143,17 @@ def test_a_vla_eval_model_server_is_evaluated_one_action_per_observation(vla_eva
     assert [a[6] for a in executed] == [1.0, -1.0, 1.0, 1.0]  # binarised by sign, 0 -> +1
 
 
+@pytest.mark.libero
+def test_a_worker_processs_policy_sends_what_the_server_asks_without_a_check(vla_eval_server):
+    model, url = vla_eval_server(send_state=True, quat_no_antipodal=True)
+    policy = VlaEvalPolicy(VlaEvalParams(url=url))  # `run --workers N` checks the parent's policy only
+    policy.reset([_context()])
+    policy.act([_observation(0)])
+    policy.close()
+    np.testing.assert_array_equal(model.seen[-1]["states"], _observation(0)["state"].astype(np.float64))
+    assert set(model.seen[-1]["images"]) == {"agentview"}  # no send_wrist_image
+
+
 def test_simpler_and_calvin_observations_carry_their_benchmarks_keys(vla_eval_server):
     model, url = vla_eval_server(send_wrist_image=True)
     simpler_space = gym.spaces.Dict({"state": gym.spaces.Box(-1, 1, (30,)), "base_camera": PIXELS})
