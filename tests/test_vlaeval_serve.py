@@ -167,9 +167,11 @@ def test_an_episode_is_served_one_action_per_observation_and_bad_observations_ar
         )
         ws.send(pack("observation", _observation(state_dim=5), 3))
         bad = unpack(ws.recv(timeout=30))
-        assert (bad.type, bad.seq) == ("error", 3) and "has shape [5], the policy takes [8]" in bad.payload[
-            "error"
-        ]
+        assert (bad.type, bad.seq) == ("error", 3)
+        assert "has shape [5], the policy takes [8]" in bad.payload["error"]
+        ws.send(pack("observation", {"task_description": "x"}, 3))
+        bad = unpack(ws.recv(timeout=30)).payload["error"]
+        assert bad.startswith("bad request: a vla-eval observation needs an images map")
         replies = []
         for seq in range(4, 10):
             ws.send(pack("observation", _observation(), seq))

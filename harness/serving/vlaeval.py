@@ -172,7 +172,10 @@ class VlaEvalSession:
     def act(self, message: dict[str, Any]) -> dict[str, Any]:
         if self.base.context is None:
             raise WireError("an observation before episode_start")
-        flat = observation(self.mapping, message)
+        try:
+            flat = observation(self.mapping, message)
+        except ValueError as exc:
+            raise WireError(str(exc)) from None
         if "state" in flat:
             flat[self.served.state_key] = flat.pop("state")
         obs = self.served.observation(flat)
