@@ -195,20 +195,20 @@ class LiberoEpisodeEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
 
     def _open(self) -> None:
-        """Build the simulator, closing the one another env of this process holds.
+        """Build the simulator, closing those other tasks' envs of this process hold.
 
-        A LIBERO task's simulator holds ~0.5 GB and the runner keeps one env per task
-        until the run ends, which for libero/90 would not fit in memory. Tasks run one
-        after another, so one live simulator is enough; an env whose simulator was
-        closed rebuilds it at its next reset.
+        A LIBERO task's simulator holds ~0.5 GB, and libero/90's ninety would not fit in
+        memory. Tasks run one after another, so the live simulators are one task's: one,
+        or one per slot of a batch (--batch-envs K steps K envs of a task in lockstep, so
+        they must all stay open). An env whose simulator was closed rebuilds it at its
+        next reset.
         """
-        global _LIVE
-        if _LIVE is not None and _LIVE is not self:
-            _LIVE.close()
+        for other in [env for env in _LIVE if env._bddl != self._bddl]:
+            other.close()
         self.libero = self._build()
         upstream = self.options.seeding in UPSTREAM or self.options.initial_states == "fresh"
         self._resets = HardResets(self.libero) if upstream else None
-        _LIVE = self
+        _LIVE.append(self)
 
     def _render_flags(self) -> None:
         import mujoco
@@ -291,15 +291,14 @@ class LiberoEpisodeEnv(gym.Env):
         return self._observe(raw), float(reward), success, False, {"success": success}
 
     def close(self) -> None:
-        global _LIVE
         if getattr(self, "libero", None) is not None:
             self.libero.close()
             self.libero = None
-        if _LIVE is self:
-            _LIVE = None
+        if self in _LIVE:
+            _LIVE.remove(self)
 
 
-_LIVE: LiberoEpisodeEnv | None = None  # the env whose simulator is open (see `_open`)
+_LIVE: list[LiberoEpisodeEnv] = []  # the envs whose simulators are open, all of one task (see `_open`)
 
 
 OBSERVATIONS = {  # for the suite's description

@@ -29,6 +29,8 @@ from results.schema import PROVENANCE_COLUMNS, TIMING_COLUMNS
 from tests.fakes import FakeBuild
 from tests.test_schedule import stand_ins
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 REPO = Path(__file__).resolve().parent.parent
 HAS_RAY = importlib.util.find_spec("ray") is not None
 NEEDS_RAY = pytest.mark.skipif(not HAS_RAY, reason="ray is not installed (pip install 'dvla-harness[ray]')")
@@ -329,8 +331,6 @@ from harness.backends import Execution
 from harness.run.folder import OpenMode
 from harness.run.runner import run
 from tests.fakes import FakeBuild
-
-pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
 
 if __name__ == "__main__":
     build = FakeBuild(episodes=6, tasks=2, delay=0.15)

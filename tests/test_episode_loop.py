@@ -139,3 +139,19 @@ def test_a_policy_that_exits_or_acts_non_finite_ends_only_its_episode(what, reas
 def test_keyboard_interrupt_still_stops_the_run():
     with pytest.raises(KeyboardInterrupt):
         _run(CountdownEnv(succeed_at=None), _Misbehaving(KeyboardInterrupt()), max_steps=20)
+
+
+def test_the_loop_cost_benchmark_times_each_chunk_length(tmp_path):
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "loop_cost.py"
+    spec = importlib.util.spec_from_file_location("loop_cost", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(["--episodes", "2", "--steps", "30", "--json", str(tmp_path / "cost.json")]) == 0
+    result = json.loads((tmp_path / "cost.json").read_text())
+    us = result["us_per_step"]
+    assert set(us) == {"1000", "8", "1"} and all(v > 0 for v in us.values())
+    assert us["1"] > us["1000"]  # a call every step costs more than a step alone

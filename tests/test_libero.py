@@ -80,6 +80,27 @@ def test_same_initial_state_gives_the_same_first_observation():
 
 
 @needs_libero
+def test_a_tasks_envs_stay_open_together_and_another_tasks_closes_them():
+    # --batch-envs K steps K envs of one task in lockstep: each keeps its simulator; an env
+    # of another task takes the memory back (one task's simulators live at a time).
+    suite = lb.load_suite("libero/spatial")
+    first, second = suite.tasks[0], suite.tasks[1]
+    a, b, c = suite.make_env(first), suite.make_env(first), suite.make_env(second)
+    try:
+        a.reset(options={"episode": first.episodes[0]})
+        b.reset(options={"episode": first.episodes[1]})
+        for env in (a, b):  # both live: a step of either runs
+            env.step(np.zeros(7, dtype=np.float32))
+        c.reset(options={"episode": second.episodes[0]})
+        assert a.libero is None and b.libero is None and c.libero is not None
+        a.reset(options={"episode": first.episodes[0]})  # rebuilt at its next reset
+        assert a.libero is not None and c.libero is None
+    finally:
+        for env in (a, b, c):
+            env.close()
+
+
+@needs_libero
 def test_state_positions_include_goal_regions():
     """An object task's goal region (the basket's) is a position too, after the entities."""
     layout = lb.state_layout(lb.task_problem("object", 0))

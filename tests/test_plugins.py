@@ -11,6 +11,8 @@ import pytest
 from adapters.registry import list_suites, load_suite
 from policies.registry import all_policies, get_policy
 
+pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
+
 PLUGIN = """
 from dataclasses import dataclass
 import gymnasium as gym
@@ -19,8 +21,6 @@ from adapters.base import EpisodeSpec, Suite, SuiteInfo, TaskSpec
 from adapters.registry import SuiteProvider
 from policies.base import ChunkBatch
 from policies.registry import PolicySpec, param
-
-pytestmark = pytest.mark.metaworld  # these tests run Meta-World episodes
 
 @dataclass(frozen=True)
 class Params:

@@ -89,11 +89,12 @@ def _ignore(_record: Any) -> None:
 
 @dataclass
 class Sink:
-    """Where a backend hands what it learns to the one process that writes the run: each
-    episode's outcome as it ends, each worker's record as it starts, this process's
-    warm-up record."""
+    """Where a backend hands what it learns to the one process that writes the run: how
+    this session executes (first), each episode's outcome as it ends, each worker's
+    record as it starts, this process's warm-up record."""
 
     episode: Callable[[EpisodeJob, EpisodeOutcome], None]
+    session: Callable[[dict[str, Any]], None] = field(default=_ignore)
     worker: Callable[[dict[str, Any]], None] = field(default=_ignore)
     warm_up: Callable[[dict[str, Any] | None], None] = field(default=_ignore)
 
@@ -109,6 +110,7 @@ def execute(
     """Run `jobs` with the chosen backend, handing each outcome to the sink here.
     `envs`: built by the preflight in this process; its episodes take them over, and
     workers (which build their own) leave them to be closed."""
+    sink.session(execution.record())
     if execution.in_process:
         from harness.backends.local import execute_in_process
 

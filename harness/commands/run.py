@@ -224,10 +224,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from harness.config import resolve
     from harness.run.folder import OpenMode
 
-    OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)  # refused before anything loads
+    mode = OpenMode.from_flags(
+        args.resume, args.overwrite, args.retry_failed
+    )  # refused before anything loads
     prepare_compute(args)
     resolved = resolve(config_from_args(args))
-    return execute_run(resolved, args, "dvla-harness run --out {out} --resume")
+    return execute_run(resolved, args, mode, "dvla-harness run --out {out} --resume")
 
 
 def print_out_of_space(episodes: pd.DataFrame, labels: dict[str, str] | None = None) -> None:
@@ -273,22 +275,22 @@ def print_speed_warning(run_dir: Any) -> None:
         )
 
 
-def execute_run(resolved: Any, args: argparse.Namespace, again: str) -> int:
+def execute_run(resolved: Any, args: argparse.Namespace, mode: Any, again: str) -> int:
     """Run `resolved` with the progress bar, print the summary, return the exit status.
 
-    again: the command that continues an interrupted run ({out} is filled in). Every table
-    names a configuration by the config_label its rows hold (a sweep's grid points too).
+    mode: how the folder opens (harness/run/folder.py OpenMode, from --resume,
+    --overwrite, --retry-failed); again: the command that continues an interrupted run
+    ({out} is filled in). Every table names a configuration by the config_label its rows
+    hold (a sweep's grid points too).
     """
     from harness.backends.options import check_batching, execution_from_args
     from harness.device import apply_device
-    from harness.run.folder import OpenMode
     from harness.run.runner import run
 
     # under Ray each worker places its own policies; this process only records the request
     apply_device(resolved.policies, args.device, per_worker=getattr(args, "backend", "local") == "ray")
     execution = execution_from_args(args)  # Ray not installed or unreachable: exit 2 here
     check_batching(resolved.policies, execution.batch_envs)  # a policy that cannot batch: exit 2
-    mode = OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)
     out = Path(args.out) if args.out else default_out()
     progress, start = episode_progress(args.quiet)
     # CI cancels with SIGTERM: stop like Ctrl-C, keeping every finished episode.

@@ -54,14 +54,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_sweep(args: argparse.Namespace) -> int:
     from harness.commands.run import config_from_args, execute_run, prepare_compute
     from harness.config import load_config_file, resolve
+    from harness.run.folder import OpenMode
     from harness.run.sweep import expand, parse_grid
 
-    if args.retry_failed and not args.resume:
-        raise UsageError("--retry-failed only makes sense with --resume")
+    mode = OpenMode.from_flags(args.resume, args.overwrite, args.retry_failed)
     if not args.policy and not (args.config and load_config_file(args.config).get("policy")):
         raise UsageError("sweep needs the policy to vary: --policy NAME (e.g. --policy fast_dvla)")
     grid = parse_grid(args.grid or [])
     config = expand(config_from_args(args), grid)
     prepare_compute(args)  # threads and device, before the policies load torch
     resolved = resolve(config)
-    return execute_run(resolved, args, "the same `dvla-harness sweep` command with --resume")
+    return execute_run(resolved, args, mode, "the same `dvla-harness sweep` command with --resume")

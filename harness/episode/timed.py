@@ -187,23 +187,27 @@ class TimedPolicy:
         self.counter.close()
 
 
-def check_spaces(
-    policy: Policy, observation_space: Any, action_space: Any, limit: float | None = None
-) -> None:
-    """The policy's own check that it can act in these spaces (ValueError if not), if it
-    has one; CallTimedOut past `limit` seconds."""
-    check = getattr(policy, "check_spaces", None)
-    if callable(check):
-        call_within(lambda: check(observation_space, action_space), limit)
+@dataclass(frozen=True)
+class BoundedCalls:
+    """The writing process's own calls into its policies, outside every episode, each held
+    to `limit` seconds (--episode-timeout; None: unbounded)."""
 
+    limit: float | None = None
 
-def close_policy(policy: Policy, limit: float | None = None) -> None:
-    """Let a policy that holds something open (a served policy's connection) let go; a
-    close that does not return within `limit` is abandoned, and one that fails must not
-    hide the run's outcome."""
-    close = getattr(policy, "close", None)
-    if callable(close):
-        try:
-            call_within(close, limit)
-        except Exception:
-            pass
+    def check_spaces(self, policy: Policy, observation_space: Any, action_space: Any) -> None:
+        """The policy's own check that it can act in these spaces (ValueError if not), if it
+        has one; CallTimedOut past the limit."""
+        check = getattr(policy, "check_spaces", None)
+        if callable(check):
+            call_within(lambda: check(observation_space, action_space), self.limit)
+
+    def close(self, policy: Policy) -> None:
+        """Let a policy that holds something open (a served policy's connection) let go; a
+        close that does not return within the limit is abandoned, and one that fails must
+        not hide the run's outcome."""
+        close = getattr(policy, "close", None)
+        if callable(close):
+            try:
+                call_within(close, self.limit)
+            except Exception:
+                pass

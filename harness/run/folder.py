@@ -30,6 +30,7 @@ from typing import Any
 
 import pandas as pd
 
+from harness.backends.jobs import EpisodeJob, job_key, normalised_key
 from harness.config import ResolvedRun, build_config
 from harness.errors import HarnessError, InterruptedWhileSaving, UsageError
 from harness.run.manifest import build_manifest, now, record_end_calibration
@@ -43,6 +44,7 @@ from harness.run.resume import (
 )
 from results.lock import RunLock, RunLockedError
 from results.manifest_check import RESUME_FIELDS
+from results.schema import EPISODE_KEY
 from results.store import ResultsFileError, RunDir
 
 
@@ -158,8 +160,12 @@ class Counts:
 class RunFolder:
     """An open run folder: its writer lock held, its manifest owned, its rows appended."""
 
-    def __init__(self, run_dir: RunDir, lock: RunLock, manifest: dict[str, Any], recorded: pd.DataFrame):
+    def __init__(
+        self, run_dir: RunDir, lock: RunLock, manifest: dict[str, Any], recorded: pd.DataFrame, mode: OpenMode
+    ):
         self.run_dir, self.lock, self.manifest, self.recorded = run_dir, lock, manifest, recorded
+        self.mode = mode
+        self.suite = ""  # the resolved suite's name (an episode key's first field), set by open
         self.counts = Counts()
 
     @property
@@ -196,7 +202,7 @@ class RunFolder:
                 acquire(lock)
                 _check_contents(run_dir, mode)  # another process may have written it meanwhile
             if mode.resumes:
-                folder = cls._resumed(run_dir, lock, resolved, traces)
+                folder = cls._resumed(run_dir, lock, resolved, mode, traces)
             else:
                 folder = cls._started(run_dir, lock, resolved, mode, traces)
         except OSError as exc:
@@ -205,10 +211,18 @@ class RunFolder:
         except BaseException:
             lock.release()
             raise
+        folder.suite = resolved.suite.name
         return folder
 
     @classmethod
-    def _resumed(cls, run_dir: RunDir, lock: RunLock, resolved: ResolvedRun, traces: bool) -> RunFolder:
+    def _resumed(
+        cls,
+        run_dir: RunDir,
+        lock: RunLock,
+        resolved: ResolvedRun,
+        mode: OpenMode,
+        traces: bool,
+    ) -> RunFolder:
         out = run_dir.path
         try:
             manifest = run_dir.read_manifest(required=RESUME_FIELDS)
@@ -236,7 +250,7 @@ class RunFolder:
                 f"--resume: {'; '.join(changed)}; the run's rows came from the old file, so "
                 "restore it, or use another --out"
             )
-        folder = cls(run_dir, lock, manifest, recorded)
+        folder = cls(run_dir, lock, manifest, recorded, mode)
         folder._take_over()
         manifest["resumed_at"].append(now())
         manifest["status"] = "running"
@@ -256,9 +270,14 @@ class RunFolder:
 
     @classmethod
     def _started(
-        cls, run_dir: RunDir, lock: RunLock, resolved: ResolvedRun, mode: OpenMode, traces: bool
+        cls,
+        run_dir: RunDir,
+        lock: RunLock,
+        resolved: ResolvedRun,
+        mode: OpenMode,
+        traces: bool,
     ) -> RunFolder:
-        folder = cls(run_dir, lock, {}, pd.DataFrame())
+        folder = cls(run_dir, lock, {}, pd.DataFrame(), mode)
         folder._take_over()
         if mode is OpenMode.OVERWRITE and not run_dir.is_empty():
             run_dir.remove_recorded()  # only what the harness wrote: _check_contents refused others
@@ -301,13 +320,15 @@ class RunFolder:
 
     # ---- while it runs -----------------------------------------------------------------
 
-    def recorded_keys(self, retry_failed: bool) -> pd.DataFrame:
-        """The recorded rows that stay recorded: all but lost workers' and servers' episodes
-        (and, retrying failures, every failed one), which run again."""
+    def unrecorded(self, jobs: list[EpisodeJob]) -> list[EpisodeJob]:
+        """The jobs this session runs: all but those whose row stays recorded (lost
+        workers' and servers' episodes run again, and with --retry-failed every failed one)."""
         recorded = self.recorded
-        if len(recorded):
-            recorded = recorded[~run_again(recorded["failure_reason"], retry_failed)]
-        return recorded
+        if not len(recorded):
+            return list(jobs)
+        recorded = recorded[~run_again(recorded["failure_reason"], self.mode is OpenMode.RETRY_FAILED)]
+        done = {normalised_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")}
+        return [job for job in jobs if job_key(self.suite, job) not in done]
 
     def write_manifest(self) -> None:
         self.run_dir.write_manifest(self.manifest)
@@ -319,7 +340,7 @@ class RunFolder:
             self.manifest["warm_up"] = [*(self.manifest.get("warm_up") or []), record]
             self.write_manifest()
 
-    def record_execution(self, record: dict[str, Any]) -> None:
+    def record_session(self, record: dict[str, Any]) -> None:
         """This session's backend and workers (harness/backends Execution.record), appended
         to the manifest's `execution` list."""
         self.manifest["execution"] = [*(self.manifest.get("execution") or []), record | {"started_at": now()}]

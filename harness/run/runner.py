@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,15 +23,14 @@ from typing import Any
 import gymnasium as gym
 
 from harness.backends import Execution, Sink, execute
-from harness.backends.jobs import EpisodeJob, job_key, normalised_key, plan_jobs
+from harness.backends.jobs import EpisodeJob, plan_jobs
 from harness.config import ResolvedRun
 from harness.episode.outcome import EpisodeOutcome
 from harness.episode.plan import ExecutionPlan
-from harness.episode.timed import CallTimedOut, check_spaces, close_policy
+from harness.episode.timed import BoundedCalls, CallTimedOut
 from harness.errors import HarnessError, UsageError
 from harness.run.folder import OpenMode, RunFolder
 from harness.run.rows import make_row, run_config_labels, trace_lines
-from results.schema import EPISODE_KEY
 from results.store import RunDir
 
 
@@ -44,15 +44,13 @@ class RunReport:
     interrupted: bool = False
 
 
-def preflight(
-    resolved: ResolvedRun, jobs: list[EpisodeJob], limit: float | None = None
-) -> dict[str, gym.Env]:
+def preflight(resolved: ResolvedRun, jobs: list[EpisodeJob], bounded: BoundedCalls) -> dict[str, gym.Env]:
     """Let each policy that can (`check_spaces`) refuse the suite before anything is
     written: a checkpoint trained on another suite's observations would otherwise fail
     every episode alike. Uses the first task's env and returns it, by task name, for the
     episodes to reuse (a LIBERO env takes seconds to build); an env that does not build
-    is left to the episodes, which record why. With --episode-timeout (`limit`) each
-    check is held to it: a policy that does not answer stops the run (exit 3) naming it,
+    is left to the episodes, which record why. With --episode-timeout each check is held
+    to it (`bounded`): a policy that does not answer stops the run (exit 3) naming it,
     with nothing written, where it would otherwise hang it."""
     checks = [p for p in resolved.policies if callable(getattr(p.policy, "check_spaces", None))]
     if not checks or not jobs:
@@ -63,11 +61,11 @@ def preflight(
         return {}
     for p in checks:
         try:
-            check_spaces(p.policy, env.observation_space, env.action_space, limit)
+            bounded.check_spaces(p.policy, env.observation_space, env.action_space)
         except CallTimedOut:
             env.close()
             raise HarnessError(
-                f"policy {p.spec.name} did not answer check_spaces within --episode-timeout {limit:g} s "
+                f"policy {p.spec.name} did not answer check_spaces within --episode-timeout {bounded.limit:g} s "
                 "(a policy that hangs on its first call); nothing was written"
             ) from None
         except ValueError as exc:
@@ -76,14 +74,6 @@ def preflight(
                 f"policy {p.spec.name} cannot act in {resolved.suite.name} (task {jobs[0].task.name}): {exc}"
             ) from None
     return {jobs[0].task.name: env}
-
-
-def close_policies(resolved: ResolvedRun, limit: float | None = None) -> None:
-    """Let policies that hold something open (a served policy's connection) let go when
-    the run ends; a later call on the same policy opens it again. With --episode-timeout
-    (`limit`) a close that does not return in time is abandoned."""
-    for p in resolved.policies:
-        close_policy(p.policy, limit)
 
 
 def run(
@@ -103,37 +93,44 @@ def run(
     """
     execution = execution or Execution()
     jobs = plan_jobs(resolved)
-    envs = preflight(resolved, jobs, execution.episode_timeout)
+    bounded = BoundedCalls(execution.episode_timeout)
+    envs = preflight(resolved, jobs, bounded)
     try:
         folder = RunFolder.open(out, mode, resolved, traces)
         try:
-            return _execute(folder, resolved, jobs, mode, execution, progress, envs)
+            todo = folder.unrecorded(jobs)
+            report = RunReport(
+                folder.run_dir, folder.run_id, executed=0, skipped=len(jobs) - len(todo), failed=0
+            )
+            sink = _sink(folder, resolved, progress(len(todo), report.skipped) if progress else None)
+            plan = ExecutionPlan.for_run(resolved, execution.batch_envs, folder.traces)
+            try:
+                execute(resolved, todo, plan, execution, sink, envs)
+            except KeyboardInterrupt:
+                report.interrupted = True
+                folder.finish("interrupted")
+            except BaseException as exc:
+                # a failed write (exit 3) or a crash: keep every row, say "failed", then re-raise
+                with contextlib.suppress(Exception):  # the first failure is the one to report
+                    folder.finish("failed", reason=f"{type(exc).__name__}: {exc}")
+                raise
+            else:
+                folder.finish("finished")
+            report.executed, report.failed = folder.counts.executed, folder.counts.failed
+            return report
         finally:
             folder.close()
     finally:
         while envs:  # the run stopped before its episodes took them over
             envs.popitem()[1].close()
-        close_policies(resolved, execution.episode_timeout)
+        # served policies let go of their connections; a later call opens them again
+        for p in resolved.policies:
+            bounded.close(p.policy)
 
 
-def _execute(
-    folder: RunFolder,
-    resolved: ResolvedRun,
-    jobs: list[EpisodeJob],
-    mode: OpenMode,
-    execution: Execution,
-    progress: Callable[[int, int], Any] | None,
-    envs: dict[str, gym.Env],
-) -> RunReport:
-    recorded = folder.recorded_keys(mode is OpenMode.RETRY_FAILED)
-    done = (
-        {normalised_key(row) for row in recorded[list(EPISODE_KEY)].to_dict("records")}
-        if len(recorded)
-        else set()
-    )
-    todo = [job for job in jobs if job_key(resolved.suite.name, job) not in done]
-    report = RunReport(folder.run_dir, folder.run_id, executed=0, skipped=len(jobs) - len(todo), failed=0)
-    tick = progress(len(todo), report.skipped) if progress else None
+def _sink(folder: RunFolder, resolved: ResolvedRun, tick: Callable[[bool], Any] | None) -> Sink:
+    """Where the backend's reports go: each outcome made into a row (and its traces, and a
+    failure's traceback in the log) and appended to the folder as it ends."""
     labels = run_config_labels(resolved)
 
     def on_episode(job: EpisodeJob, outcome: EpisodeOutcome) -> None:
@@ -151,22 +148,9 @@ def _execute(
         if tick:
             tick(outcome.success)
 
-    plan = ExecutionPlan.for_run(resolved, execution.batch_envs, folder.traces)
-    sink = Sink(episode=on_episode, worker=folder.record_worker, warm_up=folder.record_warm_up)
-    try:
-        folder.record_execution(execution.record())  # backend and workers, per session
-        execute(resolved, todo, plan, execution, sink, envs)
-    except KeyboardInterrupt:
-        report.interrupted = True
-        folder.finish("interrupted")
-    except BaseException as exc:
-        # a failed write (exit 3) or a crash: keep every row, say "failed", then re-raise
-        try:
-            folder.finish("failed", reason=f"{type(exc).__name__}: {exc}")
-        except Exception:
-            pass  # the first failure is the one to report
-        raise
-    else:
-        folder.finish("finished")
-    report.executed, report.failed = folder.counts.executed, folder.counts.failed
-    return report
+    return Sink(
+        episode=on_episode,
+        session=folder.record_session,
+        worker=folder.record_worker,
+        warm_up=folder.record_warm_up,
+    )
