@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -108,6 +110,13 @@ def here(args: argparse.Namespace, params: PlaybackParams) -> tuple[list[dict[st
     return out, time.perf_counter() - start
 
 
+def run_here(args: argparse.Namespace, demos: Path, saved: Path) -> tuple[list[dict[str, Any]], float]:
+    print(f"this harness: {args.tasks} tasks x {args.episodes} episodes of libero/{args.suite}")
+    ours, here_s = here(args, PlaybackParams(str(demos), gripper=args.gripper))
+    saved.write_bytes(pickle.dumps((ours, here_s)))
+    return ours, here_s
+
+
 def compare(ours: dict[str, Any], theirs: dict[str, Any]) -> dict[str, Any]:
     a, b = ours["actions"], np.asarray(theirs["actions"], np.float32)
     s, t = ours["states"], np.asarray(theirs["states"], np.float32)
@@ -151,6 +160,12 @@ def main() -> None:
     parser.add_argument(
         "--json", default="", help="default benchmarks/results/vlaeval-agreement-<suite>.json"
     )
+    parser.add_argument("--here-only", action="store_true", help="run this harness's side only (saved)")
+    parser.add_argument(
+        "--compare-only",
+        action="store_true",
+        help="compare the saved side here with what vla-eval recorded in --work so far",
+    )
     args = parser.parse_args()
 
     demos = Path(args.demos or REPO / "demos" / f"vlaeval-{args.suite}").resolve()
@@ -158,14 +173,26 @@ def main() -> None:
     load_before = uptime()
     collect(args.suite, args.tasks, args.episodes, demos)
     playback = f"playback:demos={demos},gripper={args.gripper}"
-    print(f"this harness: {args.tasks} tasks x {args.episodes} episodes of libero/{args.suite}")
-    ours, here_s = here(args, PlaybackParams(str(demos), gripper=args.gripper))
-    print("vla-eval: its LIBERO benchmark against dvla-harness serve --protocol vla-eval")
     suite = f"libero/{args.suite}:obs=upstream,seeding=openpi"
     work.mkdir(parents=True, exist_ok=True)
-    with served(playback, suite, work / "serve.log") as url:
-        config = vla_eval_config(url, args.suite, args.episodes, args.tasks, work / "results")
-        there_s, _, _ = vla_eval_run(args.vla_eval_python, config, work)
+    saved = work / "here.pkl"  # ours, so a vla-eval run stopped early still compares (--compare-only)
+    there_s = None
+    if args.compare_only:
+        ours, here_s = pickle.loads(saved.read_bytes())
+    elif args.here_only:
+        ours, here_s = run_here(args, demos, saved)
+    else:
+        with served(playback, suite, work / "serve.log") as url, ThreadPoolExecutor(1) as pool:
+            # vla-eval runs in its own processes while this one runs ours: the two share no
+            # state, and on a shared machine the pair takes about the time of the slower one
+            print("vla-eval: its LIBERO benchmark against dvla-harness serve --protocol vla-eval")
+            config = vla_eval_config(url, args.suite, args.episodes, args.tasks, work / "results")
+            there = pool.submit(vla_eval_run, args.vla_eval_python, config, work)
+            ours, here_s = run_here(args, demos, saved)
+            there_s = round(there.result()[0], 1)
+    if args.here_only:
+        print(f"wrote {saved}")
+        return
     theirs = {(e["task_idx"], e["episode"]): e for e in recorded_episodes(work / "results")}
     rows = [
         compare(o, theirs[(o["task_idx"], o["episode"])])
@@ -202,7 +229,7 @@ def main() -> None:
         "success_here": sum(r["success"][0] for r in rows),
         "success_vla_eval": sum(r["success"][1] for r in rows),
         "seconds_here": round(here_s, 1),
-        "seconds_vla_eval": round(there_s, 1),
+        "seconds_vla_eval": there_s,
         "episodes": rows,
         "versions_here": versions(sys.executable),
         "versions_vla_eval": versions(args.vla_eval_python),
