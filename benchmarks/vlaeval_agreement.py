@@ -75,8 +75,9 @@ class Recording(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def here(args: argparse.Namespace, params: PlaybackParams) -> tuple[list[dict[str, Any]], float]:
-    """This harness's episodes, through its own loop (what `run` runs per episode)."""
+def here(args: argparse.Namespace, params: PlaybackParams, saved: Path) -> tuple[list[dict[str, Any]], float]:
+    """This harness's episodes, through its own loop (what `run` runs per episode), kept in
+    `saved` after each one."""
     from adapters.registry import load_suite
     from harness.episode.context import episode_context
     from harness.episode.loop import run_episode
@@ -85,7 +86,7 @@ def here(args: argparse.Namespace, params: PlaybackParams) -> tuple[list[dict[st
     suite = load_suite(f"libero/{args.suite}:obs=upstream,seeding=openpi{size}")
     tasks, episodes = args.tasks, args.episodes
     out, start = [], time.perf_counter()
-    for task in suite.tasks[:tasks]:
+    for task in suite.tasks[args.first_task : tasks]:
         env = Recording(suite.make_env(task))
         try:
             for episode in task.episodes[:episodes]:
@@ -102,8 +103,11 @@ def here(args: argparse.Namespace, params: PlaybackParams) -> tuple[list[dict[st
                         "states": np.array(env.states),
                     }
                 )
+                saved.write_bytes(pickle.dumps((out, time.perf_counter() - start)))
                 print(
-                    f"  task {task.index} episode {episode.index}: {outcome.steps} steps, success {outcome.success}"
+                    f"  task {task.index} episode {episode.index}: {outcome.steps} steps, "
+                    f"success {outcome.success}",
+                    flush=True,
                 )
         finally:
             env.close()
@@ -112,9 +116,7 @@ def here(args: argparse.Namespace, params: PlaybackParams) -> tuple[list[dict[st
 
 def run_here(args: argparse.Namespace, demos: Path, saved: Path) -> tuple[list[dict[str, Any]], float]:
     print(f"this harness: {args.tasks} tasks x {args.episodes} episodes of libero/{args.suite}")
-    ours, here_s = here(args, PlaybackParams(str(demos), gripper=args.gripper))
-    saved.write_bytes(pickle.dumps((ours, here_s)))
-    return ours, here_s
+    return here(args, PlaybackParams(str(demos), gripper=args.gripper), saved)
 
 
 def compare(ours: dict[str, Any], theirs: dict[str, Any]) -> dict[str, Any]:
@@ -159,6 +161,9 @@ def main() -> None:
     )
     parser.add_argument(
         "--json", default="", help="default benchmarks/results/vlaeval-agreement-<suite>.json"
+    )
+    parser.add_argument(
+        "--first-task", type=int, default=0, help="this harness's side from task N (with --here-only)"
     )
     parser.add_argument("--here-only", action="store_true", help="run this harness's side only (saved)")
     parser.add_argument(
