@@ -3,7 +3,7 @@
 recorded episode: the largest difference in the full simulator state (qpos, qvel, the
 solver's warm start, ...) after settling, then the first step of the recorded actions
 (gripper by sign, as vla-eval executes it) where qpos or qvel differ. No cameras: they
-move no physics. docs/libero.md, "vla-eval on the same episodes".
+move no physics (`--cameras` builds upstream's env as vla-eval does, with them). docs/libero.md, "vla-eval on the same episodes".
 
     python benchmarks/libero_hard_reset_replay.py --suite object --task 1 --demos demos/vlaeval-object
 """
@@ -29,6 +29,11 @@ def main() -> None:
     parser.add_argument("--task", type=int, default=1)
     parser.add_argument("--episode", type=int, default=0)
     parser.add_argument(
+        "--cameras",
+        action="store_true",
+        help="upstream's env as vla-eval builds it (OffScreenRenderEnv, 256 px)",
+    )
+    parser.add_argument(
         "--demos", required=True, help="the scripted expert's episodes (collect --split eval)"
     )
     args = parser.parse_args()
@@ -45,13 +50,20 @@ def main() -> None:
     env = suite.make_env(task)
     env.reset(options={"episode": task.episodes[args.episode]})
     ours = env.unwrapped.libero.env.sim.data
-    upstream = ControlEnv(
-        bddl_file_name=env.unwrapped._bddl,
-        has_renderer=False,
-        has_offscreen_renderer=False,
-        use_camera_obs=False,
-        hard_reset=True,
-    )
+    if args.cameras:
+        from libero.libero.envs import OffScreenRenderEnv
+
+        upstream = OffScreenRenderEnv(
+            bddl_file_name=env.unwrapped._bddl, camera_heights=256, camera_widths=256
+        )
+    else:
+        upstream = ControlEnv(
+            bddl_file_name=env.unwrapped._bddl,
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            use_camera_obs=False,
+            hard_reset=True,
+        )
     upstream.seed(7)
     upstream.reset()
     upstream.set_init_state(env.unwrapped.init_states[args.episode])
