@@ -50,6 +50,8 @@ BUILTIN = (
     "policies.experts.maniskill_scripted:MANISKILL_SCRIPTED",
     "policies.remote:REMOTE",
     "policies.lerobot:LEROBOT",
+    "policies.vlaeval:VLAEVAL",
+    "policies.playback:PLAYBACK",
     "policies.dvla.policy:SPECS",
 )
 

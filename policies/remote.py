@@ -81,7 +81,9 @@ _CREDENTIAL = re.compile(r"key|token|secret|pass|auth|sig|credential|session|jwt
 
 
 @dataclass(frozen=True)
-class RemoteParams:
+class ConnectionParams:
+    """How to reach a policy server, shared by the remote policies of every protocol."""
+
     url: str = param("ws://127.0.0.1:8000", "the server's address (ws:// or wss://)")
     token: str = param("", "refused: a key typed here would be recorded; use token_env or token_file")
     token_env: str = param(
@@ -101,9 +103,6 @@ class RemoteParams:
         high=86400.0,
         identity=False,  # how long to wait is no part of what is evaluated
     )
-    state_key: str = param("state", "observation key of the state vector on the wire")
-    prompt_key: str = param("prompt", "observation key of the instruction on the wire")
-    actions_key: str = param("actions", "reply key of the action (or action chunk)")
 
     def validate(self) -> None:
         """A key, or a password in the address, given inline would be written into the
@@ -129,6 +128,13 @@ class RemoteParams:
                 f"the url carries a credential in its query ({named[0]}=...), which the manifest and "
                 "every row would record; pass the key with token_env or token_file"
             )
+
+
+@dataclass(frozen=True)
+class RemoteParams(ConnectionParams):
+    state_key: str = param("state", "observation key of the state vector on the wire")
+    prompt_key: str = param("prompt", "observation key of the instruction on the wire")
+    actions_key: str = param("actions", "reply key of the action (or action chunk)")
 
 
 def read_api_key(env: str, path: str, *, env_flag: str = "token_env", file_flag: str = "token_file") -> str:
@@ -167,7 +173,7 @@ BACK_OFF_MAX_S = 5.0  # the longest pause between two connection attempts
 
 
 class RemotePolicy:
-    def __init__(self, params: RemoteParams):
+    def __init__(self, params: RemoteParams | ConnectionParams):
         if not params.url.startswith(("ws://", "wss://")):
             raise ValueError(f"url must start with ws:// or wss://, got {params.url!r}")
         if importlib.util.find_spec("msgpack") is None:
@@ -201,9 +207,7 @@ class RemotePolicy:
                     open_timeout=self.params.connect_timeout_s,
                     max_size=MAX_MESSAGE_BYTES,
                 )
-                self.metadata = self._receive()
-                if not isinstance(self.metadata, dict):
-                    raise WireError("the server's metadata is not a map")
+                self.metadata = self._handshake()
                 return
             except HandshakeRefused as exc:  # e.g. 401 (a wrong token): no point retrying
                 self.close()
@@ -232,22 +236,40 @@ class RemotePolicy:
         key = read_api_key(self.params.token_env, self.params.token_file)
         return {"Authorization": f"Api-Key {key}"} if key else None
 
-    def _receive(self) -> Any:
+    def _handshake(self) -> dict[str, Any]:
+        """What a new connection starts with: openpi's server sends its metadata."""
+        from policies.wire import WireError
+
+        metadata = self._receive()
+        if not isinstance(metadata, dict):
+            raise WireError("the server's metadata is not a map")
+        return metadata
+
+    def _encode(self, message: dict[str, Any]) -> bytes:
+        from policies.wire import pack
+
+        return pack(message)
+
+    def _decode(self, data: bytes | str) -> Any:
         from policies.wire import unpack
 
+        return unpack(data)
+
+    def _receive(self) -> Any:
         try:
-            return unpack(self._ws.recv(timeout=self.params.timeout_s))
+            data = self._ws.recv(timeout=self.params.timeout_s)
         except TimeoutError:
             raise TimeoutError(f"{self.params.url}: no reply within {self.params.timeout_s} s") from None
+        return self._decode(data)
 
     def _call(self, message: dict[str, Any]) -> dict[str, Any]:
-        from policies.wire import WireError, pack
+        from policies.wire import WireError
         from policies.wsclient import ConnectionClosed, ProtocolError
 
         if self._ws is None:
             self._reconnect()
         try:
-            self._ws.send(pack(message))
+            self._ws.send(self._encode(message))
             reply = self._receive()
         except (TimeoutError, WireError):
             self.close()  # a late reply must not be read as the next call's

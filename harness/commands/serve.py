@@ -9,6 +9,8 @@ from harness.device import DEFAULT_DEVICE, DEVICES
 from harness.errors import UsageError
 from harness.plugins import install_hint
 
+PROTOCOLS = ("openpi", "vla-eval")
+
 EPILOG = """\
 examples:
   dvla-harness serve --policy fast_dvla --suite metaworld/mt10 --port 8000
@@ -17,6 +19,8 @@ examples:
   # one policy process for many env workers: their calls share one batched decode
   dvla-harness serve --policy fast_dvla --suite metaworld/mt10 --max-batch 8 --device cuda &
   dvla-harness run --suite metaworld/mt10 --policy remote:url=ws://127.0.0.1:8000 --workers 8
+  # a vla-eval model server: `vla-eval run` evaluates the policy on its LIBERO benchmark
+  dvla-harness serve --protocol vla-eval --policy MY_POLICY --suite "libero/spatial:obs=upstream,seeding=openpi"
 
 Any openpi client can then connect (openpi-client's WebsocketClientPolicy, with
 api_key=KEY when a key is set), read the server's metadata (the observation it
@@ -59,6 +63,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--token-file", metavar="PATH", help="as --token-env, the key read from this file")
     p.add_argument("--token", help=argparse.SUPPRESS)  # refused with the reason (server_key)
+    p.add_argument(
+        "--protocol",
+        choices=PROTOCOLS,
+        default="openpi",
+        help="openpi's WebSocket policy protocol (default), or vla-eval's model-server protocol "
+        "(its `vla-eval run` drives the policy on its benchmarks; docs/remote-policies.md)",
+    )
     p.add_argument("--state-key", default="state", help="the observation key of the state vector")
     p.add_argument(
         "--max-batch",
@@ -159,8 +170,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     from harness.serving.server import make_server, stop_server
 
+    dialect = None
+    if getattr(args, "protocol", "openpi") == "vla-eval":
+        from harness.serving import vlaeval
+
+        try:
+            vlaeval.mapping_for(served)
+        except ValueError as exc:
+            raise UsageError(f"--protocol vla-eval: {exc}") from None
+        dialect = vlaeval.handler
     try:
-        server = make_server(served, args.host, args.port)
+        server = make_server(served, args.host, args.port, dialect, ping_interval=None if dialect else 20.0)
     except OSError as exc:
         raise UsageError(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}") from None
     host, port = server.socket.getsockname()[:2]
@@ -168,7 +188,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         f"serving {served.name} ({served.suite}, task {served.task}) on ws://{host}:{port}"
         + (" (token required)" if served.token else "")
         + (f" (batching up to {served.max_batch})" if served.max_batch > 1 else "")
-        + "; Ctrl-C stops"
+        + (" (vla-eval's protocol)" if dialect is not None else "")
+        + "; Ctrl-C stops",
+        soft_wrap=True,  # one line, however long the task's name: scripts read the address from it
     )
     # Ctrl-C and SIGTERM (how services and CI stop a process) both stop it cleanly, also
     # where the shell that started it in the background left SIGINT ignored.

@@ -318,11 +318,30 @@ def handler(served: Served, open_connections: set[Any] | None = None) -> Callabl
     return handle
 
 
-def make_server(served: Served, host: str = "127.0.0.1", port: int = 8000) -> Any:
-    """A websockets server (call `serve_forever()`, `shutdown()`); port 0 picks a free one."""
+Dialect = Callable[[Served, set[Any]], Callable[[Any], None]]
+
+
+def make_server(
+    served: Served,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    dialect: Dialect | None = None,
+    ping_interval: float | None = 20.0,
+) -> Any:
+    """A websockets server (call `serve_forever()`, `shutdown()`); port 0 picks a free one.
+    `dialect` makes each connection's loop (harness/serving/vlaeval.py's for vla-eval's
+    protocol); openpi's by default. `ping_interval` None sends no keepalive pings (a
+    vla-eval client answers them only between simulator calls, which can take minutes).
+    `GET /health` answers 200 once the policy is loaded (vla-eval's readiness probe),
+    without a key."""
     from websockets.sync.server import serve
 
     def process_request(connection: Any, request: Any) -> Any:
+        if request.path == "/health":
+            response = connection.respond(HTTPStatus.OK, '{"status": "ok"}\n')
+            del response.headers["Content-Type"]  # Headers keep every value set: replace, not add
+            response.headers["Content-Type"] = "application/json"
+            return response
         if not _authorised(served, request):
             log.warning("refused a connection from %s: wrong or missing token", connection.remote_address)
             return connection.respond(HTTPStatus.UNAUTHORIZED, "wrong or missing token\n")
@@ -330,12 +349,13 @@ def make_server(served: Served, host: str = "127.0.0.1", port: int = 8000) -> An
 
     live: set[Any] = set()
     server = serve(
-        handler(served, live),
+        (dialect or handler)(served, live),
         host,
         port,
         process_request=process_request,
         max_size=MAX_MESSAGE_BYTES,
         compression=None,
+        ping_interval=ping_interval,
     )
     server.open_connections = live  # stop_server closes them
     return server
