@@ -177,6 +177,8 @@ def test_batched_episodes_follow_the_rule(rule, failed, seen):
 
 
 def test_resume_refuses_another_rule_and_reads_an_older_manifest_as_fail(tmp_path):
+    from harness.run.recorded import fingerprint_of
+
     out = tmp_path / "r"
     run(unit_resolved(ValuePolicy(1.0), episodes=1), out)
     with pytest.raises(UsageError, match=r'out_of_space: "fail" -> "clip"'):
@@ -184,6 +186,7 @@ def test_resume_refuses_another_rule_and_reads_an_older_manifest_as_fail(tmp_pat
     # a manifest written before the rule existed: its runs resume under the default
     manifest = RunDir(out).read_manifest()
     del manifest["config"]["out_of_space"]
+    manifest["config_fingerprint"] = fingerprint_of(manifest["config"])  # as the older harness took it
     RunDir(out).write_manifest(manifest)
     with pytest.raises(UsageError, match=r'out_of_space: "fail" -> "record"'):
         run(unit_resolved(ValuePolicy(1.0), "record", episodes=2), out, OpenMode.RESUME)

@@ -18,9 +18,10 @@ SCENE = "living_room_scene3"
 def test_the_option_is_taken_out_before_liberos_parse():
     from adapters.chains import split_chain_options
 
-    assert split_chain_options("goal_positions=on,seeding=openpi") == ("seeding=openpi", True)
-    assert split_chain_options("obs=images") == ("obs=images", False)
-    assert split_chain_options("goal_positions=off") == ("", False)
+    assert split_chain_options("goal_positions=on,seeding=openpi") == ("seeding=openpi", True, None)
+    assert split_chain_options("obs=images") == ("obs=images", False, None)
+    assert split_chain_options("goal_positions=off") == ("", False, None)
+    assert split_chain_options("chains=my.json,obs=images") == ("obs=images", False, "my.json")
     with pytest.raises(SuiteOptionError, match="expected on or off"):
         split_chain_options("goal_positions=maybe")
 

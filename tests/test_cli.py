@@ -23,7 +23,7 @@ MT1 = ["--suite", "metaworld/mt1/reach-v3"]
         (["run", "--tasks", "99"], "has no task '99'"),
         (
             ["run", "--policy", "nope"],
-            "unknown policy 'nope'; valid policies: autoregressive, bidirectional, block_diffusion, fast_dllm, fast_dvla, lerobot, libero_scripted, maniskill_scripted, random, remote, scripted",
+            "unknown policy 'nope'; valid policies: autoregressive, bidirectional, block_diffusion, fast_dllm, fast_dvla, lerobot, libero_scripted, maniskill_scripted, playback, random, remote, scripted, vlaeval",
         ),
         (
             ["run", *MT1, "--policy", "random:bogus=1"],
