@@ -66,7 +66,7 @@ from harness.episode.work import WIRE_KEY as WORK_KEY
 from harness.episode.work import Work
 from harness.plugins import install_hint
 from policies.base import ChunkBatch, EpisodeContext, Observation
-from policies.registry import PolicySpec, param
+from policies.spec import PolicySpec, param
 
 RESET = "dvla/reset"
 BATCH = "dvla/batch"

@@ -40,8 +40,8 @@ import gymnasium as gym
 import numpy as np
 
 from policies.base import ChunkBatch, EpisodeContext, Observation
-from policies.registry import PolicySpec, param
 from policies.remote import ConnectionLost, ConnectionParams, RemotePolicy
+from policies.spec import PolicySpec, param
 from policies.vlaeval_protocol import (
     BENCHMARKS,
     IMAGE_FORMATS,
