@@ -175,7 +175,7 @@ class Worker:
             elif kind is EpisodeEvent.STEPPED:
                 if time.monotonic() - said < every:
                     continue
-                payload = tuple((group[index], progress) for index, progress in payload)
+                payload = tuple((group[index], out.progress()) for index, out in payload)  # only when sent
             elif alone:
                 continue  # an episode sent alone is known to start
             else:

@@ -69,7 +69,7 @@ class EpisodeEvent(Enum):
     """What `EpisodeLoop.events` yields, with its payload (the values cross process pipes)."""
 
     STARTED = "started"  # the position of an episode about to start
-    STEPPED = "stepped"  # ((position, Progress), ...) of the running episodes: a lockstep step ended
+    STEPPED = "stepped"  # ((position, EpisodeOutcome), ...) of the running episodes: a lockstep step ended
     DONE = "done"  # (position, EpisodeOutcome): an episode ended
 
 
@@ -167,9 +167,10 @@ class EpisodeLoop:
         """Run every episode of `episodes` (in order; batched, all of one task and one
         policy) through plan.batch_envs slots, or one slot when `alone`. Yields
         (STARTED, position) before an episode's env is taken, (DONE, (position, outcome))
-        as each episode ends, exactly once, and with `steps` (STEPPED, progress) after each
-        lockstep step, progress being each running episode's (position, Progress): a
-        worker's sign of life, and what a lost or timed-out episode had done. The
+        as each episode ends, exactly once, and with `steps` (STEPPED, running) after each
+        lockstep step, running being each running episode's (position, outcome so far),
+        whose `progress()` the consumer takes only when it reports: a worker's sign of life,
+        and what a lost or timed-out episode had done. The
         consumer's time between events is charged to no episode."""
         k = 1 if alone else self.plan.batch_envs
         queue = deque(enumerate(episodes))
@@ -199,7 +200,7 @@ class EpisodeLoop:
                     for slot in order:
                         slot.overhead_s += overhead
                     if steps:
-                        yield EpisodeEvent.STEPPED, tuple((slot.index, slot.out.progress()) for slot in order)
+                        yield EpisodeEvent.STEPPED, tuple((slot.index, slot.out) for slot in order)
                 ended = [i for i in sorted(running) if running[i].done]
                 for i in ended:  # every ended episode's row before any slot starts another
                     yield EpisodeEvent.DONE, self._end(running.pop(i), kept, i)
