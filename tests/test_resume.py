@@ -256,6 +256,41 @@ def test_a_suite_default_that_changed_is_named_and_naming_the_recorded_protocol_
     assert (report.skipped, report.executed) == (2, 1)
 
 
+def test_a_libero_pro_lan_folder_named_before_the_instruction_option_gets_a_hint_that_works(tmp_path):
+    """A lan/task folder recorded before `instruction=` heard the BDDL's words; no --suite
+    resolves to its old name any more, so the refusal must not say "name the recorded one"
+    but name the suite that runs that protocol now (instruction=bddl) and say to start anew."""
+
+    def resolving_to(name: str, config_suite: str, episodes: int):
+        resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=episodes)
+        resolved.suite = dataclasses.replace(resolved.suite, name=name)
+        resolved.config = dataclasses.replace(resolved.config, suite=config_suite)
+        return resolved
+
+    out = tmp_path / "run"
+    legacy = "libero/object:perturb=lan,seeding=openvla"
+    run(resolving_to(legacy, "libero/object:perturb=lan", 2), out)
+    now = "libero/object:perturb=lan,instruction=filename,seeding=openvla"
+    with pytest.raises(UsageError) as refused:
+        run(resolving_to(now, "libero/object:perturb=lan", 3), out, OpenMode.RESUME)
+    message = str(refused.value)
+    assert "name the recorded one" not in message
+    assert "before the `instruction=` suite option" in message
+    assert "--suite libero/object:perturb=lan,instruction=bddl,seeding=openvla" in message
+    assert "instruction=filename for LIBERO-PRO's published path" in message
+    # a swap folder's name never changed meaning: the general hint stands
+    run(
+        resolving_to("libero/object:perturb=swap,seeding=openvla", "libero/object:perturb=swap", 2),
+        tmp_path / "s",
+    )
+    with pytest.raises(UsageError, match="name the recorded one in --suite"):
+        run(
+            resolving_to("libero/object:perturb=swap,seeding=openpi", "libero/object:perturb=swap", 3),
+            tmp_path / "s",
+            OpenMode.RESUME,
+        )
+
+
 def test_a_suite_whose_version_changed_is_not_resumed(tmp_path):
     """A suite's version says its episodes or scoring changed (the chain suites' credit
     rule): rows of two versions in one folder would not compare, so the resume is refused."""

@@ -50,6 +50,7 @@ from policies.registry import (
     params_json,
     parse_params,
 )
+from results.generalization import split_perturbation
 from results.store import ResultsFileError, RunDir
 
 # Failure reasons that say the machinery failed, not the policy: a worker process or Ray
@@ -126,6 +127,33 @@ def _shown(value: Any) -> str:
     return json.dumps(value, default=str)
 
 
+def _suite_hint(recorded: str, now: str, same_flag: bool) -> str:
+    """Why a recorded suite name differs from the one --suite resolves to, and what to do.
+    A LIBERO-PRO lan/task folder named before the `instruction=` option heard each BDDL's own
+    words: `instruction=bddl` names that protocol now, but under a new name, so no --suite
+    reproduces the recorded one and the only way on is a new run."""
+    recorded_perturb, now_perturb = split_perturbation(recorded)[1], split_perturbation(now)[1]
+    if "instruction=" not in recorded and "(instruction=bddl)" in recorded_perturb:
+        bddl = now if "instruction=bddl" in now else now.replace("instruction=filename", "instruction=bddl")
+        return (
+            " (this folder was recorded before the `instruction=` suite option; its policy heard "
+            "each BDDL's own words, which `instruction=bddl` names now under another suite name, so "
+            f"it cannot be resumed: start a new run with --suite {bddl}"
+            + (
+                ""
+                if now_perturb == recorded_perturb
+                else ", or instruction=filename for LIBERO-PRO's published path"
+            )
+            + ")"
+        )
+    if same_flag:
+        return (
+            " (the same --suite now resolves to another protocol, e.g. a changed default such as "
+            "LIBERO's seeding; name the recorded one in --suite)"
+        )
+    return ""
+
+
 def config_changes(
     manifest: Mapping[str, Any], resolved: ResolvedRun
 ) -> tuple[list[str], tuple[int | None, int | None] | None]:
@@ -139,13 +167,10 @@ def config_changes(
     if recorded_suite is None and old.get("suite") != new.suite:
         changes.append(f"suite: {_shown(old.get('suite'))} -> {_shown(new.suite)}")
     elif recorded_suite is not None and recorded_suite != resolved.suite.name:
-        hint = (
-            " (the same --suite now resolves to another protocol, e.g. a changed default such as "
-            "LIBERO's seeding; name the recorded one in --suite)"
-            if old.get("suite") == new.suite
-            else ""
+        changes.append(
+            f"suite: {_shown(recorded_suite)} -> {_shown(resolved.suite.name)}"
+            f"{_suite_hint(recorded_suite, resolved.suite.name, old.get('suite') == new.suite)}"
         )
-        changes.append(f"suite: {_shown(recorded_suite)} -> {_shown(resolved.suite.name)}{hint}")
     recorded_version = (manifest.get("suite") or {}).get("version")
     if recorded_version is not None and recorded_version != resolved.suite.version:
         changes.append(
