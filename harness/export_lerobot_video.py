@@ -96,6 +96,12 @@ def video_features(features: dict[str, dict[str, Any]], fps: int) -> dict[str, d
     return out
 
 
+def file_full(path: Path) -> bool:
+    """Has a video file passed VIDEO_FILE_MB? As ffmpeg has written it so far (it may not
+    exist yet; the encoder holds a few frames back): near enough for a 200 MB rule."""
+    return path.exists() and path.stat().st_size >= VIDEO_FILE_MB * 1024 * 1024
+
+
 def _encoder(exe: str, path: Path, size: tuple[int, int], fps: int) -> Any:
     import imageio_ffmpeg
 
@@ -162,8 +168,7 @@ def _write_camera(
     writer, path, out = None, None, []
     try:
         for start, end in ((int(a), int(b)) for a, b in bounds):
-            # the file as ffmpeg has written it so far (it may not exist yet): near enough
-            if writer is not None and path.exists() and path.stat().st_size >= VIDEO_FILE_MB * 1024 * 1024:
+            if writer is not None and file_full(path):
                 writer.close()
                 writer, frames_in_file = None, 0
                 file += 1

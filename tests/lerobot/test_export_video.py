@@ -23,6 +23,7 @@ from tests.lerobot_demos import (
     lerobot_writes,
     marked,
     rendered_frames,
+    smooth_frames,
 )
 
 KEY = "observation.images.corner"
@@ -104,3 +105,25 @@ def test_as_close_as_lerobots_own_video_writer_on_the_same_frames(exported, tmp_
     ours = decoded_errors(LeRobotDataset("local/ds", root=root / "ds"), frames["image"]).mean()
     their = decoded_errors(LeRobotDataset("local/theirs", root=tmp_path / "theirs"), frames["image"]).mean()
     assert ours <= 1.1 * their, (ours, their)
+
+
+def test_episodes_split_over_files_read_back_from_each(tmp_path, monkeypatch):
+    """A new file at every episode's start (as past 200 MB): each episode's chunk, file and
+    timeline restart there, and LeRobot's reader finds every frame in its file."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    import harness.export_lerobot_video as video
+
+    monkeypatch.setattr(video, "file_full", lambda path: True)
+    frames = demos(tmp_path / "demos", ("corner",), smooth_frames())
+    export_demos(tmp_path / "demos", tmp_path / "ds", "local/ds", video=True)
+    episodes = pq.read_table(
+        tmp_path / "ds" / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
+    ).to_pydict()
+    assert episodes[f"videos/{KEY}/file_index"] == [0, 1, 2, 3]
+    assert episodes[f"videos/{KEY}/from_timestamp"] == [0.0] * 4
+    assert episodes[f"videos/{KEY}/to_timestamp"] == pytest.approx([n / FPS for n in LENGTHS])
+    dataset = LeRobotDataset("local/ds", root=tmp_path / "ds")
+    for i in range(len(dataset)):
+        image = (dataset[i][KEY].numpy() * 255).round().astype(np.int16).transpose(1, 2, 0)
+        assert frame_number(image) == i and np.abs(image - frames["image"][i]).mean() < 4
