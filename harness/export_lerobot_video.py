@@ -5,7 +5,8 @@ a file one after another on one timeline, each episode's place in it recorded in
 meta/episodes as `videos/<key>/{chunk_index,file_index,from_timestamp,to_timestamp}`.
 Its reader decodes the frame of timestamp `from_timestamp + frame_index / fps` and
 refuses a frame more than 1e-4 s away, so the stream's frame k must sit at exactly k /
-fps. A video is ~10-50x smaller than the PNGs of image mode, and lossy.
+fps. A video is ~11x smaller than the PNGs of image mode on LIBERO's 128 px cameras, and
+lossy (docs/lerobot.md has the figures).
 
 The encoder settings are LeRobot 0.6.1's defaults (configs/video.py, RGBEncoderConfig):
 libsvtav1, yuv420p, keyframe every 2 frames (so a random frame decodes from at most one
@@ -39,9 +40,9 @@ NO_ENCODER = (
 )
 
 
-def require_encoder() -> str:
-    """The ffmpeg executable, or a usage error naming the extra that installs one with
-    LeRobot's codec (AV1 through libsvtav1)."""
+def require_encoder() -> None:
+    """A usage error unless imageio-ffmpeg's ffmpeg runs and has LeRobot's codec (AV1
+    through libsvtav1), naming the extra that installs one."""
     try:
         import imageio_ffmpeg
     except ImportError:
@@ -58,7 +59,6 @@ def require_encoder() -> str:
             f"{exe} has no {CODEC} encoder (LeRobot's AV1 codec); use imageio-ffmpeg's own binary "
             "(unset IMAGEIO_FFMPEG_EXE) or an ffmpeg built with --enable-libsvtav1"
         )
-    return exe
 
 
 def video_features(features: dict[str, dict[str, Any]], fps: int) -> dict[str, dict[str, Any]]:
@@ -102,7 +102,7 @@ def file_full(path: Path) -> bool:
     return path.exists() and path.stat().st_size >= VIDEO_FILE_MB * 1024 * 1024
 
 
-def _encoder(exe: str, path: Path, size: tuple[int, int], fps: int) -> Any:
+def _encoder(path: Path, size: tuple[int, int], fps: int) -> Any:
     import imageio_ffmpeg
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -149,6 +149,8 @@ def write_videos(
     """Each video feature's MP4 files; returns, per episode, its `videos/<key>/...` entries
     for meta/episodes (empty dicts without video features)."""
     out: list[dict[str, Any]] = [{} for _ in bounds]
+    if keys:
+        require_encoder()
     for key in keys:
         for entries, placed in zip(out, _write_camera(root, key, columns[key], bounds, fps), strict=True):
             entries.update(placed)
@@ -163,7 +165,6 @@ def _write_camera(
     writer does); returns each episode's `videos/<key>/...` entries for meta/episodes."""
     from PIL import Image
 
-    exe = require_encoder()
     chunk, file, frames_in_file = 0, 0, 0
     writer, path, out = None, None, []
     try:
@@ -178,7 +179,7 @@ def _write_camera(
                 image = np.asarray(Image.open(io.BytesIO(pngs[i])).convert("RGB"))
                 if writer is None:
                     path = root / VIDEO_PATH.format(video_key=key, chunk_index=chunk, file_index=file)
-                    writer = _encoder(exe, path, (image.shape[1], image.shape[0]), fps)
+                    writer = _encoder(path, (image.shape[1], image.shape[0]), fps)
                 writer.send(np.ascontiguousarray(image))
             out.append(
                 {
