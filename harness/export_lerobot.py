@@ -11,6 +11,7 @@ frame in the Python 3.12 environment (tests/lerobot/, docs/lerobot.md):
     DIR/meta/tasks.parquet                     the instructions, as LeRobot's tasks
     DIR/meta/episodes/chunk-000/file-000.parquet  per episode: length, rows, stats
     DIR/meta/dvla_harness.json                 what v3 has no slot for (sidecar)
+    DIR/videos/<camera key>/chunk-000/file-000.mp4  with `video`: the cameras as AV1
 
 The harness's observation maps onto LeRobot's feature names (FEATURES below): the
 robot's own state (`proprio_dims` leading entries, as the manifest says: Meta-World's
@@ -18,7 +19,7 @@ hand and gripper, which is what LeRobot's Meta-World env calls `agent_pos`) is
 `observation.state`; the whole state vector is `observation.environment_state`, which
 ACT and Diffusion Policy read as the environment's state; camera `C` is
 `observation.images.C` (PNG bytes as they are: v3's image mode stores encoded images in
-the parquet). Per frame, the episode's seed, initial-state id and spec index go in
+the parquet; video mode encodes them as MP4, harness/export_lerobot_video.py). Per frame, the episode's seed, initial-state id and spec index go in
 `harness.*` features (int64), which LeRobot's training ignores (only `observation.*` and
 `action` become policy inputs); the suite, split, demonstrator, its parameters and the
 folder's `steps_sha256` go in the sidecar.
@@ -46,6 +47,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from harness.errors import UsageError
+from harness.export_lerobot_video import (
+    CHUNKS_SIZE,
+    VIDEO_FILE_MB,
+    VIDEO_PATH,
+    check_video_source,
+    video_features,
+    write_videos,
+)
 
 CODEBASE_VERSION = "v3.0"
 STATE = "observation.state"
@@ -56,8 +65,6 @@ EXTRA = ("harness.seed", "harness.init_state_id", "harness.episode_index")  # pe
 SIDECAR = "meta/dvla_harness.json"
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
-CHUNKS_SIZE = 1000  # LeRobot's default: files per chunk folder
 DATA_FILE_MB = 100  # LeRobot's default: a data file is closed past this size
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
 HISTOGRAM_BINS = 5000
@@ -181,7 +188,11 @@ def image_stats(pngs: Sequence[bytes]) -> dict[str, np.ndarray]:
     picks = np.round(np.linspace(0, n - 1, samples)).astype(int)
     frames = []
     for i in picks:
-        image = np.asarray(Image.open(io.BytesIO(pngs[i])).convert("RGB")).transpose(2, 0, 1)
+        # channels first in memory, as LeRobot loads them: the layout decides numpy's summation
+        # order, and so the float32 std's last digits (a one-frame episode reduces over a view)
+        image = np.ascontiguousarray(
+            np.asarray(Image.open(io.BytesIO(pngs[i])).convert("RGB")).transpose(2, 0, 1)
+        )
         _, height, width = image.shape
         if max(height, width) >= 300:
             step = int(width / 150) if width > height else int(height / 150)
@@ -249,8 +260,9 @@ def proprio_dim(manifest: Mapping[str, Any], state_dim: int) -> int:
     return state_dim
 
 
-def frames_from_demos(table: pa.Table, manifest: Mapping[str, Any], fps: int) -> Frames:
-    """The export's columns from a demonstrations table, episodes in their folder order."""
+def frames_from_demos(table: pa.Table, manifest: Mapping[str, Any], fps: int, video: bool = False) -> Frames:
+    """The export's columns from a demonstrations table, episodes in their folder order;
+    with `video`, the cameras as video features."""
     episode_ids = table.column("episode_id").to_numpy()
     order = np.argsort(episode_ids, kind="stable")  # rows are in order; keep that if so
     table = table.take(pa.array(order))
@@ -270,9 +282,9 @@ def frames_from_demos(table: pa.Table, manifest: Mapping[str, Any], fps: int) ->
         columns[IMAGE_PREFIX + camera] = table.column(f"image_{camera}").to_pylist()
     columns[ACTION] = action
     for name, source in zip(EXTRA, ("seed", "init_state_id", "episode_index"), strict=True):
-        values = (
-            table.column(source).to_numpy() if source in table.column_names else np.full(table.num_rows, -1)
-        )
+        # -1 where the folder has none (LIBERO's fresh initial states have no id)
+        column = table.column(source).fill_null(-1) if source in table.column_names else None
+        values = np.full(table.num_rows, -1) if column is None else column.to_numpy()
         columns[name] = values.astype(np.int64)
     # float64 here, float32 in the file: LeRobot's statistics see the timestamps it computed
     columns["timestamp"] = frame_index / fps
@@ -281,6 +293,8 @@ def frames_from_demos(table: pa.Table, manifest: Mapping[str, Any], fps: int) ->
     columns["index"] = np.arange(table.num_rows, dtype=np.int64)
     columns["task_index"] = np.array([task_of[t] for t in instructions], dtype=np.int64)
     features = features_of(state.shape[1], proprio, action.shape[1], cameras) | DEFAULT_FEATURES
+    if video:
+        features = video_features(features, fps)
     return Frames(features, columns, episode_index.astype(np.int64), tasks, fps)
 
 
@@ -328,7 +342,7 @@ def episode_stats(frames: Frames, rows: slice) -> dict[str, dict[str, np.ndarray
     out = {}
     for name, feature in frames.features.items():
         values = frames.columns[name][rows]
-        if feature["dtype"] == "image":
+        if feature["dtype"] in ("image", "video"):  # video: the frames before encoding, as LeRobot
             out[name] = image_stats(values)
         else:
             out[name] = column_stats(np.asarray(values).reshape(len(values), -1))
@@ -353,14 +367,14 @@ def write(frames: Frames, out: Path, sidecar: Mapping[str, Any], robot_type: str
 def _write_into(frames: Frames, root: Path, sidecar: Mapping[str, Any], robot_type: str | None) -> None:
     episodes = np.flatnonzero(np.diff(np.r_[-1, frames.episode_index]))  # first row of each
     bounds = list(zip(episodes, np.r_[episodes[1:], len(frames.episode_index)], strict=True))
-    names = list(frames.features)
-    hf_features = {n: _hf_feature(f) for n, f in frames.features.items()}
+    names = [n for n, f in frames.features.items() if f["dtype"] != "video"]  # the parquet's columns
+    hf_features = {n: _hf_feature(frames.features[n]) for n in names}
     per_episode: list[dict[str, Any]] = []
     # data files: episodes in order, a new file once one passes DATA_FILE_MB (LeRobot's rule)
     file_index, chunk_index, batch_start, batch_bytes = 0, 0, 0, 0
     files: list[tuple[int, int, int, int]] = []  # (chunk, file, first episode, end episode)
     for e, (start, end) in enumerate(bounds):
-        batch_bytes += _row_bytes(frames, slice(start, end))
+        batch_bytes += _row_bytes(frames, names, slice(start, end))
         if batch_bytes >= DATA_FILE_MB * 1024 * 1024 and e + 1 < len(bounds):
             files.append((chunk_index, file_index, batch_start, e + 1))
             batch_start, batch_bytes = e + 1, 0
@@ -395,13 +409,18 @@ def _write_into(frames: Frames, root: Path, sidecar: Mapping[str, Any], robot_ty
                     "stats": stats,
                 }
             )
+    videos = [n for n, f in frames.features.items() if f["dtype"] == "video"]
+    for record, placed in zip(
+        per_episode, write_videos(root, videos, frames.columns, bounds, frames.fps), strict=True
+    ):
+        record.update(placed)
     _write_meta(frames, root, per_episode, robot_type)
     (root / SIDECAR).write_text(json.dumps(sidecar, indent=2, sort_keys=True) + "\n")
 
 
-def _row_bytes(frames: Frames, rows: slice) -> int:
+def _row_bytes(frames: Frames, names: Sequence[str], rows: slice) -> int:
     total = 0
-    for name in frames.features:
+    for name in names:
         values = frames.columns[name][rows]
         total += sum(map(len, values)) if isinstance(values, list) else np.asarray(values).nbytes
     return total
@@ -444,18 +463,18 @@ def _write_meta(
         "total_tasks": len(frames.tasks),
         "chunks_size": CHUNKS_SIZE,
         "data_files_size_in_mb": DATA_FILE_MB,
-        "video_files_size_in_mb": 200,
+        "video_files_size_in_mb": VIDEO_FILE_MB,
         "fps": frames.fps,
         "splits": {"train": f"0:{len(per_episode)}"},
         "data_path": DATA_PATH,
-        "video_path": None,
+        "video_path": VIDEO_PATH if any(f["dtype"] == "video" for f in frames.features.values()) else None,
         "features": frames.features,
     }
     (meta / "info.json").write_text(json.dumps(info, indent=4) + "\n")
 
 
-def export_demos(source: Path, out: Path, repo_id: str) -> dict[str, Any]:
-    """`dvla-harness export lerobot SOURCE --out OUT`: returns info.json's counts."""
+def export_demos(source: Path, out: Path, repo_id: str, video: bool = False) -> dict[str, Any]:
+    """`dvla-harness export lerobot SOURCE --out OUT [--video]`: returns info.json's counts."""
     from adapters.registry import load_suite
     from harness.episode.latency import control_hz
 
@@ -469,7 +488,9 @@ def export_demos(source: Path, out: Path, repo_id: str) -> dict[str, Any]:
         ) from None
     if hz != int(hz):
         raise UsageError(f"{suite_name} runs at {hz} Hz; LeRobot's fps is an integer")
-    frames = frames_from_demos(table, manifest, int(hz))
+    if video:
+        check_video_source(source, manifest)
+    frames = frames_from_demos(table, manifest, int(hz), video)
     sidecar = {
         "format": "dvla-harness-lerobot/1",
         "repo_id": repo_id,
@@ -484,6 +505,10 @@ def export_demos(source: Path, out: Path, repo_id: str) -> dict[str, Any]:
         },
         "fps_from": f"the suite's control rate, {hz:g} Hz",
     }
+    if video:
+        sidecar["videos"] = (
+            "AV1 MP4 (libsvtav1 via imageio-ffmpeg's ffmpeg) with LeRobot's default encoder settings"
+        )
     write(frames, out, sidecar)
     info = json.loads((out / "meta" / "info.json").read_text())
     return {k: info[k] for k in ("codebase_version", "total_episodes", "total_frames", "total_tasks", "fps")}

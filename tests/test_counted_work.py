@@ -220,6 +220,47 @@ def test_multihead_attention_counts_what_torchs_flop_counter_counts(batch_first)
     counter.close()
 
 
+@pytest.mark.parametrize("threaded", [False, True])
+def test_multihead_attention_called_by_keyword_is_counted_alone_and_beside_threads(threaded):
+    """ACT's decoder calls its cross-attention as `multihead_attn(query=, key=, value=)`:
+    counted in a single-thread pass (the wrapped forward sees keywords) and beside another
+    thread, as in a server (the process-wide post-hook sees them; its pre-hook does not),
+    to torch's flop count of the same call."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    torch.manual_seed(0)
+    layer = torch.nn.Sequential(torch.nn.Linear(16, 16))  # a pass holding the attention
+    mha = torch.nn.MultiheadAttention(16, 4, kdim=12, vdim=10)
+    q, k, v = torch.randn(5, 2, 16), torch.randn(7, 2, 12), torch.randn(7, 2, 10)
+
+    class Decoder(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.layer, self.attention = layer, mha
+
+        def forward(self, x):
+            return self.attention(query=self.layer(x), key=k, value=v, need_weights=True)[0]
+
+    decoder = Decoder().train()  # torch's explicit bmm path, which its flop counter counts
+    with FlopCounterMode(display=False) as reference:
+        decoder(q)
+    stop = threading.Event()
+    alive = threading.Thread(target=stop.wait)
+    if threaded:
+        alive.start()
+    counter = NFECounter()
+    try:
+        with counter.counting():
+            decoder(q)
+    finally:
+        stop.set()
+        if threaded:
+            alive.join()
+    assert counter.take() == 1
+    assert counter.take_work().flops == reference.get_total_flops() > 0
+    counter.close()
+
+
 # ---- remote ------------------------------------------------------------------------
 
 

@@ -5,13 +5,14 @@ written. LeRobot's own reader reads the exports back in tests/lerobot/ (tox -e l
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
 from harness.export_lerobot import column_stats, histogram_quantile, pooled_stats
-from tests.lerobot_demos import LENGTHS, demos
+from tests.lerobot_demos import LENGTHS, demos, frame_number, smooth_frames
 
 
 def test_the_v3_layout_with_fps_from_the_suite_and_the_sidecar(cli, tmp_path):
@@ -75,3 +76,74 @@ def test_bad_sources_are_refused_with_nothing_written(cli, tmp_path):
         "export", "lerobot", str(tmp_path / "demos"), "--out", str(tmp_path / "x"), "--repo-id", "a b"
     )
     assert code == 2 and "--repo-id" in err and not (tmp_path / "x").exists()
+
+
+def decoded(path) -> list[np.ndarray]:
+    import imageio_ffmpeg
+
+    reader = imageio_ffmpeg.read_frames(str(path))
+    width, height = next(reader)["size"]
+    return [np.frombuffer(f, np.uint8).reshape(height, width, 3) for f in reader]
+
+
+def test_video_mode_writes_lerobots_video_layout(cli, tmp_path):
+    pytest.importorskip("imageio_ffmpeg")
+    source = demos(tmp_path / "demos", ("corner",), smooth_frames())
+    code, _, err = cli("export", "lerobot", str(tmp_path / "demos"), "--out", str(tmp_path / "ds"), "--video")
+    assert code == 0, err
+    root, key = tmp_path / "ds", "observation.images.corner"
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["video_path"] == "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+    feature = info["features"][key]
+    assert feature["dtype"] == "video" and feature["shape"] == [64, 96, 3]
+    assert {k: feature["info"][k] for k in ("video.codec", "video.pix_fmt", "video.fps", "video.g")} == {
+        "video.codec": "av1",
+        "video.pix_fmt": "yuv420p",
+        "video.fps": 80,
+        "video.g": 2,
+    }
+    # the parquet holds no image column: the frames live in the video only
+    assert key not in pq.read_table(root / "data" / "chunk-000" / "file-000.parquet").column_names
+    episodes = pq.read_table(root / "meta" / "episodes" / "chunk-000" / "file-000.parquet").to_pydict()
+    ends = np.cumsum(LENGTHS)
+    assert episodes[f"videos/{key}/from_timestamp"] == pytest.approx((np.r_[0, ends[:-1]] / 80).tolist())
+    assert episodes[f"videos/{key}/to_timestamp"] == pytest.approx((ends / 80).tolist())
+    assert (
+        episodes[f"videos/{key}/file_index"] == [0] * 4 and episodes[f"videos/{key}/chunk_index"] == [0] * 4
+    )
+    assert len(episodes[f"stats/{key}/mean"][0]) == 3  # per channel, from the frames before encoding
+    frames = decoded(root / "videos" / key / "chunk-000" / "file-000.mp4")
+    assert [frame_number(f) for f in frames] == list(range(sum(LENGTHS)))  # every frame, in order
+    error = np.abs(np.stack(frames).astype(int) - source["image"]).mean(axis=(1, 2, 3))
+    assert error.max() < 4, error  # lossy: a few levels of 255 (docs/lerobot.md)
+
+
+def test_video_mode_refuses_what_it_cannot_encode(cli, tmp_path, monkeypatch):
+    out = tmp_path / "ds"
+    demos(tmp_path / "state")
+    code, _, err = cli("export", "lerobot", str(tmp_path / "state"), "--out", str(out), "--video")
+    assert code == 2 and "no camera images" in err and not out.exists()
+    demos(tmp_path / "odd", ("corner",), [np.zeros((5, 6, 3), np.uint8)] * sum(LENGTHS))
+    code, _, err = cli("export", "lerobot", str(tmp_path / "odd"), "--out", str(out), "--video")
+    assert code == 2 and "even height and width" in err and not out.exists()
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # the `video` extra not installed
+    demos(tmp_path / "camera", ("corner",), smooth_frames())
+    code, _, err = cli("export", "lerobot", str(tmp_path / "camera"), "--out", str(out), "--video")
+    assert code == 2 and '".[video]"' in err and not out.exists()
+
+
+def test_an_episode_spec_without_an_initial_state_id_exports_minus_one(tmp_path):
+    """LIBERO's fresh initial states have no id (null in steps.parquet): -1, not a cast NaN."""
+    import pyarrow as pa
+
+    from harness.export_lerobot import export_demos
+
+    demos(tmp_path / "demos")
+    steps = pq.read_table(tmp_path / "demos" / "steps.parquet")
+    column = steps.schema.get_field_index("init_state_id")
+    nulls = pa.nulls(steps.num_rows, steps.schema.field(column).type)
+    pq.write_table(steps.set_column(column, "init_state_id", nulls), tmp_path / "demos" / "steps.parquet")
+    export_demos(tmp_path / "demos", tmp_path / "ds", "local/ds")
+    data = pq.read_table(tmp_path / "ds" / "data" / "chunk-000" / "file-000.parquet")
+    assert set(data.column("harness.init_state_id").to_pylist()) == {-1}
+    assert data.column("harness.seed").to_pylist()[0] == 1000

@@ -100,7 +100,17 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from harness.episode.work import ATTENTION, LINEAR, NO_WORK, Work, attention_work, cost_of, unseen_kind
+from harness.episode.work import (
+    ATTENTION,
+    LINEAR,
+    MULTIHEAD,
+    NO_WORK,
+    Work,
+    attention_work,
+    cost_of,
+    in_reach,
+    unseen_kind,
+)
 
 _starts_pass_cache: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
 _counting: NFECounter | None = None  # the counter inside counting(), if any
@@ -165,7 +175,9 @@ class _Counted:
                 if opened is not None and opened is not module:
                     if args:
                         counter._flops += per_element * args[0].numel()
-                    else:  # the input passed by keyword: its shape is not in reach
+                    elif "input" in kwargs:
+                        counter._flops += per_element * kwargs["input"].numel()
+                    else:  # no input in reach
                         counter._flops_measured = False
                 return inner(*args, **kwargs)
         else:
@@ -173,7 +185,7 @@ class _Counted:
             def forward(*args: Any, **kwargs: Any) -> Any:
                 opened = counter._pass_module
                 if opened is not None and opened is not module:
-                    counter._count(module, args, cost, counter._pass_tid)
+                    counter._count(module, in_reach(cost, args, kwargs), cost, counter._pass_tid)
                 return inner(*args, **kwargs)
 
         module.__dict__["forward"] = forward
@@ -279,7 +291,7 @@ class NFECounter:
         if depth:
             self._depths[tid] = depth + 1
             cost = cost_of(module)
-            if cost is not None:
+            if cost is not None and cost is not MULTIHEAD:  # which _exit counts, keywords and all
                 self._count(module, args, cost, tid)
         elif starts_pass(module):
             self.count += 1
@@ -292,18 +304,22 @@ class NFECounter:
             # other threads may call modules meanwhile (or `module` takes no hooks of its
             # own, a TorchScript module): keep the process-wide hooks on, nest per thread
             if self._post is None:
-                self._post = self._hooks.register_module_forward_hook(self._exit, always_call=True)
+                self._post = self._hooks.register_module_forward_hook(
+                    self._exit, with_kwargs=True, always_call=True
+                )
             self._depths[tid] = 1
         else:
             cost = cost_of(module)
             if cost is not None:  # outside any pass (an attention or PackedLinear on its own)
                 self._count(module, args, cost, tid)
 
-    def _exit(self, module: Any, args: Any, output: Any) -> None:
+    def _exit(self, module: Any, args: Any, kwargs: dict[str, Any], output: Any) -> None:
         tid = threading.get_ident()
         depth = self._depths.get(tid, 0)
         if depth:
             self._depths[tid] = depth - 1
+            if depth > 1 and cost_of(module) is MULTIHEAD:  # inside a pass, not the pass's own module
+                self._count(module, in_reach(MULTIHEAD, args, kwargs), MULTIHEAD, tid)
 
     def _open_pass(self, module: Any, args: Any, frame: Any, tid: int) -> bool:
         """One thread: the process-wide hooks come off until `module` returns (False,

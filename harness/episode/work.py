@@ -18,9 +18,18 @@ convention of `torch.utils.flop_counter` (which counts the same products the sam
 - nn.MultiheadAttention (LeRobot's ACT, among others): its four projections (2 * rows *
   in_features * embed_dim each for queries, keys and values, 2 * query rows * embed_dim^2
   for the output) and its attention as above, with E + Ev = 2 * embed_dim over all heads.
+A counted module's tensors are read whether passed by position or by keyword (LeRobot's
+ACT calls its decoder's cross-attention as `multihead_attn(query=..., key=..., value=...)`):
+a single-thread pass wraps the module's `forward`, which sees both; beside other threads
+(a server's connection threads) the process-wide pre-hook sees only positional arguments
+(torch offers no keyword arguments to a process-wide pre-hook), so nn.MultiheadAttention is
+counted there by the process-wide post-hook, which does see them (`with_kwargs`).
+nn.MultiheadAttention gives FLOPs only: its query and key positions are not token figures
+(those come from this project's `Attention` above), so a policy built on it has FLOPs
+and null tokens.
 Norms, embeddings (a lookup), activations, softmax and elementwise ops are not counted:
 they are a small share of a pass and change with it. A module of another kind that
-holds parameters of its own (a custom layer calling F.linear, nn.MultiheadAttention)
+holds parameters of its own (a custom layer calling F.linear, nn.ConvTranspose1d)
 could do any amount of work unseen: a pass of a model that contains one leaves the
 policy call's FLOPs not measured (null), never an under-count presented as a count.
 
@@ -190,7 +199,28 @@ COUNTED: dict[tuple[str, str], Callable[[Any, tuple], int | None]] = {
     ("policies.dvla.model", "Attention"): _attention,
     ("torch.nn.modules.activation", "MultiheadAttention"): _multihead_attention,
 }
-ATTENTION, LINEAR = _attention, _linear
+ATTENTION, LINEAR, MULTIHEAD = _attention, _linear, _multihead_attention
+# The names of each counted kind's leading parameters, for a call that passes them by keyword
+KEYWORDS: dict[Callable[[Any, tuple], int | None], tuple[str, ...]] = {
+    _linear: ("input",),
+    _conv: ("input",),
+    _multihead_attention: ("query", "key", "value"),
+}
+
+
+def in_reach(cost: Callable[[Any, tuple], int | None], args: tuple, kwargs: dict[str, Any]) -> tuple:
+    """A call's leading arguments as one tuple, those it passed by keyword appended in
+    their positional order, so a kind's count sees them either way."""
+    if not kwargs:
+        return args
+    names, extra = KEYWORDS.get(cost, ()), []
+    for name in names[len(args) :]:
+        if name not in kwargs:
+            break
+        extra.append(kwargs[name])
+    return (*args, *extra)
+
+
 # Kinds that hold parameters but compute no matrix product: they do not make a pass's
 # FLOPs unmeasurable.
 NO_PRODUCTS = frozenset(

@@ -1,7 +1,8 @@
 """A LeRobot ACT, built from its config (no pretrained weights), saved as `lerobot-train`
 saves it, served by `dvla-harness serve --policy lerobot:path=DIR` and evaluated through
-`--policy remote:url=...`: the rows carry the served policy's NFE as the harness's hooks
-count them, and the actions are LeRobot's own. Runs in the LeRobot
+`--policy remote:url=...`: the rows carry the served policy's NFE and counted work (FLOPs)
+as the harness's hooks count them, checked against torch's flop counter, and the actions
+are LeRobot's own. Runs in the LeRobot
 environment (tox -e lerobot)."""
 
 from __future__ import annotations
@@ -65,6 +66,19 @@ def act_folder(tmp_path_factory) -> Path:
     return tiny_act(tmp_path_factory.mktemp("act"))
 
 
+def act_flops_per_pass(folder: Path) -> int:
+    """FLOPs of one ACT chunk decode as torch.utils.flop_counter counts them, on LeRobot's
+    own policy (not the bridge): the reference for the served rows."""
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from torch.utils.flop_counter import FlopCounterMode
+
+    policy = ACTPolicy.from_pretrained(folder)
+    batch = {STATE: torch.zeros(1, 4), ENV_STATE: torch.zeros(1, 39)}
+    with torch.inference_mode(), FlopCounterMode(display=False) as flops:
+        policy.predict_action_chunk(batch)
+    return flops.get_total_flops()
+
+
 def test_served_act_rows_carry_its_passes(act_folder, serve_process, tmp_path):
     from harness.cli import main
 
@@ -74,13 +88,13 @@ def test_served_act_rows_carry_its_passes(act_folder, serve_process, tmp_path):
     assert main(["run", "--suite", suite, "--policy", f"remote:url={url}", "--episodes-per-task", "2",
                  "--out", str(out)]) in (0, 1)  # fmt: skip
     rows = pd.read_parquet(out / "episodes.parquet")
+    per_pass = act_flops_per_pass(act_folder)
     assert len(rows) == 2 and rows["failure_reason"].isna().all(), rows["failure_reason"].tolist()
     for row in rows.itertuples():
         # one call per step; ACT decodes a chunk on every STEPS-th and serves the rest from its queue
         assert row.nfe_total == math.ceil(row.steps / STEPS) > 0
-        # ACT's decoder calls its cross-attention with keyword arguments, whose shapes the
-        # process-wide hooks cannot see: its FLOPs are not measured (null), never a part count
-        assert math.isnan(row.flops_total)
+        # counted work, its cross-attention's keyword arguments included: torch's count per pass
+        assert row.flops_total == row.nfe_total * per_pass
 
 
 def test_the_bridge_acts_as_lerobots_own_select_action(act_folder):
@@ -113,3 +127,43 @@ def test_the_bridge_acts_as_lerobots_own_select_action(act_folder):
             expected = np.clip(post(policy.select_action(pre(batch))).numpy(), -1, 1)
         assert got.shape == (1, 1, 4)
         np.testing.assert_array_equal(got[0], expected)
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_acts_counted_work_is_torchs_flop_count_on_the_same_call(act_folder, threaded):
+    """The NFE hooks' FLOPs of each bridge call (a chunk decode, or a step served from the
+    queue) against FlopCounterMode around the same call: alone, the single-thread pass
+    that wraps the counted modules; beside another thread (as in a server), the
+    process-wide hooks, whose pre-hook does not see keyword arguments."""
+    import threading
+
+    import gymnasium as gym
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from harness.episode.nfe import NFECounter
+    from policies.base import EpisodeContext
+    from policies.lerobot import LeRobotParams, LeRobotPolicy
+
+    bridge = LeRobotPolicy(LeRobotParams(path=str(act_folder)))
+    space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (39,), np.float64)
+    bridge.reset([EpisodeContext("metaworld/mt10", "reach-v3", "reach", space, observation_space, 500, 0)])
+    counter = NFECounter(bridge)
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    if threaded:
+        other.start()
+    try:
+        rng = np.random.default_rng(0)
+        decodes = 0
+        for _ in range(STEPS + 1):
+            with counter.counting(), FlopCounterMode(display=False) as flops:
+                bridge.act([rng.normal(size=39).astype(np.float32)])
+            passes, work = counter.take(), counter.take_work()
+            decodes += passes
+            assert work.flops == flops.get_total_flops() and (work.flops > 0) == (passes == 1)
+        assert decodes == 2  # a chunk, its queue, the next chunk
+    finally:
+        stop.set()
+        if threaded:
+            other.join()

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("lerobot", reason="LeRobot's environment only: tox -e lerobot (docs/lerobot.md)")
 
 from harness.export_lerobot import ENV_STATE, STATE, export_demos
-from tests.lerobot_demos import INSTRUCTIONS, LENGTHS, demos
+from tests.lerobot_demos import INSTRUCTIONS, LENGTHS, demos, lerobot_writes
 
 
 @pytest.mark.parametrize("cameras", [(), ("corner",)])
@@ -51,40 +51,28 @@ def test_lerobots_reader_gives_back_every_frame(tmp_path, cameras):
 def test_statistics_are_lerobots_own_for_the_same_frames(tmp_path):
     """The same frames written by LeRobot's writer (add_frame, save_episode, finalize):
     every statistic of every feature agrees, quantiles and single-frame episodes included."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     frames = demos(tmp_path / "demos", ("corner",))
     export_demos(tmp_path / "demos", tmp_path / "ours", "local/ours")
     ours = json.loads((tmp_path / "ours" / "meta" / "info.json").read_text())["features"]
-    theirs = LeRobotDataset.create(
-        "local/theirs",
-        fps=80,
-        features={
-            k: v
-            for k, v in ours.items()
-            if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")
-        },
-        root=tmp_path / "theirs",
-        use_videos=False,
-    )
-    i = 0
-    for episode, length in enumerate(LENGTHS):
-        for _ in range(length):
-            theirs.add_frame(
-                {
-                    STATE: frames["state"][i][:4],
-                    ENV_STATE: frames["state"][i],
-                    "observation.images.corner": frames["image"][i],
-                    "action": frames["action"][i],
-                    "harness.seed": np.array([1000 + episode]),
-                    "harness.init_state_id": np.array([episode]),
-                    "harness.episode_index": np.array([10 + episode]),
-                    "task": INSTRUCTIONS[episode % 2],
-                }
-            )
-            i += 1
-        theirs.save_episode()
-    theirs.finalize()
+    features = {
+        k: v
+        for k, v in ours.items()
+        if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")
+    }
+
+    def frame(episode: int, i: int) -> dict:
+        return {
+            STATE: frames["state"][i][:4],
+            ENV_STATE: frames["state"][i],
+            "observation.images.corner": frames["image"][i],
+            "action": frames["action"][i],
+            "harness.seed": np.array([1000 + episode]),
+            "harness.init_state_id": np.array([episode]),
+            "harness.episode_index": np.array([10 + episode]),
+        }
+
+    lerobot_writes(tmp_path / "theirs", features, frame)
     expected = json.loads((tmp_path / "theirs" / "meta" / "stats.json").read_text())
     got = json.loads((tmp_path / "ours" / "meta" / "stats.json").read_text())
     assert set(got) == set(expected)
