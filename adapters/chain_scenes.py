@@ -46,7 +46,7 @@ DATA = Path(__file__).resolve().parent / "chain_data"
 # its first failure, no reset between subtasks. shared/notes/dvla-reference.md section 3.
 SUBTASKS_PER_CHAIN = 5
 STEPS_PER_SUBTASK = 360
-# CALVIN evaluates NUM_SEQUENCES = 1000 chains: 200 stored per scene over the five scenes.
+# CALVIN evaluates NUM_SEQUENCES = 1000 chains: 200 stored per scene, 1,200 over the six scenes.
 CHAINS_PER_SCENE = 200
 # LIBERO's initial-state files hold 50 states per task: chain j starts from state j % 50,
 # so the first 50 chains (the documented smoke prefix) start from 50 different states.
