@@ -46,8 +46,11 @@ DATA = Path(__file__).resolve().parent / "chain_data"
 # its first failure, no reset between subtasks. shared/notes/dvla-reference.md section 3.
 SUBTASKS_PER_CHAIN = 5
 STEPS_PER_SUBTASK = 360
-# CALVIN evaluates NUM_SEQUENCES = 1000 chains: 200 stored per scene over the five scenes.
+# CALVIN evaluates NUM_SEQUENCES = 1000 chains: 200 stored per scene over the five scenes
+# `chains/all` runs (CALVIN_SCENES); a scene added later is a suite of its own, so that
+# `chains/all` keeps CALVIN's count and the rows and tables made with it keep their meaning.
 CHAINS_PER_SCENE = 200
+CALVIN_SCENES = ("kitchen_scene1", "kitchen_scene3", "kitchen_scene8", "libero_goal", "living_room_scene3")
 # LIBERO's initial-state files hold 50 states per task: chain j starts from state j % 50,
 # so the first 50 chains (the documented smoke prefix) start from 50 different states.
 INITIAL_STATES = 50

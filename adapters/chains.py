@@ -202,7 +202,7 @@ def _split_name(name: str) -> tuple[list[str], str, str]:
             f"unknown suite {base!r}; chain suites: {', '.join(PREFIX + s for s in [*scenes, ALL])} "
             "(options as LIBERO's: chains/all:obs=images,seeding=openpi)"
         )
-    return (scenes if key == ALL else [key]), key, opts
+    return (list(cs.CALVIN_SCENES) if key == ALL else [key]), key, opts
 
 
 # The train split's chains (what `collect` reads): sampled on the fly with this seed plus
@@ -353,7 +353,9 @@ def load_suite(name: str, split: str = "eval") -> Suite:
 def list_suites() -> list[SuiteInfo]:
     installed, scenes = libero_sim.installed(), cs.scene_names()
     rows = [(f"{PREFIX}{name}", f"CALVIN-like chains in LIBERO scene {name}", 1) for name in scenes]
-    rows.append((f"{PREFIX}{ALL}", "CALVIN-like chains in every chain scene", len(scenes)))
+    rows.append(
+        (f"{PREFIX}{ALL}", "CALVIN-like chains in the five scenes of CALVIN's 1,000", len(cs.CALVIN_SCENES))
+    )
     return [
         SuiteInfo(name, desc, n, cs.CHAINS_PER_SCENE, libero_sim.EXTRA, installed) for name, desc, n in rows
     ]

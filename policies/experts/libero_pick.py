@@ -168,6 +168,11 @@ class PickPlace:
     # `In` a region of a container with a known floor (Geometry.inner): its pose and geometry
     container: slice | None = None
     container_geom: Geometry | None = None
+    # A container with a known floor the goal does not name, which `obj` may rest in (a
+    # chain's take-out): its pose and geometry. Gripped there, the hand closes along the
+    # container's long side (`_in_source`).
+    source: slice | None = None
+    source_geom: Geometry | None = None
     # `On` the top surface of a piece of furniture (Geometry.surface): its pose and geometry
     surface: slice | None = None
     surface_geom: Geometry | None = None
@@ -195,9 +200,11 @@ class PickPlaceExpert:
         """Whether an object held by its handle is still on its way down: LIBERO counts a
         moka pot On the stove's cook region ~3 cm above the burner, so a chain's next
         subtask begins there, and let go there the pot fell and lay on its side, where no
-        handle grip reaches it (chains/kitchen_scene3, chain 5). A chain's handover lets
-        the placement finish (policies/experts/libero_select.py, `lowering`)."""
-        return self.phase == "lower" and self.plan.obj_geom.grip_xy != (0.0, 0.0)
+        handle grip reaches it (chains/kitchen_scene3, chain 5); likewise a bottle that
+        tips when dropped (`Geometry.set_down`). A chain's handover lets the placement
+        finish (policies/experts/libero_select.py, `lowering`)."""
+        g = self.plan.obj_geom
+        return self.phase == "lower" and (g.grip_xy != (0.0, 0.0) or g.set_down)
 
     def _grip_point(self, obs: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
         pos = obs[self.plan.obj][:3]
@@ -210,6 +217,9 @@ class PickPlaceExpert:
             # on its +x side; otherwise the +y side, as the shipped demonstrations were)
             toward = 0 if self.plan.across is not None else 1
             axis = closing_axis * np.sign(closing_axis[toward] or 1.0)
+            if self._in_source(obs):  # the side toward the container's centre, clear of its walls
+                inward = obs[self.plan.source][:2] - pos[:2]
+                axis = closing_axis * np.sign(float(closing_axis[:2] @ inward) or 1.0)
             point[:2] += g.rim * axis[:2] / max(np.linalg.norm(axis[:2]), 1e-6)
         return point
 
@@ -222,6 +232,8 @@ class PickPlaceExpert:
             # In a drawer: the front and back walls are too close to the rim for a finger,
             # the side walls are not, so close along the cabinet's x axis (across the drawer).
             want = quat_to_mat(obs[cabinet][3:7])[:, 0]
+        elif g.align < 0 and self._in_source(obs):
+            want = quat_to_mat(obs[self.plan.source][3:7])[:, 0]
         elif g.align >= 0:
             want = quat_to_mat(obs[self.plan.obj][3:7])[:, g.align]
         else:
@@ -238,6 +250,18 @@ class PickPlaceExpert:
             if np.sign(angle) != self.unwind:
                 angle += np.pi * self.unwind
         return yaw_matrix(angle) @ self.home_rot
+
+    def _in_source(self, obs: np.ndarray) -> bool:
+        """Whether the object rests inside `plan.source` (over its floor). A tray's walls
+        stand 3.2 cm beyond its floor across its short side: a bowl in it gripped at its
+        rim along that side put the outer finger on the wall (chains/living_room_scene4,
+        every take-out of the bowl), so the hand closes along the long side instead."""
+        plan = self.plan
+        if plan.source is None or plan.source_geom is None or plan.source_geom.inner is None:
+            return False
+        rot = quat_to_mat(obs[plan.source][3:7])[:2, :2]
+        local = np.abs(rot.T @ (obs[plan.obj][:2] - obs[plan.source][:2]))
+        return bool((local <= np.asarray(plan.source_geom.inner)).all())
 
     def _grasp(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gripper orientation and grip point. A flat box may be gripped off-centre along

@@ -169,6 +169,9 @@ def plan_for(context: EpisodeContext) -> PickPlace:
     container = None
     if not entity and holder_name != target and holder_name in slices and geometry(holder_name).inner:
         container = holder_name
+    source = next(  # a container the object may be taken out of (a chain's take-out)
+        (n for n in entities if n != container and n in slices and geometry(n).inner and not entity), None
+    )
     furniture = target.removesuffix("_top_side")
     if entity or furniture == target or furniture not in slices or not geometry(furniture).surface:
         furniture = None
@@ -192,6 +195,8 @@ def plan_for(context: EpisodeContext) -> PickPlace:
         container_geom=geometry(container) if container else None,
         surface=slices[furniture] if furniture else None,
         surface_geom=geometry(furniture) if furniture else None,
+        source=slices[source] if source else None,
+        source_geom=geometry(source) if source else None,
     )
 
 
@@ -266,7 +271,7 @@ def lowering(expert: object) -> OpenThenExpert | PickPlaceExpert | None:
     5 at first), the bowl fell onto the drawer's front wall and wedged under the
     cabinet's top; the handover lets the placement finish first (PLACE_Y_DEEPER in
     policies/experts/libero_drawer.py says why it then fits). Likewise a pot held by its
-    handle (`PickPlaceExpert.lowering`)."""
+    handle or a bottle that tips (`PickPlaceExpert.lowering`)."""
     from policies.experts.libero_drawer import OpenThenExpert
 
     expert = _unwrapped(expert)
@@ -276,14 +281,18 @@ def lowering(expert: object) -> OpenThenExpert | PickPlaceExpert | None:
 def placed(expert: object) -> bool:
     """Whether a chain's last subtask put something into a drawer or on a piece of
     furniture's top, or put down something held by its handle (the opening fingers drag
-    a handle): revision 5 lets go of it in place and rises first. (Into a tray it
+    a handle) or a bottle that tips (`Geometry.set_down`): revision 5 lets go of it in place and rises first. (Into a tray it
     moves at once, as revisions 1-4 did: opening in place there lost 1 of 20 tray chains.)"""
     from policies.experts.libero_drawer import OpenThenExpert
 
     expert = _unwrapped(expert)
     return isinstance(expert, OpenThenExpert) or (
         isinstance(expert, PickPlaceExpert)
-        and (expert.plan.surface is not None or expert.plan.obj_geom.grip_xy != (0.0, 0.0))
+        and (
+            expert.plan.surface is not None
+            or expert.plan.obj_geom.grip_xy != (0.0, 0.0)
+            or expert.plan.obj_geom.set_down
+        )
     )
 
 
