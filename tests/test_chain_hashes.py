@@ -98,6 +98,6 @@ def test_the_manifest_records_the_hashes_of_the_chains_that_ran():
     recorded = cs.recorded_hashes()
     suite = chains.load_suite("chains/all")
     assert suite.provenance["chains_sha256"] == ", ".join(
-        f"{s} {recorded[f'{s}.chains.json']}" for s in cs.scene_names()
+        f"{s} {recorded[f'{s}.chains.json']}" for s in cs.CALVIN_SCENES
     )
     assert "chains_sha256" not in chains.load_suite(f"chains/{SCENE}", split="train").provenance
