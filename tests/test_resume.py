@@ -232,16 +232,18 @@ def test_ctrl_c_while_compacting_stops_in_one_line_and_loses_no_row(cli, tmp_pat
     assert code == 0 and pq.read_table(out / "episodes.parquet").num_rows == 3
 
 
+def resolving_to(name: str, config_suite: str, episodes: int):
+    """A fake run whose suite resolved to `name` from `--suite config_suite`."""
+    resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=episodes)
+    resolved.suite = dataclasses.replace(resolved.suite, name=name)
+    resolved.config = dataclasses.replace(resolved.config, suite=config_suite)
+    return resolved
+
+
 def test_a_suite_default_that_changed_is_named_and_naming_the_recorded_protocol_resumes(tmp_path):
     """The suite is compared by the name it resolved to: the same --suite resolving to
     another protocol (LIBERO's seeding default) is refused with the fix, and naming the
     recorded protocol explicitly is the same suite."""
-
-    def resolving_to(name: str, config_suite: str, episodes: int):
-        resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=episodes)
-        resolved.suite = dataclasses.replace(resolved.suite, name=name)
-        resolved.config = dataclasses.replace(resolved.config, suite=config_suite)
-        return resolved
 
     out = tmp_path / "run"
     run(resolving_to("fake/countdown:seeding=old", "fake/countdown", 2), out)
@@ -260,12 +262,6 @@ def test_a_libero_pro_lan_folder_named_before_the_instruction_option_gets_a_hint
     """A lan/task folder recorded before `instruction=` heard the BDDL's words; no --suite
     resolves to its old name any more, so the refusal must not say "name the recorded one"
     but name the suite that runs that protocol now (instruction=bddl) and say to start anew."""
-
-    def resolving_to(name: str, config_suite: str, episodes: int):
-        resolved = fake_resolved(ChunkPolicy(chunk=2), episodes=episodes)
-        resolved.suite = dataclasses.replace(resolved.suite, name=name)
-        resolved.config = dataclasses.replace(resolved.config, suite=config_suite)
-        return resolved
 
     out = tmp_path / "run"
     legacy = "libero/object:perturb=lan,seeding=openvla"
