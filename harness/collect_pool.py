@@ -74,16 +74,21 @@ def _sigint_ignored() -> Iterator[None]:
 
 
 def _stop_workers(pool: Any) -> None:
-    """Kill the pool's worker processes now: shutdown() alone would wait for the ranges
-    they are running (minutes) after an error, Ctrl-C or SIGTERM. ProcessPoolExecutor has
-    no public way before Python 3.14 (kill_workers)."""
-    kill = getattr(pool, "kill_workers", None)
-    if callable(kill):
-        kill()
+    """Kill the pool's worker processes, and whatever they started, now: shutdown() alone
+    would wait for the ranges they are running (minutes) after an error, Ctrl-C or
+    SIGTERM. ProcessPoolExecutor keeps its processes in `_processes`; Python 3.14's
+    kill_workers is the fallback where that is gone (it kills the workers only)."""
+    from harness.backends.pool import kill_tree
+
+    processes = getattr(pool, "_processes", None)
+    if processes is None:
+        kill = getattr(pool, "kill_workers", None)
+        if callable(kill):
+            kill()
         return
-    for process in list((getattr(pool, "_processes", None) or {}).values()):
-        with contextlib.suppress(OSError, ValueError):
-            process.kill()
+    for process in list(processes.values()):
+        if process.pid is not None:
+            kill_tree(process.pid)
 
 
 def collect_in_processes(

@@ -79,3 +79,44 @@ def test_no_process_of_the_collection_outlives_its_parent(tmp_path, stop):
             "run the same command again"
         ]
     assert not out.exists() and not out.with_name(out.name + ".tmp").exists()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_a_stopped_worker_takes_its_own_children_with_it():
+    """A worker killed alone left its children (glfw's library probe, a Python child that
+    mujoco's import starts) to print BrokenPipeError tracebacks after collect had said it
+    stopped; a child that ignores SIGINT, as the workers' children do, goes too."""
+    from harness.backends.pool import kill_tree
+
+    script = (
+        "import signal, subprocess, sys, time\n"
+        "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+        'below = \'import subprocess, time; print(subprocess.Popen(["sleep", "60"]).pid, flush=True); time.sleep(60)\'\n'
+        "child = subprocess.Popen([sys.executable, '-c', below])\n"
+        "print(child.pid, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    worker = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:  # the child's pid, and its own child's (a grandchild of the worker), in either order
+        below = [int(worker.stdout.readline()) for _ in range(2)]
+        assert len(below) == 2 and all(_alive(pid) for pid in below)
+        kill_tree(worker.pid)
+        assert worker.wait(timeout=10) == -signal.SIGKILL
+        assert _until(lambda: not any(_alive(pid) for pid in below), 10), [_alive(p) for p in below]
+    finally:
+        worker.kill()
+
+
+def test_killing_a_tree_whose_worker_is_gone_is_quiet():
+    from harness.backends.pool import kill_tree
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    kill_tree(gone.pid)  # reaped already: nothing to kill, no error

@@ -20,6 +20,7 @@ import ctypes
 import os
 import signal
 from multiprocessing import connection, get_context
+from pathlib import Path
 from typing import Any
 
 from harness.backends.local import WorkerSpec, start_worker
@@ -53,6 +54,38 @@ def die_with_parent(parent: int | None = None) -> None:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     if parent is not None and os.getppid() != parent:
         os._exit(1)
+
+
+def _children(pid: int) -> list[int]:
+    """`pid`'s child processes, from /proc (Linux; none elsewhere or once it is gone)."""
+    found: list[int] = []
+    with contextlib.suppress(OSError):
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            with contextlib.suppress(OSError, ValueError):
+                found += [int(c) for c in (task / "children").read_text().split()]
+    return found
+
+
+def kill_tree(pid: int) -> None:
+    """SIGKILL a worker and every process under it. A worker may have children of its own
+    (glfw's library probe runs a Python child while mujoco imports); killed alone, it
+    leaves them to write into a pipe nobody reads, and their BrokenPipeError tracebacks
+    land on the user's terminal after the run has said it stopped. Each process is
+    stopped (SIGSTOP) before its children are listed, so none can start another unseen."""
+    stopped: list[int] = []
+    pending = [pid]
+    while pending:
+        current = pending.pop()
+        with contextlib.suppress(OSError):
+            os.kill(current, signal.SIGSTOP)
+            stopped.append(current)
+            pending += _children(current)
+    for target in reversed(stopped):  # the deepest first, the worker last
+        with contextlib.suppress(OSError):
+            os.kill(target, signal.SIGKILL)
+    if not stopped:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
 
 
 def worker_main(conn: Any, worker_id: str, spec: WorkerSpec) -> None:
@@ -147,7 +180,8 @@ class ProcessWorkers:
     def kill(self, slot: int) -> None:
         if slot in self.procs:
             proc = self._forget(slot)
-            proc.kill()
+            if proc.pid is not None:
+                kill_tree(proc.pid)
             proc.join(5)
 
     def shutdown(self) -> None:
@@ -157,6 +191,6 @@ class ProcessWorkers:
         for slot in list(self.procs):
             proc = self._forget(slot)
             proc.join(2)
-            if proc.is_alive():
-                proc.kill()
+            if proc.is_alive() and proc.pid is not None:
+                kill_tree(proc.pid)
                 proc.join(5)
