@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.vlaeval_runs import (
     REPO,
+    fresh_output,
     machine,
     recorded_episodes,
     served,
@@ -191,7 +192,9 @@ def main() -> None:
             # vla-eval runs in its own processes while this one runs ours: the two share no
             # state, and on a shared machine the pair takes about the time of the slower one
             print("vla-eval: its LIBERO benchmark against dvla-harness serve --protocol vla-eval")
-            config = vla_eval_config(url, args.suite, args.episodes, args.tasks, work / "results")
+            config = vla_eval_config(
+                url, args.suite, args.episodes, args.tasks, fresh_output(work / "results")
+            )
             there = pool.submit(vla_eval_run, args.vla_eval_python, config, work)
             ours, here_s = run_here(args, demos, saved)
             there_s = round(there.result()[0], 1)

@@ -13,6 +13,7 @@ import json
 import os
 import platform
 import re
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -101,6 +102,15 @@ def vla_eval_config(url: str, suite_key: str, episodes: int, tasks: int, out: Pa
             }
         ],
     }
+
+
+def fresh_output(out: Path) -> Path:
+    """vla-eval's output folder, emptied: a run whose eval id already has a recording there
+    resumes it (its shards skip the episodes recorded), and `recorded_episodes` reads every
+    recording in it, so a second run into one folder would time and count the first's."""
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    return out
 
 
 def vla_eval_run(python: str, config: dict[str, Any], folder: Path, *extra: str) -> tuple[float, float, Path]:

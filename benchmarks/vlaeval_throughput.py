@@ -41,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.vlaeval_runs import (
     REPO,
     environment,
+    fresh_output,
     machine,
     recorded_episodes,
     uptime,
@@ -89,7 +90,7 @@ def through_vla_eval(args: argparse.Namespace, demos: Path, work: Path) -> dict[
     try:
         wait_healthy(port, server)
         config = vla_eval_config(
-            f"ws://127.0.0.1:{port}", args.suite, args.episodes, args.tasks, work / "results"
+            f"ws://127.0.0.1:{port}", args.suite, args.episodes, args.tasks, fresh_output(work / "results")
         )
         config["benchmarks"][0]["params"].pop("quat_no_antipodal")  # its default: what its users run
         (work / "eval.yaml").write_text(json.dumps(config))
@@ -122,6 +123,10 @@ def through_vla_eval(args: argparse.Namespace, demos: Path, work: Path) -> dict[
     if any(codes):
         raise SystemExit(f"a vla-eval shard failed ({codes}); see {work}")
     episodes = recorded_episodes(work / "results")
+    if len(episodes) != args.tasks * args.episodes:
+        raise SystemExit(
+            f"vla-eval recorded {len(episodes)} episodes, not {args.tasks * args.episodes}; see {work}"
+        )
     return {
         "harness": f"vla-eval, {args.shards} shards, its own PredictModelServer",
         "episodes": len(episodes),
