@@ -52,25 +52,36 @@ def _worker_job(
 def _worker_started(parent: int) -> None:
     """A collection worker's first act: die with the parent (the kernel's SIGKILL when it
     is killed, as `run`'s workers do; harness/backends/pool.py). Ctrl-C is the parent's
-    (the terminal sends SIGINT to the whole group): the worker was born ignoring it."""
+    (the terminal sends SIGINT to the whole group): the worker was born with it blocked,
+    and from here on ignores it (so do the processes it starts)."""
     from harness.backends.pool import die_with_parent
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C held since its birth is dropped
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     die_with_parent(parent)
 
 
 @contextlib.contextmanager
 def _sigint_ignored() -> Iterator[None]:
-    """SIGINT ignored while the workers are spawned: an ignored signal stays ignored across
-    exec, and Python keeps it so, so a Ctrl-C that reaches a worker still importing (the
-    terminal signals the whole group) cannot print its traceback. Main thread only."""
+    """SIGINT blocked while the workers are spawned: a spawned interpreter keeps the mask it
+    was born with, so a Ctrl-C that reaches a worker still importing (the terminal signals
+    the whole group) waits until `_worker_started` ignores it, instead of printing its
+    traceback. The parent's own Ctrl-C in that window is held, not lost: recorded by a
+    handler of this window (another thread may take the signal), then raised as
+    KeyboardInterrupt once the window closes. Main thread only."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    held: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, _frame: held.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    if held:
+        raise KeyboardInterrupt
 
 
 def _stop_workers(pool: Any) -> None:
