@@ -62,7 +62,7 @@ def _worker_started(parent: int) -> None:
 
 
 @contextlib.contextmanager
-def _sigint_ignored() -> Iterator[None]:
+def _sigint_held() -> Iterator[None]:
     """SIGINT blocked while the workers are spawned: a spawned interpreter keeps the mask it
     was born with, so a Ctrl-C that reaches a worker still importing (the terminal signals
     the whole group) waits until `_worker_started` ignores it, instead of printing its
@@ -122,7 +122,7 @@ def collect_in_processes(
     context = get_context("spawn")
     pool = ProcessPoolExecutor(workers, context, initializer=_worker_started, initargs=(os.getpid(),))
     try:
-        with _sigint_ignored():  # the workers start during the first submits, and inherit it
+        with _sigint_held():  # the workers start during the first submits, and inherit it
             pending = {
                 pool.submit(_worker_job, run_job, job, action_noise, resolved.config, pins, workers): n
                 for n, job in enumerate(jobs)

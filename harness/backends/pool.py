@@ -83,9 +83,6 @@ def kill_tree(pid: int) -> None:
     for target in reversed(stopped):  # the deepest first, the worker last
         with contextlib.suppress(OSError):
             os.kill(target, signal.SIGKILL)
-    if not stopped:
-        with contextlib.suppress(OSError):
-            os.kill(pid, signal.SIGKILL)
 
 
 def worker_main(conn: Any, worker_id: str, spec: WorkerSpec) -> None:
