@@ -40,7 +40,9 @@ Holds = Callable[[Predicate], bool]
 
 
 def goal_holds(subtask: Subtask, holds: Holds) -> bool:
-    return all(holds(p) for p in subtask.goal)
+    """Its goal predicates all hold and none of its `goal_not` does (a take-out is done
+    when its object is on its starting region and out of the tray)."""
+    return all(holds(p) for p in subtask.goal) and not any(holds(p) for p in subtask.goal_not)
 
 
 def subtask_record(subtask: Subtask) -> dict[str, Any]:

@@ -77,6 +77,10 @@ class Subtask:
     unless: tuple[Predicate, ...]  # eligible only while none of these holds
     removes: tuple[Predicate, ...]
     source: str  # one of SOURCES
+    # The goal counts only while none of these holds: a take-out's object is on its
+    # starting region and no longer in the tray, so carrying the tray there with the
+    # object still in it is not a take-out (LIBERO's On and In can hold together).
+    goal_not: tuple[Predicate, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -97,7 +101,7 @@ class Scene:
 
     def predicates(self) -> set[Predicate]:
         """Every predicate a subtask names (what the simulator must be able to evaluate)."""
-        return {p for s in self.subtasks for p in (*s.goal, *s.pre, *s.unless, *s.removes)}
+        return {p for s in self.subtasks for p in (*s.goal, *s.goal_not, *s.pre, *s.unless, *s.removes)}
 
 
 @dataclass(frozen=True)
@@ -169,6 +173,7 @@ def load_scene(name: str) -> Scene:
                 unless=_predicates(entry, "unless", where),
                 removes=_predicates(entry, "removes", where),
                 source=entry["source"],
+                goal_not=_predicates(entry, "goal_not", where),
             )
         )
     for field in ("id", "instruction"):  # a policy tells subtasks apart by instruction alone
@@ -182,19 +187,25 @@ def load_scene(name: str) -> Scene:
     return Scene(name=name, libero_suite=suite, libero_task=data["libero_task"], subtasks=tuple(subtasks))
 
 
+def goal_met(subtask: Subtask, state: frozenset[Predicate]) -> bool:
+    """Whether the subtask's goal holds in a symbolic state: its `goal` all there, none of
+    its `goal_not` (adapters/chain_credit.goal_holds reads the live state the same way)."""
+    return set(subtask.goal) <= state and not set(subtask.goal_not) & state
+
+
 def eligible(scene: Scene, state: frozenset[Predicate]) -> list[Subtask]:
     """Subtasks whose preconditions hold in `state`, none of whose `unless` does, and
     whose goal does not yet."""
     return [
         s
         for s in scene.subtasks
-        if set(s.pre) <= state and not set(s.unless) & state and not set(s.goal) <= state
+        if set(s.pre) <= state and not set(s.unless) & state and not goal_met(s, state)
     ]
 
 
 def apply(subtask: Subtask, state: frozenset[Predicate]) -> frozenset[Predicate]:
-    """The symbolic state once `subtask`'s goal holds."""
-    return frozenset((state - set(subtask.removes)) | set(subtask.goal))
+    """The symbolic state once `subtask`'s goal holds (its `goal_not` then does not)."""
+    return frozenset((state - set(subtask.removes) - set(subtask.goal_not)) | set(subtask.goal))
 
 
 def check_chain(
@@ -453,7 +464,7 @@ def scene_problem(scene: Scene) -> dict[str, Any]:
     problem = dict(libero_sim.task_problem(scene.libero_suite, libero_task_index(scene)))
     goals: list[list[str]] = []
     for s in scene.subtasks:
-        for p in (*s.goal, *s.pre, *s.unless):
+        for p in (*s.goal, *s.goal_not, *s.pre, *s.unless):
             if list(p) not in goals:
                 goals.append(list(p))
     problem["goal_state"] = goals

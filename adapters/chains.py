@@ -38,8 +38,9 @@ from adapters.base import (
 from adapters.chain_credit import ChainCredit
 
 # 2: CALVIN's credit rule (adapters/chain_credit.py): a subtask whose goal holds at its
-# start fails the chain; version 1 credited it after one step.
-SUITE_VERSION = "2"
+# start fails the chain; version 1 credited it after one step. 3: a goal may name what
+# must not hold (`goal_not`): living_room_scene4's take-outs need the object out of the tray.
+SUITE_VERSION = "3"
 PREFIX = "chains/"
 ALL = "all"
 # A chain-only suite option (the rest are LIBERO's): `goal_positions=on` appends the

@@ -119,7 +119,7 @@ def test_on_liberos_live_state_a_later_subtask_already_in_place_fails_the_chain(
     from tests.chain_live import put_in_tray
 
     suite = chains.load_suite(f"chains/{SCENE}")
-    assert suite.version == chains.SUITE_VERSION == "2"
+    assert suite.version == chains.SUITE_VERSION == "3"
     env = suite.make_env(suite.tasks[0])
     chain = tuple(f"{g}_in_tray" for g in GROCERIES)
     try:

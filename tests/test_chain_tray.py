@@ -45,6 +45,7 @@ def test_every_take_out_undoes_its_put_in_in_the_model():
     for name, (obj, region) in OBJECTS.items():
         put_in, take_out = scene.subtask(f"{name}_in_tray"), scene.subtask(f"{name}_out_of_tray")
         assert put_in.goal == (("in", obj, TRAY),) and take_out.goal == (("on", obj, region),)
+        assert take_out.goal_not == (("in", obj, TRAY),)  # on its region and out of the tray
         assert take_out not in cs.eligible(scene, start_state())  # nothing in the tray at the start
         state = cs.apply(put_in, start_state())
         assert ("on", obj, region) not in state
@@ -68,8 +69,9 @@ def test_the_stored_chains_are_the_samplers_and_take_out_what_they_put_in():
 
 def test_calvins_credit_on_a_chain_that_puts_in_and_takes_out():
     """The take-out counts only once its object has left the tray for its starting region
-    after the take-out took over; a take-out whose goal already holds then (the put-in was
-    credited while the object still stood on its region) fails the chain at once."""
+    after the take-out took over. An object counted In the tray and On its region at once
+    (the tray under it) has not been taken out: the take-out stays in force until the
+    object is on its region and out of the tray."""
     scene = cs.load_scene(SCENE)
     ids = ("left_bowl_in_tray", "left_bowl_out_of_tray", "chocolate_pudding_in_tray")
     chain = tuple(scene.subtask(i) for i in (*ids, "chocolate_pudding_out_of_tray", "left_bowl_in_tray"))
@@ -86,10 +88,59 @@ def test_calvins_credit_on_a_chain_that_puts_in_and_takes_out():
     assert credit.completed == 2 and credit.records[1]["steps"] == 2
     assert credit.records[2]["outcome"] == cc.IN_PROGRESS
 
-    held = cc.ChainCredit.begin(chain, lambda p: False)
-    both = {("in", bowl, TRAY), ("on", bowl, region)}  # in the tray and still over its region
-    assert held.after_step(lambda p: tuple(p) in both)
-    assert [r["outcome"] for r in held.records[:2]] == [cc.COMPLETED, cc.GOAL_HELD_AT_START]
+    carried = cc.ChainCredit.begin(chain, lambda p: False)
+    both = {("in", bowl, TRAY), ("on", bowl, region)}  # in the tray, the tray on its region
+    assert not carried.after_step(lambda p: tuple(p) in both)
+    assert [r["outcome"] for r in carried.records[:2]] == [cc.COMPLETED, cc.IN_PROGRESS]
+    assert not carried.records[1]["goal_held_at_start"]
+    assert not carried.after_step(lambda p: tuple(p) in both)  # the tray carried there is no take-out
+    assert carried.completed == 1
+    assert not carried.after_step(lambda p: tuple(p) in {("on", bowl, region)})  # out of the tray
+    assert carried.completed == 2 and carried.records[1]["outcome"] == cc.COMPLETED
+
+
+@needs_libero
+def test_on_the_live_state_a_tray_carried_to_the_region_is_not_a_take_out():
+    """LIBERO's On and In hold together when the tray is set down with the pudding in it
+    over the pudding's starting region (the expert once lifted the tray with the pudding,
+    its far finger pinching the tray's wall): the take-out's goal is then false, and true
+    once the pudding stands on its region out of the tray."""
+    from adapters import chains
+    from adapters.base import EpisodeSpec
+
+    scene = cs.load_scene(SCENE)
+    take_out = scene.subtask("chocolate_pudding_out_of_tray")
+    obj, region = OBJECTS["chocolate_pudding"]
+    chain = ("chocolate_pudding_in_tray", "chocolate_pudding_out_of_tray", "left_bowl_in_tray",
+             "salad_dressing_in_tray", "chocolate_pudding_out_of_tray")  # fmt: skip
+    suite = chains.load_suite(f"chains/{SCENE}")
+    env = suite.make_env(suite.tasks[0])
+    try:
+        env.reset(options={"episode": EpisodeSpec(index=0, seed=0, init_state_id=0, chain=chain)})
+        sim = env.inner.libero.env.sim
+        assert env.holds(("on", obj, region)) and not env.holds(("in", obj, TRAY))  # at the start
+        pudding = sim.data.get_joint_qpos(f"{obj}_joint0").copy()
+        tray = sim.data.get_joint_qpos("wooden_tray_1_joint0").copy()
+        tray[:2] = pudding[:2]  # the tray under the pudding, on the pudding's region
+        pudding[2] += 0.04  # onto the tray's floor
+        sim.data.set_joint_qpos("wooden_tray_1_joint0", tray)
+        sim.data.set_joint_qpos(f"{obj}_joint0", pudding)
+        sim.forward()
+        for _ in range(200):  # settle
+            sim.step()
+        assert env.holds(("in", obj, TRAY)) and env.holds(("on", obj, region))
+        assert not cc.goal_holds(take_out, env.holds)
+        tray[:2] += [0.0, 0.45]  # the tray away; the pudding back on the table
+        pudding[2] -= 0.04
+        sim.data.set_joint_qpos("wooden_tray_1_joint0", tray)
+        sim.data.set_joint_qpos(f"{obj}_joint0", pudding)
+        sim.forward()
+        for _ in range(200):
+            sim.step()
+        assert not env.holds(("in", obj, TRAY)) and env.holds(("on", obj, region))
+        assert cc.goal_holds(take_out, env.holds)
+    finally:
+        env.close()
 
 
 def _bowl_plan(tray_yaw: float):
