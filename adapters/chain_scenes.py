@@ -365,28 +365,51 @@ def load_user_chains(path: Path, scene: str) -> ChainSet:
     return chains
 
 
+CHAIN_FILE_KEYS = ("scene", "chains", "seed", "command")
+
+
 def _parse_chains(raw: bytes, path: Path, sha256: str, stored: bool) -> ChainSet:
+    """The chain file's fields, each checked by name, so a wrong file is refused with
+    what is wrong in it and what a chain file holds (docs/chains.md, "Your own chains")."""
+    layout = (
+        '{"scene": "<scene>", "chains": [["<subtask id>", ... 5 ids], ...]} '
+        '(optional: "seed" an integer, "command" a string)'
+    )
+
+    def refuse(problem: str) -> ChainDataError:
+        return ChainDataError(f"{path}: not a chain file: {problem}; a chain file is {layout}")
+
     try:
         data = json.loads(raw.decode(), object_pairs_hook=_unique_keys)
-        unknown = sorted(set(data) - {"scene", "seed", "command", "chains"})
-        if unknown:
-            raise ValueError(f"unknown keys {unknown}; a chain file has scene, chains, seed, command")
-        chains = data["chains"]
-        if not isinstance(chains, list) or not chains:
-            raise ValueError("chains must be a non-empty list of chains")
-        for j, chain in enumerate(chains):
-            if not isinstance(chain, list) or not all(isinstance(s, str) for s in chain):
-                raise ValueError(f"chain {j} is not a list of subtask ids")
-        seed, command = (data["seed"], data["command"]) if stored else (data.get("seed"), data.get("command"))
-        return ChainSet(
-            scene=str(data["scene"]),
-            seed=None if seed is None else int(seed),
-            command=None if command is None else str(command),
-            chains=tuple(tuple(c) for c in chains),
-            sha256=sha256,
-        )
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise ChainDataError(f"{path}: not a chain file ({type(exc).__name__}: {exc})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise refuse(f"not valid JSON ({exc})") from None
+    except ValueError as exc:  # a repeated key (_unique_keys)
+        raise refuse(str(exc)) from None
+    if not isinstance(data, dict):
+        raise refuse(f"the top level is a JSON {type(data).__name__}, not an object")
+    unknown = sorted(set(data) - set(CHAIN_FILE_KEYS))
+    if unknown:
+        raise refuse(f"unknown keys {unknown}")
+    required = ("scene", "chains", "seed", "command") if stored else ("scene", "chains")
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise refuse(f"missing {', '.join(repr(k) for k in missing)}")
+    if not isinstance(data["scene"], str) or not data["scene"]:
+        raise refuse(f'"scene" must be a scene name (a string), not {data["scene"]!r}')
+    chains = data["chains"]
+    if not isinstance(chains, list) or not chains:
+        raise refuse('"chains" must be a non-empty list of chains')
+    for j, chain in enumerate(chains):
+        if not isinstance(chain, list) or not all(isinstance(s, str) for s in chain):
+            raise refuse(f"chain {j} is not a list of subtask ids")
+    seed, command = data.get("seed"), data.get("command")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+        raise refuse(f'"seed" must be an integer or null, not {seed!r}')
+    if command is not None and not isinstance(command, str):
+        raise refuse(f'"command" must be a string or null, not {command!r}')
+    return ChainSet(
+        scene=data["scene"], seed=seed, command=command, chains=tuple(tuple(c) for c in chains), sha256=sha256
+    )
 
 
 # The recorded sha256 of every chain file, one line each in sha256sum's format

@@ -41,7 +41,12 @@ def test_a_user_file_reads_in_the_stored_format_and_hashes_its_own_bytes(tmp_pat
         ({"scene": SCENE, "chains": []}, "non-empty list of chains"),
         ({"scene": SCENE, "chains": ["butter_in_tray"]}, "chain 0 is not a list of subtask ids"),
         ({"scene": SCENE, "chain": [IN_ORDER]}, "unknown keys ['chain']"),
-        ({"chains": [IN_ORDER]}, "KeyError"),
+        ({"chains": [IN_ORDER]}, "missing 'scene'"),
+        ([IN_ORDER], "the top level is a JSON list, not an object"),
+        ({"scene": SCENE, "chains": [IN_ORDER], "seed": "x"}, "\"seed\" must be an integer or null, not 'x'"),
+        ({"scene": SCENE, "chains": [IN_ORDER], "seed": True}, '"seed" must be an integer'),
+        ({"scene": SCENE, "chains": [IN_ORDER], "command": 3}, '"command" must be a string'),
+        ({"scene": ["x"], "chains": [IN_ORDER]}, '"scene" must be a scene name'),
         ({"scene": "libero_goal", "chains": [IN_ORDER]}, "for scene 'libero_goal', not 'living_room_scene3'"),
     ],
 )
@@ -51,6 +56,21 @@ def test_a_malformed_user_file_is_refused_naming_it(tmp_path, body, needle):
     with pytest.raises(cs.ChainDataError, match=None) as err:
         cs.load_user_chains(path, SCENE)
     assert str(path) in str(err.value) and needle in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ('{"scene": "x", "chains": [', "not valid JSON"),
+        ('{"scene": "living_room_scene3", "chains": [], "chains": []}', "key 'chains' appears twice"),
+    ],
+)
+def test_a_user_file_that_is_not_json_is_refused_with_the_layout(tmp_path, text, needle):
+    path = tmp_path / "bad.json"
+    path.write_text(text)
+    with pytest.raises(cs.ChainDataError) as err:
+        cs.load_user_chains(path, SCENE)
+    assert needle in str(err.value) and '"chains": [["<subtask id>"' in str(err.value)
 
 
 @needs_libero

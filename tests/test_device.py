@@ -1,4 +1,4 @@
-"""`run --device cpu|cuda|auto` (issue 22): model policies decode where asked, the manifest
+"""`run --device cpu|cuda|auto`: model policies decode where asked, the manifest
 says where, and a GPU that is not there is refused before anything is written."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Provenance a new user relies on (issue 22): the commit and version of a non-editable
+"""Provenance a new user relies on: the commit and version of a non-editable
 install, and MUJOCO_GL recorded as what the suite's observations actually use."""
 
 from __future__ import annotations

@@ -112,7 +112,7 @@ def test_sigterm_stops_cleanly_and_compacts(tmp_path):
     assert 2 <= rows < 10
 
 
-# --- resume that users can type (issue 21) ----------------------------------------------
+# --- resume that users can type ----------------------------------------------
 
 MT1 = ["run", "--suite", "metaworld/mt1/reach-v3", "--quiet"]
 

@@ -1,6 +1,6 @@
 """A run folder cannot lose or mix rows: one writer at a time, cut-off lines repaired
 before the next append, checkpoints identified by content, a full disk reported in one
-line (exit 3), and housekeeping that deletes only what the harness wrote (issue 21)."""
+line (exit 3), and housekeeping that deletes only what the harness wrote."""
 
 from __future__ import annotations
 

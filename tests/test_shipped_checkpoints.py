@@ -151,7 +151,7 @@ def test_the_shipped_simpler_teacher_pulls_the_cube_by_set_name(cli, tmp_path):
 
 
 def test_the_shipped_chain_set_reads_the_goal_positions_state():
-    """The tray-scene set (issue 24) was trained with `goal_positions=on`: its state is
+    """The tray-scene set was trained with `goal_positions=on`: its state is
     the scene's plus the goal's two positions, and every recipe says so in its sources."""
     chain = {name: load(SHIPPED / f"chains-tray-{name}.safetensors") for name in EXPECTED}
     for name, ckpt in chain.items():

@@ -157,7 +157,7 @@ def simplerenv_pipeline(per_setting: dict[str, dict[str, list[float]]], task: st
     return reference_mmrv(sim, real), reference_pearson(sim, real)
 
 
-def test_the_issue_example_is_computed_on_the_aggregate_not_per_variant():
+def test_two_opposite_variants_average_out_on_the_aggregate_but_not_per_variant():
     """Canonical [0.5, 0.6, 0.7]; one background reverses them ([0.7, 0.6, 0.5]), the other
     spreads them ([0.3, 0.6, 0.9]): the aggregate keeps the canonical order (SimplerEnv:
     MMRV 0, r 1), where a mean of per-variant metrics reports a violation and r 0."""
@@ -172,7 +172,7 @@ def test_the_issue_example_is_computed_on_the_aggregate_not_per_variant():
     r = ranking_stability(stats)
     assert r.per_task["push_cube"][:2] == (0.0, pytest.approx(1.0, abs=1e-6))
     assert (r.mmrv, r.pearson) == pytest.approx(simplerenv_pipeline(rates, "push_cube"))
-    # the per-variant diagnostic, the issue's 0.083 and 0.0: reversed (0.2 + 0.1 + 0.2) / 3
+    # the per-variant diagnostic, 0.083 and 0.0: reversed (0.2 + 0.1 + 0.2) / 3
     # and r -1, spread 0 and r 1, averaged over the two backgrounds
     assert r.per_axis["background"][:2] == (pytest.approx(0.5 / 3 / 2), pytest.approx(0.0, abs=1e-6))
 

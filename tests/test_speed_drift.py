@@ -1,4 +1,4 @@
-"""Calibration drift (issue 22): a run whose machine load changed between its start and
+"""Calibration drift: a run whose machine load changed between its start and
 end is flagged in its manifest, and `show`, `leaderboard` and `gate` say one line about it."""
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def test_an_interrupted_run_is_not_judged_and_old_manifests_are_judged_from_thei
     m = calibrated(10_355.0)
     record_end_calibration(m, "interrupted")
     assert "speed_reliable" not in m and speed_warning(m) == ""
-    old = calibrated(10_355.0, 5_192.0)  # issue 22's run, written before the flag existed
+    old = calibrated(10_355.0, 5_192.0)  # a run written before the flag existed
     assert calibration_drift(old) == pytest.approx(-0.4986, abs=1e-4)
     assert "moved -50% between the run's start and end (10,355 -> 5,192 passes/s" in speed_warning(old)
     assert speed_warning(MANIFEST) == ""  # no calibration: nothing to say

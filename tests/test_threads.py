@@ -1,4 +1,4 @@
-"""Thread counts (issue 22): `--threads`, a default that does not oversubscribe, both
+"""Thread counts: `--threads`, a default that does not oversubscribe, both
 applied to torch before it works and recorded in the manifest. Each case runs in a fresh
 interpreter: torch's thread pools are per process and its inter-op count can be set once."""
 

@@ -1,4 +1,4 @@
-"""Warm-up (issue 22): a policy's one-off first-call cost is paid before its first timed
+"""Warm-up: a policy's one-off first-call cost is paid before its first timed
 episode, recorded in the manifest, and charged to no row (neither time nor NFE)."""
 
 from __future__ import annotations
