@@ -179,6 +179,58 @@ def test_a_bowl_in_the_tray_is_gripped_along_the_trays_long_side_toward_its_cent
     assert rot == pytest.approx(expert.home_rot) and point[:2] - obs[20:22] == pytest.approx([0.0, 0.045])
 
 
+def _pudding_plan(tray_yaw: float, revision: int = 6):
+    """The pudding resting in the tray 3.5 cm off its long axis (as after chain 35's put-in),
+    its box lined up with the tray, and the expert about to take it out."""
+    from policies.experts.libero_geometry import GEOMETRY
+    from policies.experts.libero_pick import LiberoScriptedParams, PickPlace, PickPlaceExpert
+
+    rot = np.array([[np.cos(tray_yaw), -np.sin(tray_yaw)], [np.sin(tray_yaw), np.cos(tray_yaw)]])
+    quat = [0.0, 0.0, np.sin(tray_yaw / 2), np.cos(tray_yaw / 2)]  # xyzw
+    obs = np.zeros(40)
+    obs[0:7] = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]  # the hand, pointing down (xyzw)
+    obs[10:17] = [0.0, 0.3, 0.437, *quat]  # the tray
+    obs[20:27] = [*(np.array([0.0, 0.3]) + rot @ [0.1, 0.035]), 0.486, *quat]  # the pudding, near a long wall
+    obs[27:30] = [-0.1, -0.15, 0.44]  # its starting region, on the table
+    plan = PickPlace(
+        obj=slice(20, 27), obj_geom=GEOMETRY["chocolate_pudding"], target=slice(27, 30), target_geom=None,
+        into=False, others=(slice(10, 17),), source=slice(10, 17), source_geom=GEOMETRY["wooden_tray"],
+    )  # fmt: skip
+    expert = PickPlaceExpert(plan, LiberoScriptedParams(revision=revision), None)
+    expert.home_rot = np.diag([1.0, -1.0, -1.0])  # the xyzw quaternion above
+    return expert, obs, rot
+
+
+@pytest.mark.parametrize("tray_yaw", [0.0, np.pi / 2, np.pi])
+def test_an_object_near_the_trays_wall_is_gripped_with_the_open_hand_clear_of_it(tray_yaw):
+    """Revision 6: the open hand reaches OPEN_REACH along its closing axis; gripped at its
+    centre, 4.3 cm from the tray's long wall, the pudding put the far finger on the wall and
+    the tray came up with it (chains 30, 34, 35). The grip point moves toward the tray's
+    centre until the hand clears the wall, by at most WALL_SHIFT; in the middle of the tray,
+    on the table, or under revision 5 it stays on the pudding."""
+    from policies.experts.libero_geometry import GEOMETRY
+    from policies.experts.libero_pick import OPEN_REACH, WALL_SHIFT
+
+    expert, obs, rot = _pudding_plan(tray_yaw)
+    grip_rot, point = expert._grasp(obs)
+    closing = rot.T @ grip_rot[:2, 1]
+    assert abs(closing[1]) == pytest.approx(1.0, abs=1e-6)  # across the tray, the pudding's short side
+    local = rot.T @ (point[:2] - obs[10:12])
+    moved = local - [0.1, 0.035]
+    assert (
+        moved[0] == pytest.approx(0.0, abs=1e-9) and -WALL_SHIFT - 1e-9 <= moved[1] < 0
+    )  # toward the centre
+    wall = GEOMETRY["wooden_tray"].inner[1]
+    assert local[1] + OPEN_REACH == pytest.approx(wall, abs=1e-9) or moved[1] == pytest.approx(-WALL_SHIFT)
+
+    obs[20:22] = obs[10:12] + rot @ [0.0, 0.0]  # in the middle of the tray: room either side
+    assert expert._grasp(obs)[1][:2] == pytest.approx(obs[20:22])
+    obs[20:22] = [0.5, -0.3]  # on the table: no walls
+    assert expert._grasp(obs)[1][:2] == pytest.approx(obs[20:22])
+    old, obs, _ = _pudding_plan(tray_yaw, revision=5)
+    assert old._grasp(obs)[1][:2] == pytest.approx(obs[20:22])
+
+
 @needs_libero
 def test_the_expert_takes_out_of_the_tray_what_it_put_in_on_the_live_state():
     """The scripted expert puts the salad dressing into the tray (LIBERO-90's task), then

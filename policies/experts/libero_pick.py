@@ -77,6 +77,14 @@ REACHED = 0.03
 # region's centre, so in a chain the fifth grocery landed on the other four and stayed
 # above the tray's contain region (chains/living_room_scene3: 6 of its 50 chains).
 SPOT_MARGIN = 0.04  # m from the container's walls to an object's centre
+# Revision 6: an open Panda hand reaches this far along its closing axis from the grip
+# point (a finger's collision mesh, 5.1 cm out and 1.4 cm thick), so gripping an object
+# that rests near a tray's wall put the far finger on the wall, and the closing fingers
+# lifted the tray with the object (chains/living_room_scene4, the pudding's take-out).
+# The grip point then moves toward the container's centre, at most WALL_SHIFT.
+OPEN_REACH = 0.064
+FINGER_BELOW = 0.011  # and its mesh reaches this far below the grip point
+WALL_SHIFT = 0.02
 # Revision 5 puts an object going on a top surface (a cabinet's `top_side`) on the free
 # point of a grid on it nearest the robot: SURFACE_MARGIN in from its edges, SURFACE_CLEAR
 # from what already stands there (a bowl's and a wine bottle's radii and a centimetre).
@@ -98,7 +106,7 @@ DROPPED = 0.04
 # HANDLE_LIFT (m) higher: at the usual height the pan, 20 cm across, swept the moka pot
 # standing between it and the stove off the table (chains/kitchen_scene3, chain 13).
 HANDLE_LIFT = 0.08
-REVISIONS = (1, 2, 3, 4, 5)
+REVISIONS = (1, 2, 3, 4, 5, 6)
 
 
 def quat_to_mat(q: np.ndarray) -> np.ndarray:
@@ -138,8 +146,9 @@ class LiberoScriptedParams:
     )
     seed: int = param(0, "seed of the action noise", low=0)
     revision: int = param(
-        5,
-        "expert revision: 5 = lines up on a drawer from above and shuts a drawer in the way first; "
+        6,
+        "expert revision: 6 = grips an object in a tray with the open hand clear of its walls; "
+        "5 = lines up on a drawer from above and shuts a drawer in the way first; "
         "4 = puts an object going into a tray on its free spot; "
         "3 = closes as soon as the descending hand stops near the grip; "
         "2 = fixed-count finger narrowing for drawers and a lift once the grip has settled; "
@@ -221,7 +230,43 @@ class PickPlaceExpert:
                 inward = obs[self.plan.source][:2] - pos[:2]
                 axis = closing_axis * np.sign(float(closing_axis[:2] @ inward) or 1.0)
             point[:2] += g.rim * axis[:2] / max(np.linalg.norm(axis[:2]), 1e-6)
+        if self.params.revision >= 6 and g.rim <= 0 and self._below_walls(obs, point):
+            point[:2] += self._clear_of_walls(obs, point, closing_axis)
         return point
+
+    def _below_walls(self, obs: np.ndarray, point: np.ndarray) -> bool:
+        """Whether the object rests in the source container and the open fingers, reaching
+        FINGER_BELOW under the grip point, come down past the top of its walls (a bottle
+        gripped high is not; a bowl's rim grip sits toward the centre already)."""
+        plan = self.plan
+        if not self._in_source(obs):
+            return False
+        assert plan.source is not None and plan.source_geom is not None
+        return bool(point[2] - FINGER_BELOW < obs[plan.source][2] + plan.source_geom.top)
+
+    def _clear_of_walls(self, obs: np.ndarray, point: np.ndarray, closing_axis: np.ndarray) -> np.ndarray:
+        """How far to move the grip point along the closing axis so the open hand (OPEN_REACH
+        each way) stays inside the source container's floor, at most WALL_SHIFT: the
+        fingers then push the object off the wall as they close."""
+        plan = self.plan
+        assert plan.source is not None and plan.source_geom is not None and plan.source_geom.inner is not None
+        rot = quat_to_mat(obs[plan.source][3:7])[:2, :2]
+        axis = rot.T @ closing_axis[:2]
+        axis = axis / max(float(np.linalg.norm(axis)), 1e-6)
+        local = rot.T @ (point[:2] - obs[plan.source][:2])
+        inner = np.asarray(plan.source_geom.inner)
+
+        def to_wall(direction: np.ndarray) -> float:
+            steps = [
+                (np.sign(c) * h - x) / c
+                for c, h, x in zip(direction, inner, local, strict=True)
+                if abs(c) > 1e-6
+            ]
+            return max(min(steps), 0.0)
+
+        ahead, behind = to_wall(axis), to_wall(-axis)
+        shift = min(ahead - OPEN_REACH, 0.0) + max(OPEN_REACH - behind, 0.0)
+        return float(np.clip(shift, -WALL_SHIFT, WALL_SHIFT)) * (rot @ axis)
 
     def _grip_rotation(self, obs: np.ndarray) -> np.ndarray:
         """The start orientation turned about z so the fingers close along the object's
