@@ -67,8 +67,9 @@ def _sigint_held() -> Iterator[None]:
     was born with, so a Ctrl-C that reaches a worker still importing (the terminal signals
     the whole group) waits until `_worker_started` ignores it, instead of printing its
     traceback. The parent's own Ctrl-C in that window is held, not lost: recorded by a
-    handler of this window (another thread may take the signal), then raised as
-    KeyboardInterrupt once the window closes. Main thread only."""
+    handler of this window (another thread may take the signal), then handed to the
+    handler it had before once the window closes: KeyboardInterrupt, or nothing in a
+    process that ignores SIGINT (a background job of a shell script). Main thread only."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -80,8 +81,11 @@ def _sigint_held() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, previous)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-    if held:
-        raise KeyboardInterrupt
+    if held and previous is not signal.SIG_IGN:
+        if callable(previous):
+            previous(signal.SIGINT, None)  # Python's default_int_handler raises KeyboardInterrupt
+        else:
+            raise KeyboardInterrupt
 
 
 def _stop_workers(pool: Any) -> None:

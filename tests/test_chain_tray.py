@@ -102,7 +102,7 @@ def test_calvins_credit_on_a_chain_that_puts_in_and_takes_out():
 @needs_libero
 def test_on_the_live_state_a_tray_carried_to_the_region_is_not_a_take_out():
     """LIBERO's On and In hold together when the tray is set down with the pudding in it
-    over the pudding's starting region (the expert once lifted the tray with the pudding,
+    over the pudding's starting region (the expert's revision 5 lifts the tray with the pudding,
     its far finger pinching the tray's wall): the take-out's goal is then false, and true
     once the pudding stands on its region out of the tray."""
     from adapters import chains

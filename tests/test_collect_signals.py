@@ -52,9 +52,10 @@ def test_no_process_of_the_collection_outlives_its_parent(tmp_path, stop):
         "scripted", "--episodes-per-task", "400", "--workers", "2", "--out", str(out), "--quiet",
     ]  # fmt: skip
     with err.open("w") as stderr:  # a file, not a pipe nobody reads
-        proc = subprocess.Popen(
-            command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True
-        )
+        proc = subprocess.Popen(  # SIGINT as a terminal leaves it, however pytest was started
+            command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )  # fmt: skip
     try:
         # both workers and the resource tracker are up; then they build and collect a while
         assert _until(lambda: len(_session(proc.pid)) >= 3, 120), _session(proc.pid)
@@ -128,11 +129,34 @@ def test_a_ctrl_c_while_the_workers_start_is_held_not_lost():
     the collection ran to its end)."""
     from harness.collect_pool import _sigint_held
 
-    with pytest.raises(KeyboardInterrupt):
-        with _sigint_held():
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)  # held: no KeyboardInterrupt inside the window
-            inside = True
-    assert inside
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal starts Python
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _sigint_held():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)  # held: no KeyboardInterrupt inside the window
+                inside = True
+        assert inside
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def test_a_process_that_ignores_ctrl_c_keeps_ignoring_it_while_the_workers_start():
+    """A collection started as a shell script's background job has SIGINT ignored from the
+    start: a SIGINT in the window is dropped, as outside it, and the handler stays ignored."""
+    from harness.collect_pool import _sigint_held
+
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        try:
+            with _sigint_held():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)
+        except KeyboardInterrupt:
+            pytest.fail("a SIGINT the process ignores was raised as KeyboardInterrupt")
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    finally:
+        signal.signal(signal.SIGINT, before)
