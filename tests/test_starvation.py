@@ -101,16 +101,28 @@ def test_a_cpu_bound_policy_with_its_core_is_not_flagged(monkeypatch, tmp_path):
     assert speed_warning(manifest) == ""
 
 
+class SpinningBatchPolicy(BatchPolicy):
+    """A batching policy that works 2 ms on its core in every call."""
+
+    def act_batch(self, episodes, observations):
+        end = time.thread_time() + 0.002
+        while time.thread_time() < end:
+            pass
+        return super().act_batch(episodes, observations)
+
+
 def test_batched_episodes_share_their_calls_cpu_time_and_are_judged_alike(monkeypatch):
     policy = BatchPolicy(chunk=3, delay=0.02)  # waits inside every call
     out, _, _ = batched(policy, episodes=4, k=2)
     for _, o in out:
         assert o.policy_cpu_time_s is not None and o.policy_cpu_time_s < o.policy_time_s / 3
     assert any(is_starved(o.policy_time_s, o.policy_cpu_time_s) for _, o in out)
-    # with its core all the time (wall = the thread's CPU clock) no slot is starved
+    # with its core all the time (wall = the thread's CPU clock) no slot is starved; each
+    # call works 2 ms on its core, so the clocks compare milliseconds, not the loop's
+    # sub-millisecond bookkeeping between the two reads (0.1 ms apart on a busy machine)
     monkeypatch.setattr(loop_module, "clock", time.thread_time)
     monkeypatch.setattr(timed_module, "clock", time.thread_time)
-    out, _, _ = batched(BatchPolicy(chunk=3), episodes=4, k=2)
+    out, _, _ = batched(SpinningBatchPolicy(chunk=3), episodes=4, k=2)
     for _, o in out:
         assert o.policy_cpu_time_s == pytest.approx(o.policy_time_s, rel=0.05, abs=1e-4)
         assert not is_starved(o.policy_time_s, o.policy_cpu_time_s)
